@@ -1,0 +1,13 @@
+"""socnav: uncertainty-aware social robot navigation with deep reinforcement learning.
+
+A batched crowd simulator with socially individual ORCA humans, Gymnasium / SB3 environments and ODV-PPO.
+"""
+
+from socnav.config import ConfigError, EnvConfig, load_config
+from socnav.envs import SocialNavEnv, SocialNavVecEnv, make_env, make_vec_env
+from socnav.envs.registration import register_envs
+
+__version__ = "0.1.0"
+__all__ = ["ConfigError", "EnvConfig", "SocialNavEnv", "SocialNavVecEnv", "load_config", "make_env", "make_vec_env"]
+
+register_envs()

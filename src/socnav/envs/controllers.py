@@ -1,0 +1,133 @@
+"""Non-learning robot controllers that act from the observation alone: `orca` and `straight`.
+
+They are the baselines of `socnav evaluate` and, with inflated human radii, the cautious fallback of the safety layer.
+Both follow SB3's `predict(observation, deterministic=True) -> (actions, None)` so any rollout can use them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from socnav.config import EnvConfig
+from socnav.sim.orca import orca_velocities
+
+Observation = dict[str, np.ndarray]
+
+
+def _batched(observation: Observation) -> tuple[Observation, bool]:
+    single = observation["robot"].ndim == 1
+    if single:
+        observation = {key: value[None] for key, value in observation.items()}
+    return observation, single
+
+
+def holonomic_to_unicycle(
+    desired: np.ndarray, observation: Observation, max_heading_change: float
+) -> np.ndarray:
+    """Turn desired velocities (goal frame, (E, 2)) into actions in [-1, 1]^2 within the robot's limits.
+
+    Turn towards the desired direction by at most `max_heading_change`; drive at |u| cos(remaining heading error)
+    so the robot never moves sideways of where ORCA allows, and stops while it is still facing away.
+    """
+    robot = observation["robot"].astype(np.float64)
+    heading, preferred_speed = robot[:, 1], np.maximum(robot[:, 3], 1e-6)
+    speed = np.linalg.norm(desired, axis=1)
+    target = np.where(speed > 1e-6, np.arctan2(desired[:, 1], desired[:, 0]), 0.0)  # at rest: face the goal
+    error = np.remainder(target - heading + np.pi, 2 * np.pi) - np.pi
+    turn = np.clip(error, -max_heading_change, max_heading_change)
+    forward = np.minimum(speed, preferred_speed) * np.maximum(np.cos(error - turn), 0.0)
+    actions = np.stack([2.0 * forward / preferred_speed - 1.0, turn / max_heading_change], axis=1)
+    return np.clip(actions, -1.0, 1.0).astype(np.float32)
+
+
+def _goal_velocity(observation: Observation, time_step: float) -> np.ndarray:
+    """v_pref towards the goal (the +x axis of the goal frame), slowing down to stop on it."""
+    robot = observation["robot"].astype(np.float64)
+    speed = np.minimum(np.maximum(robot[:, 3], 0.0), np.maximum(robot[:, 0], 0.0) / time_step)
+    return np.stack([speed, np.zeros_like(speed)], axis=1)
+
+
+class StraightController:
+    """Head for the goal at the preferred speed, ignoring humans."""
+
+    def __init__(self, config: EnvConfig):
+        self.config = config
+
+    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+        observation, single = _batched(observation)
+        actions = holonomic_to_unicycle(
+            _goal_velocity(observation, self.config.time_step), observation, self.config.max_heading_change
+        )
+        return (actions[0] if single else actions), None
+
+
+class OrcaController:
+    """The robot driven by the same ORCA code as the humans, from its observation, in the goal-aligned frame.
+
+    `radius_scale` inflates every observed human radius (1.5 for the safety layer's cautious controller); `share` is
+    the robot's share of the avoidance effort and `safety_margin` metres are added to every human's radius (defaults: the
+    config's `robot_orca_share` and `robot_orca_safety_margin`).
+    """
+
+    def __init__(self, config: EnvConfig, radius_scale: float = 1.0, share: float | None = None,
+                 safety_margin: float | None = None):
+        if radius_scale <= 0:
+            raise ValueError(f"radius_scale must be > 0, got {radius_scale}")
+        self.config = config
+        self.radius_scale = radius_scale
+        self.share = config.robot_orca_share if share is None else share
+        self.safety_margin = config.robot_orca_safety_margin if safety_margin is None else safety_margin
+
+    def desired_velocity(self, observation: Observation) -> np.ndarray:
+        """ORCA's new holonomic velocity for the robot of each environment, in the goal frame, (E, 2)."""
+        robot = observation["robot"].astype(np.float64)
+        humans = observation["humans"].astype(np.float64)
+        n_envs, max_humans, _ = humans.shape
+        n_agents = 1 + max_humans
+        heading, speed = robot[:, 1], robot[:, 2]
+        robot_velocity = np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=1)
+
+        positions = np.zeros((n_envs, n_agents, 2))
+        velocities = np.zeros((n_envs, n_agents, 2))
+        radii = np.zeros((n_envs, n_agents))
+        positions[:, 1:] = humans[:, :, 0:2]
+        velocities[:, 0] = robot_velocity
+        velocities[:, 1:] = humans[:, :, 2:4] + robot_velocity[:, None, :]  # observed velocities are relative
+        radii[:, 0] = np.maximum(robot[:, 4], 0.0)
+        radii[:, 1:] = np.maximum(humans[:, :, 4], 0.0) * self.radius_scale
+        active = np.concatenate([np.ones((n_envs, 1), bool), observation["humans_mask"] > 0.5], axis=1)
+        compute = np.zeros_like(active)
+        compute[:, 0] = True
+        preferred = np.zeros((n_envs, n_agents, 2))
+        preferred[:, 0] = _goal_velocity(observation, self.config.time_step)
+        max_speeds = np.zeros((n_envs, n_agents))
+        max_speeds[:, 0] = np.maximum(robot[:, 3], 0.0)
+        # ORCA plans tangent to the velocity obstacle; a margin keeps the discretised unicycle off the human's body.
+        pad = np.zeros((n_envs, n_agents, n_agents))
+        pad[:, 0, :] = self.safety_margin
+        share = np.full((n_envs, n_agents, n_agents), 0.5)
+        share[:, 0, :] = self.share
+        orca = self.config.orca
+        velocities = orca_velocities(
+            positions, velocities, radii, preferred, max_speeds, active, compute,
+            pad, share, np.ones((n_envs, n_agents, n_agents), bool),
+            orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, self.config.time_step,
+        )
+        return velocities[:, 0]
+
+    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+        observation, single = _batched(observation)
+        actions = holonomic_to_unicycle(self.desired_velocity(observation), observation, self.config.max_heading_change)
+        return (actions[0] if single else actions), None
+
+
+CONTROLLERS = {"orca": OrcaController, "straight": StraightController}
+
+
+def make_controller(name: str, config: EnvConfig) -> OrcaController | StraightController:
+    """A baseline controller by name: one of `orca`, `straight`."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; allowed: {', '.join(CONTROLLERS)}")
+    return CONTROLLERS[name](config)

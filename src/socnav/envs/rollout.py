@@ -1,0 +1,108 @@
+"""Batched evaluation rollouts: N episodes of any policy with `predict`, episode k seeded with `seed + k`.
+
+Each episode's seed is fixed by its index, so the records do not depend on how many environments run at once.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import pandas as pd
+
+from socnav.config import ConfigLike, EnvConfig, load_config
+from socnav.sim.world import CrowdWorld
+
+EPISODE_COLUMNS = (
+    "episode", "seed", "outcome", "return", "length", "duration", "path_length", "time_to_goal", "min_gap",
+    "intrusion_steps", "intrusion_events",
+)
+
+
+class Policy(Protocol):
+    def predict(self, observation: dict[str, np.ndarray], state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]: ...
+
+
+def rollout_episodes(
+    policy: Policy,
+    config: ConfigLike,
+    n_episodes: int,
+    seed: int = 0,
+    n_envs: int = 16,
+    deterministic: bool = True,
+    progress: Callable[[int], None] | None = None,
+) -> pd.DataFrame:
+    """Run `n_episodes` episodes (episode k from seed `seed + k`) and return one record per episode.
+
+    `progress(n)` is called with the number of episodes finished at each step that finishes some.
+    """
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    config: EnvConfig = load_config(config)
+    n_envs = max(1, min(n_envs, n_episodes))
+    world = CrowdWorld(config, n_envs)
+    running = np.arange(n_envs)  # episode index each environment is playing; -1 once there is none left
+    for env in range(n_envs):
+        world.seed(env, seed + env)
+    world.reset()
+    next_episode = n_envs
+    records: list[dict[str, Any]] = []
+    while len(records) < n_episodes:
+        actions, _ = policy.predict(world.observe(), deterministic=deterministic)
+        result = world.step(np.asarray(actions))
+        done = np.flatnonzero(result.terminated | result.truncated)
+        finished = done[running[done] >= 0]
+        for env in finished:
+            summary = world.episode_summary(env, int(result.outcome[env]))
+            records.append({"episode": int(running[env]), "seed": seed + int(running[env]), **summary})
+            if next_episode < n_episodes:
+                running[env] = next_episode
+                world.seed(env, seed + next_episode)
+                next_episode += 1
+            else:
+                running[env] = -1
+        if len(done):
+            world.reset(done)
+        if len(finished):
+            if progress is not None:
+                progress(len(finished))
+    return pd.DataFrame.from_records(records, columns=list(EPISODE_COLUMNS)).sort_values("episode", ignore_index=True)
+
+
+def summarize(records: pd.DataFrame, pv_per: int = 200) -> dict[str, float]:
+    """Table metrics: Goal %, Collision %, Time-out %, PV (intrusion events per `pv_per` episodes), return mean/std."""
+    n = len(records)
+    share = lambda outcome: 100.0 * float((records["outcome"] == outcome).mean())  # noqa: E731
+    return {
+        "episodes": n,
+        "goal_pct": share("goal"),
+        "collision_pct": share("collision"),
+        "timeout_pct": share("timeout"),
+        "pv": float(records["intrusion_events"].sum()) * pv_per / n,
+        "return_mean": float(records["return"].mean()),
+        "return_std": float(records["return"].std(ddof=0)),
+        "time_to_goal_mean": float(records["time_to_goal"].mean()),
+    }
+
+
+def record_episode(
+    policy: Policy, config: ConfigLike, seed: int = 0, deterministic: bool = True, max_frames: int = 2000
+) -> tuple[list[np.ndarray], dict[str, Any]]:
+    """Play one episode (seed `seed`, as episode 0 of `rollout_episodes`) and return its rgb frames and summary."""
+    from socnav.envs.env import SocialNavEnv
+
+    env = SocialNavEnv(config, render_mode="rgb_array")
+    observation, _ = env.reset(seed=seed)
+    frames = [env.render()]
+    summary: dict[str, Any] = {}
+    for _ in range(max_frames):
+        action, _ = policy.predict(observation, deterministic=deterministic)
+        observation, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            summary = info["episode"]
+            frames.append(env._renderer.render(env.scene_frame(caption=f"{summary['outcome']}")))
+            break
+        frames.append(env.render())
+    env.close()
+    return frames, summary

@@ -1,0 +1,31 @@
+"""Observation and action spaces shared by the single and the vectorised environment (SPEC section 2).
+
+The observation is a Dict: `robot` (5), `humans` (max_humans x 7, closest real row last, zero padding after), `humans_mask`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from gymnasium import spaces
+
+from socnav.sim.world import HUMAN_FEATURES, ROBOT_FEATURES
+
+ROBOT_FEATURE_NAMES = ("goal_distance", "goal_heading", "speed", "preferred_speed", "radius")
+HUMAN_FEATURE_NAMES = ("rel_x", "rel_y", "rel_vx", "rel_vy", "radius", "combined_radius", "gap")
+ACTION_NAMES = ("speed", "heading")  # action dimension 0 maps to speed, 1 to heading change
+
+
+def observation_space(max_humans: int) -> spaces.Dict:
+    """The Dict observation space for `max_humans` padded human rows."""
+    return spaces.Dict(
+        {
+            "robot": spaces.Box(-np.inf, np.inf, (ROBOT_FEATURES,), np.float32),
+            "humans": spaces.Box(-np.inf, np.inf, (max_humans, HUMAN_FEATURES), np.float32),
+            "humans_mask": spaces.Box(0.0, 1.0, (max_humans,), np.float32),
+        }
+    )
+
+
+def action_space() -> spaces.Box:
+    """[-1, 1]^2: speed v = v_pref (a0 + 1) / 2 and heading change = max_heading_change * a1."""
+    return spaces.Box(-1.0, 1.0, (2,), np.float32)

@@ -1,0 +1,270 @@
+"""Scenarios: where the robot and the humans start and go, and their hidden social traits (SPEC section 1).
+
+Each scenario is a small registered object with `sample(rng, n_envs, config) -> InitialState`; add your own with `register_scenario`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from socnav.config import EnvConfig
+
+MIN_START_SEPARATION = 1.0  # metres between any two starts (and any two goals) when a scenario samples them
+
+
+@dataclass
+class InitialState:
+    """Initial world of `n_envs` episodes; agent slot 0 is the robot, slots 1.. humans (inactive slots padded).
+
+    Arrays have shape (n_envs, n_slots[, 2]); `n_slots = 1 + the most humans the config allows`.
+    """
+
+    positions: np.ndarray
+    goals: np.ndarray
+    radii: np.ndarray
+    preferred_speeds: np.ndarray
+    personal_space_radii: np.ndarray  # 0 for the robot
+    cooperation: np.ndarray  # share of avoidance each human takes w.r.t. the robot; 0 for the robot
+    active: np.ndarray  # bool
+    robot_heading: np.ndarray  # (n_envs,)
+
+    @classmethod
+    def empty(cls, n_envs: int, n_slots: int) -> "InitialState":
+        zeros = lambda *shape: np.zeros((n_envs, n_slots, *shape))  # noqa: E731
+        return cls(
+            positions=zeros(2),
+            goals=zeros(2),
+            radii=zeros(),
+            preferred_speeds=zeros(),
+            personal_space_radii=zeros(),
+            cooperation=zeros(),
+            active=np.zeros((n_envs, n_slots), dtype=bool),
+            robot_heading=np.zeros(n_envs),
+        )
+
+
+class Scenario(Protocol):
+    """What a scenario provides. `redraw_goals` is True when humans draw a new goal on arrival."""
+
+    name: str
+    default_humans: int | tuple[int, int]
+    redraw_goals: bool
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState: ...
+
+
+_REGISTRY: dict[str, Scenario] = {}
+
+
+def register_scenario(scenario: Scenario) -> Scenario:
+    """Register a scenario object under `scenario.name` (replacing one of the same name)."""
+    _REGISTRY[scenario.name] = scenario
+    return scenario
+
+
+def get_scenario(name: str) -> Scenario:
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown scenario {name!r}; registered: {', '.join(scenario_names())}") from None
+
+
+def scenario_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def n_slots(config: "EnvConfig") -> int:
+    """Agent slots of the simulation: the robot plus the most humans an episode of this config can have."""
+    return 1 + config.humans_range()[1]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Shared sampling steps
+
+
+def _draw_humans_count(rng: np.random.Generator, config: "EnvConfig") -> int:
+    low, high = config.humans_range()
+    return int(rng.integers(low, high + 1))
+
+
+def _fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Generator, config: "EnvConfig") -> None:
+    """Radii, preferred speeds, personal spaces and cooperation of one environment's agents."""
+    agents = 1 + n_humans
+    state.active[env, :agents] = True
+    state.radii[env, 0] = config.robot_radius
+    state.radii[env, 1:agents] = config.human_radius
+    state.preferred_speeds[env, :agents] = rng.uniform(*config.preferred_speed, size=agents)
+    state.personal_space_radii[env, 1:agents] = rng.uniform(*config.personal_space, size=n_humans)
+    state.cooperation[env, 1:agents] = rng.uniform(*config.cooperation, size=n_humans)
+
+
+def _unit(angle: np.ndarray | float) -> np.ndarray:
+    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+
+def _far_enough(point: np.ndarray, others: list[np.ndarray], separation: float) -> bool:
+    return all(np.linalg.norm(point - other) >= separation for other in others)
+
+
+def _face_goal(state: InitialState, env: int) -> None:
+    offset = state.goals[env, 0] - state.positions[env, 0]
+    state.robot_heading[env] = np.arctan2(offset[1], offset[0])
+
+
+ROBOT_CROSSING_ANGLES = np.deg2rad([0.0, 90.0, 180.0, 270.0])
+MAX_TRIES = 200
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The four scenarios of the paper
+
+
+@dataclass(frozen=True)
+class PositionSwap:
+    """Robot and humans start on a circle at independent random angles and swap to their antipodes."""
+
+    name: str = "position_swap"
+    default_humans: int | tuple[int, int] = 1
+    redraw_goals: bool = False
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+        state = InitialState.empty(n_envs, n_slots(config))
+        for env in range(n_envs):
+            n_humans = _draw_humans_count(rng, config)
+            _fill_traits(state, env, n_humans, rng, config)
+            starts: list[np.ndarray] = []
+            for agent in range(1 + n_humans):
+                for _ in range(MAX_TRIES):
+                    angle = rng.uniform(0.0, 2 * np.pi)
+                    start = config.circle_radius * _unit(angle) + rng.normal(0.0, config.swap_jitter, 2)
+                    goal = -config.circle_radius * _unit(angle) + rng.normal(0.0, config.swap_jitter, 2)
+                    if _far_enough(start, starts, MIN_START_SEPARATION):
+                        break
+                starts.append(start)
+                state.positions[env, agent] = start
+                state.goals[env, agent] = goal
+            _face_goal(state, env)
+        return state
+
+
+@dataclass(frozen=True)
+class CircleCrossing:
+    """Humans on a circle (random angles, jittered) cross to their antipodes; the robot takes one of four fixed diameters."""
+
+    name: str = "circle_crossing"
+    default_humans: int | tuple[int, int] = 5
+    redraw_goals: bool = False
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+        state = InitialState.empty(n_envs, n_slots(config))
+        radius, jitter = config.circle_radius, config.circle_jitter
+        for env in range(n_envs):
+            n_humans = _draw_humans_count(rng, config)
+            _fill_traits(state, env, n_humans, rng, config)
+            robot_angle = rng.choice(ROBOT_CROSSING_ANGLES)
+            state.positions[env, 0] = radius * _unit(robot_angle)
+            state.goals[env, 0] = -radius * _unit(robot_angle)
+            starts, goals = [state.positions[env, 0]], [state.goals[env, 0]]
+            for human in range(1, 1 + n_humans):
+                for _ in range(MAX_TRIES):
+                    angle = rng.uniform(0.0, 2 * np.pi)
+                    start = radius * _unit(angle) + rng.uniform(-jitter, jitter, 2)
+                    goal = -radius * _unit(angle) + rng.uniform(-jitter, jitter, 2)
+                    if _far_enough(start, starts, MIN_START_SEPARATION) and _far_enough(goal, goals, MIN_START_SEPARATION):
+                        break
+                starts.append(start)
+                goals.append(goal)
+                state.positions[env, human] = start
+                state.goals[env, human] = goal
+            _face_goal(state, env)
+        return state
+
+
+@dataclass(frozen=True)
+class CircleInteraction:
+    """Staged interaction: each human is placed to reach the circle's centre when the robot does, from a random direction."""
+
+    name: str = "circle_interaction"
+    default_humans: int | tuple[int, int] = (1, 3)
+    redraw_goals: bool = False
+    arrival_spread: float = 0.15  # relative spread of the humans' arrival times, so they do not all meet at once
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+        state = InitialState.empty(n_envs, n_slots(config))
+        radius = config.circle_radius
+        for env in range(n_envs):
+            n_humans = _draw_humans_count(rng, config)
+            _fill_traits(state, env, n_humans, rng, config)
+            robot_angle = rng.choice(ROBOT_CROSSING_ANGLES)
+            state.positions[env, 0] = radius * _unit(robot_angle)
+            state.goals[env, 0] = -radius * _unit(robot_angle)
+            robot_time_to_centre = radius / state.preferred_speeds[env, 0]
+            starts = [state.positions[env, 0]]
+            for human in range(1, 1 + n_humans):
+                speed = state.preferred_speeds[env, human] * config.perturbation.human_speed_factor
+                for _ in range(MAX_TRIES):
+                    angle = rng.uniform(0.0, 2 * np.pi)
+                    arrival = robot_time_to_centre * (1.0 + rng.uniform(-self.arrival_spread, self.arrival_spread))
+                    start = speed * arrival * _unit(angle)
+                    if _far_enough(start, starts, MIN_START_SEPARATION):
+                        break
+                starts.append(start)
+                state.positions[env, human] = start
+                state.goals[env, human] = -start  # through the centre, as far beyond it as it started
+            _face_goal(state, env)
+        return state
+
+
+@dataclass(frozen=True)
+class RandomSquare:
+    """Starts and goals uniform in a square, >= 1 m apart, goals >= 4 m from starts; humans redraw goals on arrival."""
+
+    name: str = "random"
+    default_humans: int | tuple[int, int] = 5
+    redraw_goals: bool = True
+    min_goal_distance: float = 4.0
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+        state = InitialState.empty(n_envs, n_slots(config))
+        for env in range(n_envs):
+            n_humans = _draw_humans_count(rng, config)
+            _fill_traits(state, env, n_humans, rng, config)
+            starts: list[np.ndarray] = []
+            goals: list[np.ndarray] = []
+            for agent in range(1 + n_humans):
+                start = self._point(rng, config, starts)
+                goal = self.goal_for(rng, config, start, goals)
+                starts.append(start)
+                goals.append(goal)
+                state.positions[env, agent] = start
+                state.goals[env, agent] = goal
+            _face_goal(state, env)
+        return state
+
+    def _point(self, rng: np.random.Generator, config: "EnvConfig", taken: list[np.ndarray]) -> np.ndarray:
+        half = config.square_size / 2
+        for _ in range(MAX_TRIES):
+            point = rng.uniform(-half, half, 2)
+            if _far_enough(point, taken, MIN_START_SEPARATION):
+                return point
+        return point
+
+    def goal_for(
+        self, rng: np.random.Generator, config: "EnvConfig", start: np.ndarray, taken: list[np.ndarray] | None = None
+    ) -> np.ndarray:
+        """A goal at least `min_goal_distance` from `start` (and 1 m from goals in `taken`)."""
+        half = config.square_size / 2
+        for _ in range(MAX_TRIES):
+            goal = rng.uniform(-half, half, 2)
+            if np.linalg.norm(goal - start) >= self.min_goal_distance and _far_enough(goal, taken or [], MIN_START_SEPARATION):
+                return goal
+        return goal
+
+
+for _scenario in (PositionSwap(), CircleCrossing(), CircleInteraction(), RandomSquare()):
+    register_scenario(_scenario)
+

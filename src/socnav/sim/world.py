@@ -1,0 +1,449 @@
+"""The batched crowd world: a unicycle robot among ORCA humans with personal space and cooperation (SPEC section 1).
+
+`CrowdWorld` holds the state of E environments as arrays and advances all of them in one call; every environment's
+episode depends only on its own seed, so results are bit-identical whatever the batch size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from socnav.config import EnvConfig
+from socnav.sim.noise import HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
+from socnav.sim.orca import orca_velocities
+from socnav.sim.scenarios import InitialState, get_scenario, n_slots
+
+ROBOT_FEATURES = 5  # distance to goal, heading relative to goal direction, speed, v_pref, radius
+HUMAN_FEATURES = 7  # rel. position (2), rel. velocity (2), radius, combined radius, gap
+
+OUTCOME_RUNNING, OUTCOME_GOAL, OUTCOME_COLLISION, OUTCOME_TIMEOUT = 0, 1, 2, 3
+OUTCOME_NAMES = {OUTCOME_GOAL: "goal", OUTCOME_COLLISION: "collision", OUTCOME_TIMEOUT: "timeout"}
+
+
+@dataclass
+class StepResult:
+    """What one batched step produced, per environment."""
+
+    reward: np.ndarray  # (E,)
+    terminated: np.ndarray  # (E,) bool: goal or collision
+    truncated: np.ndarray  # (E,) bool: time-out
+    outcome: np.ndarray  # (E,) int: OUTCOME_*
+    nearest_gap: np.ndarray  # (E,) gap to the nearest human after the step (inf without humans)
+    nearest_relative_speed: np.ndarray  # (E,) |v_human - v_robot| of that human
+    intrusions: np.ndarray  # (E,) number of personal spaces the robot is in
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Compiled kernels: one idea each, loops over environments inside (no Python loop on the hot path)
+
+
+@numba.njit(cache=True)
+def _wrap_angle(angle):
+    """Wrap to [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@numba.njit(cache=True)
+def _robot_command(actions, preferred_speed, max_heading_change, keys, steps, heading_noise, speed_noise):
+    """Map [-1, 1]^2 actions to (v, dtheta), then apply action noise (SPEC section 2).
+
+    v = v_pref (a0 + 1) / 2, dtheta = dtheta_max a1 (clipped); heading noise dtheta + N(0, s^2); speed v U(1 - s, 1).
+    """
+    n_envs = actions.shape[0]
+    speed = np.empty(n_envs)
+    turn = np.empty(n_envs)
+    for env in range(n_envs):
+        a_speed = min(max(actions[env, 0], -1.0), 1.0)
+        a_turn = min(max(actions[env, 1], -1.0), 1.0)
+        speed[env] = preferred_speed[env] * (a_speed + 1.0) / 2.0
+        turn[env] = max_heading_change * a_turn
+        if heading_noise > 0.0:
+            turn[env] += heading_noise * standard_normal(keys[env], HEADING_STREAM, steps[env], 0)
+        if speed_noise > 0.0:
+            speed[env] *= 1.0 - speed_noise * uniform01(keys[env], SPEED_STREAM, steps[env], 0)
+    return speed, turn
+
+
+@numba.njit(cache=True)
+def _human_preferred_velocities(positions, goals, max_speeds, active, time_step):
+    """v_pref * unit(goal - p) for humans, slowing down to stop exactly on the goal; zero for the robot slot."""
+    n_envs, n_agents = active.shape
+    preferred = np.zeros((n_envs, n_agents, 2))
+    for env in range(n_envs):
+        for agent in range(1, n_agents):
+            if not active[env, agent]:
+                continue
+            dx = goals[env, agent, 0] - positions[env, agent, 0]
+            dy = goals[env, agent, 1] - positions[env, agent, 1]
+            distance = math.sqrt(dx * dx + dy * dy)
+            if distance < 1e-9:
+                continue
+            speed = min(max_speeds[env, agent], distance / time_step)
+            preferred[env, agent, 0] = speed * dx / distance
+            preferred[env, agent, 1] = speed * dy / distance
+    return preferred
+
+
+@numba.njit(cache=True)
+def _closest_approach(rel_x, rel_y, rel_vx, rel_vy, time_step):
+    """Smallest centre distance while two agents move linearly over one step (catches pass-throughs at high speed)."""
+    speed_sq = rel_vx * rel_vx + rel_vy * rel_vy
+    s = 0.0
+    if speed_sq > 1e-12:
+        s = min(max(-(rel_x * rel_vx + rel_y * rel_vy) / (speed_sq * time_step), 0.0), 1.0)
+    x = rel_x + s * rel_vx * time_step
+    y = rel_y + s * rel_vy * time_step
+    return math.sqrt(x * x + y * y)
+
+
+@numba.njit(cache=True)
+def _advance_and_score(
+    positions, velocities, radii, goals, max_speeds, personal_space, active, heading, new_speed, turn,
+    human_velocities, unhindered_velocities, time, time_limit, time_step, goal_tolerance,
+    w_goal, w_collision, w_time, w_progress, w_personal_space, w_disturbance, social_radius,
+    was_intruded, episode_return, path_length, min_gap, intrusion_steps, intrusion_events,
+):
+    """Move every agent one step, detect goal / collision / time-out and score the socially integrated reward.
+
+    Reward (SPEC section 2): +w_goal | -w_col | -w_time dt | w_prog (d(t-1) - d(t)) | -w_prox (1 - gap / r_prox) per
+    intruded personal space | -w_dist |v_i - v_i^0| / v_pref_i per human within the social radius.
+    Episode accumulators are updated in place.
+    """
+    n_envs, n_agents = active.shape
+    reward = np.zeros(n_envs)
+    outcome = np.zeros(n_envs, dtype=np.int64)
+    nearest_gap = np.full(n_envs, np.inf)
+    nearest_speed = np.zeros(n_envs)
+    intrusions = np.zeros(n_envs, dtype=np.int64)
+    for env in range(n_envs):
+        old_x, old_y = positions[env, 0, 0], positions[env, 0, 1]
+        old_goal_distance = math.hypot(goals[env, 0, 0] - old_x, goals[env, 0, 1] - old_y)
+
+        heading[env] = _wrap_angle(heading[env] + turn[env])
+        robot_vx = new_speed[env] * math.cos(heading[env])
+        robot_vy = new_speed[env] * math.sin(heading[env])
+        closest_gap = np.inf  # smallest gap to any human at any moment of this step
+        for agent in range(1, n_agents):
+            if not active[env, agent]:
+                continue
+            hvx, hvy = human_velocities[env, agent, 0], human_velocities[env, agent, 1]
+            approach = _closest_approach(
+                positions[env, agent, 0] - old_x, positions[env, agent, 1] - old_y,
+                hvx - robot_vx, hvy - robot_vy, time_step,
+            )
+            closest_gap = min(closest_gap, approach - radii[env, 0] - radii[env, agent])
+            velocities[env, agent, 0] = hvx
+            velocities[env, agent, 1] = hvy
+            positions[env, agent, 0] += hvx * time_step
+            positions[env, agent, 1] += hvy * time_step
+        velocities[env, 0, 0] = robot_vx
+        velocities[env, 0, 1] = robot_vy
+        positions[env, 0, 0] += robot_vx * time_step
+        positions[env, 0, 1] += robot_vy * time_step
+        path_length[env] += new_speed[env] * time_step
+        time[env] += time_step
+
+        goal_distance = math.hypot(goals[env, 0, 0] - positions[env, 0, 0], goals[env, 0, 1] - positions[env, 0, 1])
+        r = -w_time * time_step + w_progress * (old_goal_distance - goal_distance)
+
+        for agent in range(1, n_agents):
+            if not active[env, agent]:
+                continue
+            dx = positions[env, agent, 0] - positions[env, 0, 0]
+            dy = positions[env, agent, 1] - positions[env, 0, 1]
+            gap = math.sqrt(dx * dx + dy * dy) - radii[env, 0] - radii[env, agent]
+            if gap < nearest_gap[env]:
+                nearest_gap[env] = gap
+                nearest_speed[env] = math.hypot(
+                    velocities[env, agent, 0] - robot_vx, velocities[env, agent, 1] - robot_vy
+                )
+            intruded = gap < personal_space[env, agent]
+            if intruded and personal_space[env, agent] > 0.0:
+                intrusions[env] += 1
+                r -= w_personal_space * (1.0 - max(gap, 0.0) / personal_space[env, agent])
+                if not was_intruded[env, agent]:
+                    intrusion_events[env] += 1
+            was_intruded[env, agent] = intruded
+            if gap < social_radius and w_disturbance > 0.0:
+                push = math.hypot(
+                    velocities[env, agent, 0] - unhindered_velocities[env, agent, 0],
+                    velocities[env, agent, 1] - unhindered_velocities[env, agent, 1],
+                )
+                r -= w_disturbance * push / max_speeds[env, agent]
+        if intrusions[env] > 0:
+            intrusion_steps[env] += 1
+        min_gap[env] = min(min_gap[env], nearest_gap[env], closest_gap)
+
+        if closest_gap < 0.0:
+            outcome[env] = 2
+            r -= w_collision
+        elif goal_distance < goal_tolerance:
+            outcome[env] = 1
+            r += w_goal
+        elif time[env] > time_limit[env]:
+            outcome[env] = 3
+        reward[env] = r
+        episode_return[env] += r
+    return reward, outcome, nearest_gap, nearest_speed, intrusions
+
+
+@numba.njit(cache=True)
+def _observe(positions, velocities, radii, goals, preferred_speed, active, heading, max_humans):
+    """Robot-centric, goal-aligned observation; humans sorted by gap with the closest LAST, zero padding after them.
+
+    robot: [distance to goal, heading relative to the goal direction, speed, v_pref, radius];
+    human row: [relative position (2), relative velocity (2), radius, combined radius, gap], in the goal frame.
+    """
+    n_envs, n_agents = active.shape
+    robot = np.zeros((n_envs, 5), dtype=np.float32)
+    humans = np.zeros((n_envs, max_humans, 7), dtype=np.float32)
+    mask = np.zeros((n_envs, max_humans), dtype=np.float32)
+    gaps = np.empty(n_agents)
+    rows = np.empty((n_agents, 7))
+    for env in range(n_envs):
+        px, py = positions[env, 0, 0], positions[env, 0, 1]
+        gx, gy = goals[env, 0, 0] - px, goals[env, 0, 1] - py
+        goal_angle = math.atan2(gy, gx)
+        cos_a, sin_a = math.cos(goal_angle), math.sin(goal_angle)
+        rvx, rvy = velocities[env, 0, 0], velocities[env, 0, 1]
+        robot_values = (
+            math.hypot(gx, gy),
+            _wrap_angle(heading[env] - goal_angle),
+            math.hypot(rvx, rvy),
+            preferred_speed[env],
+            radii[env, 0],
+        )
+        for k in range(5):
+            robot[env, k] = robot_values[k]
+        count = 0
+        for agent in range(1, n_agents):
+            if not active[env, agent]:
+                continue
+            dx, dy = positions[env, agent, 0] - px, positions[env, agent, 1] - py
+            dvx, dvy = velocities[env, agent, 0] - rvx, velocities[env, agent, 1] - rvy
+            combined = radii[env, agent] + radii[env, 0]
+            rows[count, 0] = cos_a * dx + sin_a * dy
+            rows[count, 1] = -sin_a * dx + cos_a * dy
+            rows[count, 2] = cos_a * dvx + sin_a * dvy
+            rows[count, 3] = -sin_a * dvx + cos_a * dvy
+            rows[count, 4] = radii[env, agent]
+            rows[count, 5] = combined
+            rows[count, 6] = math.sqrt(dx * dx + dy * dy) - combined
+            gaps[count] = rows[count, 6]
+            count += 1
+        order = np.argsort(-gaps[:count], kind="mergesort")  # farthest first: the closest is read last
+        for slot in range(min(count, max_humans)):
+            source = order[slot + max(count - max_humans, 0)]  # keep the closest rows if there are too many
+            for k in range(7):
+                humans[env, slot, k] = rows[source, k]
+            mask[env, slot] = 1.0
+    return robot, humans, mask
+
+
+@numba.njit(cache=True)
+def _add_observation_noise(robot, humans, mask, keys, steps, observation_noise):
+    """Add N(0, s^2) to every real observation element (SPEC section 2); padding and the mask stay exact."""
+    n_envs, max_humans, n_features = humans.shape
+    for env in range(n_envs):
+        element = 0
+        for k in range(robot.shape[1]):
+            robot[env, k] += observation_noise * standard_normal(keys[env], OBSERVATION_STREAM, steps[env], element)
+            element += 1
+        for slot in range(max_humans):
+            if mask[env, slot] == 0.0:
+                break
+            for k in range(n_features):
+                humans[env, slot, k] += observation_noise * standard_normal(
+                    keys[env], OBSERVATION_STREAM, steps[env], element
+                )
+                element += 1
+
+
+# ------------------------------------------------------------------------------------------------------------------
+
+
+class CrowdWorld:
+    """E independent social-navigation worlds advanced together.
+
+    Agent slot 0 is the robot; slots 1.. are humans (inactive slots are padding). Each environment owns a
+    `numpy.random.Generator` used only at its resets (and goal redraws), and a counter-based noise key per episode.
+    """
+
+    def __init__(self, config: EnvConfig, n_envs: int):
+        self.config = config
+        self.n_envs = n_envs
+        self.n_slots = n_slots(config)
+        self.scenario = get_scenario(config.scenario)
+        self.rngs = [np.random.default_rng() for _ in range(n_envs)]
+        shape = (n_envs, self.n_slots)
+        self.positions = np.zeros((*shape, 2))
+        self.velocities = np.zeros((*shape, 2))
+        self.goals = np.zeros((*shape, 2))
+        self.radii = np.zeros(shape)
+        self.preferred_speeds = np.zeros(shape)  # robot and humans, unperturbed
+        self.max_speeds = np.zeros(shape)  # after the faster-humans perturbation
+        self.personal_space = np.zeros(shape)
+        self.cooperation = np.zeros(shape)
+        self.active = np.zeros(shape, dtype=bool)
+        self.heading = np.zeros(n_envs)
+        self.time = np.zeros(n_envs)
+        self.steps = np.zeros(n_envs, dtype=np.int64)
+        self.time_limit = np.zeros(n_envs)
+        self.starts = np.zeros((n_envs, 2))
+        self.noise_keys = np.zeros(n_envs, dtype=np.uint64)
+        # per-pair ORCA social arrays (constant within an episode)
+        self.radius_pad = np.zeros((n_envs, self.n_slots, self.n_slots))
+        self.avoidance_share = np.full((n_envs, self.n_slots, self.n_slots), 0.5)
+        self.sees = np.ones((n_envs, self.n_slots, self.n_slots), dtype=bool)
+        self.sees_without_robot = np.ones_like(self.sees)
+        self.sees_without_robot[:, :, 0] = False
+        # episode accumulators
+        self.was_intruded = np.zeros(shape, dtype=bool)
+        self.episode_return = np.zeros(n_envs)
+        self.path_length = np.zeros(n_envs)
+        self.min_gap = np.full(n_envs, np.inf)
+        self.intrusion_steps = np.zeros(n_envs, dtype=np.int64)
+        self.intrusion_events = np.zeros(n_envs, dtype=np.int64)
+        self.humans_slots = np.zeros(shape, dtype=bool)
+        self.humans_slots[:, 1:] = True
+
+    # ---------------------------------------------------------------------------------------------------- seeding
+
+    def seed(self, env: int, seed: int | None) -> None:
+        """Give environment `env` a fresh generator (None: OS entropy)."""
+        self.rngs[env] = np.random.default_rng(seed)
+
+    # ---------------------------------------------------------------------------------------------------- reset
+
+    def reset(self, envs: np.ndarray | list[int] | None = None) -> None:
+        """Start a new episode in each of `envs` (default all), drawn from that environment's own generator."""
+        envs = range(self.n_envs) if envs is None else envs
+        for env in envs:
+            rng = self.rngs[env]
+            initial = self.scenario.sample(rng, 1, self.config)
+            self._load(env, initial)
+            self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
+
+    def _load(self, env: int, initial: InitialState) -> None:
+        cfg = self.config
+        self.positions[env] = initial.positions[0]
+        self.goals[env] = initial.goals[0]
+        self.radii[env] = initial.radii[0]
+        self.preferred_speeds[env] = initial.preferred_speeds[0]
+        self.max_speeds[env] = initial.preferred_speeds[0]
+        self.max_speeds[env, 1:] *= cfg.perturbation.human_speed_factor
+        self.personal_space[env] = initial.personal_space_radii[0]
+        self.cooperation[env] = initial.cooperation[0]
+        self.active[env] = initial.active[0]
+        self.heading[env] = initial.robot_heading[0]
+        self.velocities[env] = 0.0
+        self.time[env] = 0.0
+        self.steps[env] = 0
+        self.starts[env] = initial.positions[0, 0]
+        distance = np.linalg.norm(initial.goals[0, 0] - initial.positions[0, 0])
+        self.time_limit[env] = cfg.timeout_factor * distance / initial.preferred_speeds[0, 0] + cfg.timeout_margin
+        # How each human sees the robot: bigger by its personal space, its own share of avoidance, or not at all.
+        self.radius_pad[env] = 0.0
+        self.radius_pad[env, :, 0] = self.personal_space[env]
+        self.avoidance_share[env] = 0.5
+        self.avoidance_share[env, :, 0] = self.cooperation[env]
+        self.sees[env] = True
+        self.sees[env, :, 0] = cfg.robot_visible
+        self.was_intruded[env] = False
+        self.episode_return[env] = 0.0
+        self.path_length[env] = 0.0
+        self.min_gap[env] = np.inf
+        self.intrusion_steps[env] = 0
+        self.intrusion_events[env] = 0
+
+    # ---------------------------------------------------------------------------------------------------- step
+
+    def human_velocities(self, without_robot: bool = False, only: np.ndarray | None = None) -> np.ndarray:
+        """ORCA velocities of all humans this step (optionally as if the robot were absent, for `only` some)."""
+        cfg = self.config
+        preferred = _human_preferred_velocities(
+            self.positions, self.goals, self.max_speeds, self.active, cfg.time_step
+        )
+        compute = self.active & self.humans_slots if only is None else only
+        return orca_velocities(
+            self.positions, self.velocities, self.radii, preferred, self.max_speeds, self.active, compute,
+            self.radius_pad, self.avoidance_share, self.sees_without_robot if without_robot else self.sees,
+            cfg.orca.time_horizon, cfg.orca.neighbor_dist, cfg.orca.max_neighbors, cfg.time_step,
+        )
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Advance every environment by one step with the robot actions `actions` in [-1, 1]^2, shape (E, 2)."""
+        cfg, pert, rew = self.config, self.config.perturbation, self.config.reward
+        actions = np.asarray(actions, dtype=np.float64).reshape(self.n_envs, 2)
+        speed, turn = _robot_command(
+            actions, self.preferred_speeds[:, 0], cfg.max_heading_change, self.noise_keys, self.steps,
+            pert.heading_noise, pert.speed_noise,
+        )
+        humans = self.human_velocities()
+        if rew.disturbance > 0.0:
+            near = self._humans_near_robot(rew.social_radius)
+            unhindered = self.human_velocities(without_robot=True, only=near) if near.any() else humans
+        else:
+            unhindered = humans
+        reward, outcome, nearest_gap, nearest_speed, intrusions = _advance_and_score(
+            self.positions, self.velocities, self.radii, self.goals, self.max_speeds, self.personal_space,
+            self.active, self.heading, speed, turn, humans, unhindered, self.time, self.time_limit,
+            cfg.time_step, cfg.goal_tolerance, rew.goal, rew.collision, rew.time, rew.progress,
+            rew.personal_space, rew.disturbance, rew.social_radius, self.was_intruded, self.episode_return,
+            self.path_length, self.min_gap, self.intrusion_steps, self.intrusion_events,
+        )
+        self.steps += 1
+        if self.scenario.redraw_goals:
+            self._redraw_reached_goals()
+        return StepResult(
+            reward=reward,
+            terminated=(outcome == OUTCOME_GOAL) | (outcome == OUTCOME_COLLISION),
+            truncated=outcome == OUTCOME_TIMEOUT,
+            outcome=outcome,
+            nearest_gap=nearest_gap,
+            nearest_relative_speed=nearest_speed,
+            intrusions=intrusions,
+        )
+
+    def _humans_near_robot(self, radius: float) -> np.ndarray:
+        offsets = self.positions - self.positions[:, :1]
+        gaps = np.linalg.norm(offsets, axis=-1) - self.radii - self.radii[:, :1]
+        return self.active & self.humans_slots & (gaps < radius)
+
+    def _redraw_reached_goals(self) -> None:
+        reached = self.active & self.humans_slots
+        reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.config.goal_tolerance
+        for env, agent in zip(*np.nonzero(reached)):
+            self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config, self.positions[env, agent])
+
+    # ---------------------------------------------------------------------------------------------------- observe
+
+    def observe(self) -> dict[str, np.ndarray]:
+        """The policy's observation of every environment (SPEC section 2), perturbed by observation noise if set."""
+        robot, humans, mask = _observe(
+            self.positions, self.velocities, self.radii, self.goals, self.preferred_speeds[:, 0], self.active,
+            self.heading, self.config.max_humans,
+        )
+        if self.config.perturbation.observation_noise > 0.0:
+            _add_observation_noise(robot, humans, mask, self.noise_keys, self.steps,
+                                   self.config.perturbation.observation_noise)
+        return {"robot": robot, "humans": humans, "humans_mask": mask}
+
+    def episode_summary(self, env: int, outcome: int) -> dict[str, float | int | str]:
+        """End-of-episode metrics of environment `env` (call before it is reset)."""
+        time = float(self.time[env])
+        return {
+            "outcome": OUTCOME_NAMES.get(int(outcome), "running"),
+            "return": float(self.episode_return[env]),
+            "length": int(self.steps[env]),
+            "duration": time,
+            "path_length": float(self.path_length[env]),
+            "time_to_goal": time if outcome == OUTCOME_GOAL else float("nan"),
+            "min_gap": float(self.min_gap[env]),
+            "intrusion_steps": int(self.intrusion_steps[env]),
+            "intrusion_events": int(self.intrusion_events[env]),
+        }
