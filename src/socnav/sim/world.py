@@ -103,14 +103,15 @@ def _closest_approach(rel_x, rel_y, rel_vx, rel_vy, time_step):
 @numba.njit(cache=True)
 def _advance_and_score(
     positions, velocities, radii, goals, max_speeds, personal_space, active, heading, new_speed, turn,
-    human_velocities, unhindered_velocities, time, time_limit, time_step, goal_tolerance,
+    human_velocities, unhindered_velocities, near_robot, time, time_limit, time_step, goal_tolerance,
     w_goal, w_collision, w_time, w_progress, w_personal_space, w_disturbance, social_radius,
     was_intruded, episode_return, path_length, min_gap, intrusion_steps, intrusion_events,
 ):
     """Move every agent one step, detect goal / collision / time-out and score the socially integrated reward.
 
     Reward (SPEC section 2): +w_goal | -w_col | -w_time dt | w_prog (d(t-1) - d(t)) | -w_prox (1 - gap / r_prox) per
-    intruded personal space | -w_dist |v_i - v_i^0| / v_pref_i per human within the social radius.
+    intruded personal space | -w_dist |v_i - v_i^0| / v_pref_i per human within the social radius at the start of the
+    step (`near_robot`, the humans whose robot-free velocity v_i^0 was computed).
     Episode accumulators are updated in place.
     """
     n_envs, n_agents = active.shape
@@ -168,7 +169,7 @@ def _advance_and_score(
                 if not was_intruded[env, agent]:
                     intrusion_events[env] += 1
             was_intruded[env, agent] = intruded
-            if gap < social_radius and w_disturbance > 0.0:
+            if near_robot[env, agent] and w_disturbance > 0.0:
                 push = math.hypot(
                     velocities[env, agent, 0] - unhindered_velocities[env, agent, 0],
                     velocities[env, agent, 1] - unhindered_velocities[env, agent, 1],
@@ -325,10 +326,11 @@ class CrowdWorld:
         for env in envs:
             rng = self.rngs[env]
             initial = self.scenario.sample(rng, 1, self.config)
-            self._load(env, initial)
+            self.load(env, initial)
             self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
 
-    def _load(self, env: int, initial: InitialState) -> None:
+    def load(self, env: int, initial: InitialState) -> None:
+        """Start environment `env` from a given initial state (its first env), e.g. a staged encounter."""
         cfg = self.config
         self.positions[env] = initial.positions[0]
         self.goals[env] = initial.goals[0]
@@ -384,14 +386,12 @@ class CrowdWorld:
             pert.heading_noise, pert.speed_noise,
         )
         humans = self.human_velocities()
-        if rew.disturbance > 0.0:
-            near = self._humans_near_robot(rew.social_radius)
-            unhindered = self.human_velocities(without_robot=True, only=near) if near.any() else humans
-        else:
-            unhindered = humans
+        near = self._humans_near_robot(rew.social_radius)
+        scored = rew.disturbance > 0.0 and near.any()
+        unhindered = self.human_velocities(without_robot=True, only=near) if scored else humans
         reward, outcome, nearest_gap, nearest_speed, intrusions = _advance_and_score(
             self.positions, self.velocities, self.radii, self.goals, self.max_speeds, self.personal_space,
-            self.active, self.heading, speed, turn, humans, unhindered, self.time, self.time_limit,
+            self.active, self.heading, speed, turn, humans, unhindered, near, self.time, self.time_limit,
             cfg.time_step, cfg.goal_tolerance, rew.goal, rew.collision, rew.time, rew.progress,
             rew.personal_space, rew.disturbance, rew.social_radius, self.was_intruded, self.episode_return,
             self.path_length, self.min_gap, self.intrusion_steps, self.intrusion_events,

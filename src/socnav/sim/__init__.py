@@ -1,0 +1,1 @@
+"""Batched crowd simulator: ORCA humans, scenarios and sensing noise."""
