@@ -92,7 +92,8 @@ def evaluate(
         _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
     records = _evaluate(make_controller(policy, env_config), env_config, episodes, seed, n_envs, f"{policy} / {env_config.scenario}")
     write_table_atomic(records, out)
-    console.print(metrics_table([(policy, summarize(records))], f"{env_config.scenario}, seeds {seed}..{seed + episodes - 1}"))
+    world = env_config.scenario + ("" if env_config.robot_visible else " (humans ignore the robot)")
+    console.print(metrics_table([(policy, summarize(records))], f"{world}, seeds {seed}..{seed + episodes - 1}"))
     console.print(f"per-episode records: {out}")
 
 
