@@ -13,7 +13,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from socnav.config import ConfigLike, EnvConfig, load_config
-from socnav.envs.env import scene_frame, step_info
+from socnav.envs.env import scene_frame, step_infos
 from socnav.envs.spaces import action_space, observation_space
 from socnav.sim.world import CrowdWorld
 
@@ -55,13 +55,13 @@ class SocialNavVecEnv(VecEnv):
             raise RuntimeError("step_async() must be called before step_wait()")
         result = self.world.step(self._actions)
         self._actions = None
-        infos = [step_info(self.world, result, env) for env in range(self.num_envs)]
+        infos = step_infos(self.world, result)
         dones = result.terminated | result.truncated
         if dones.any():
             finished = np.flatnonzero(dones)
-            terminal = self.world.observe()
-            for env in finished:
-                infos[env]["terminal_observation"] = {key: value[env] for key, value in terminal.items()}
+            terminal = self.world.observe(finished)
+            for row, env in enumerate(finished):
+                infos[env]["terminal_observation"] = {key: value[row] for key, value in terminal.items()}
                 infos[env]["TimeLimit.truncated"] = bool(result.truncated[env] and not result.terminated[env])
             self.world.reset(finished)
         return self.world.observe(), result.reward.astype(np.float32), dones, infos

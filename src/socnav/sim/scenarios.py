@@ -5,6 +5,7 @@ Each scenario is a small registered object with `sample(rng, n_envs, config) -> 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -102,12 +103,14 @@ def _fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Ge
     state.cooperation[env, 1:agents] = rng.uniform(*config.cooperation, size=n_humans)
 
 
-def _unit(angle: np.ndarray | float) -> np.ndarray:
-    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+def _unit(angle: float) -> np.ndarray:
+    # math on Python floats: resets run once per episode per env, and numpy's per-call overhead dominated them.
+    return np.array((math.cos(angle), math.sin(angle)))
 
 
 def _far_enough(point: np.ndarray, others: list[np.ndarray], separation: float) -> bool:
-    return all(np.linalg.norm(point - other) >= separation for other in others)
+    x, y = float(point[0]), float(point[1])
+    return all(math.hypot(x - float(other[0]), y - float(other[1])) >= separation for other in others)
 
 
 def _face_goal(state: InitialState, env: int) -> None:

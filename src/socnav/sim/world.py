@@ -246,6 +246,20 @@ def _observe(positions, velocities, radii, goals, preferred_speed, active, headi
 
 
 @numba.njit(cache=True)
+def _humans_within(positions, radii, active, social_radius):
+    """Mask of the active humans whose gap to the robot is below `social_radius` (whose disturbance is scored)."""
+    n_envs, n_agents = active.shape
+    near = np.zeros((n_envs, n_agents), dtype=np.bool_)
+    for env in range(n_envs):
+        for agent in range(1, n_agents):
+            if active[env, agent]:
+                dx = positions[env, agent, 0] - positions[env, 0, 0]
+                dy = positions[env, agent, 1] - positions[env, 0, 1]
+                near[env, agent] = math.sqrt(dx * dx + dy * dy) - radii[env, agent] - radii[env, 0] < social_radius
+    return near
+
+
+@numba.njit(cache=True)
 def _add_observation_noise(robot, humans, mask, keys, steps, observation_noise):
     """Add N(0, s^2) to every real observation element (SPEC section 2); padding and the mask stay exact."""
     n_envs, max_humans, n_features = humans.shape
@@ -410,9 +424,7 @@ class CrowdWorld:
         )
 
     def _humans_near_robot(self, radius: float) -> np.ndarray:
-        offsets = self.positions - self.positions[:, :1]
-        gaps = np.linalg.norm(offsets, axis=-1) - self.radii - self.radii[:, :1]
-        return self.active & self.humans_slots & (gaps < radius)
+        return _humans_within(self.positions, self.radii, self.active, radius)
 
     def _redraw_reached_goals(self) -> None:
         reached = self.active & self.humans_slots
@@ -422,15 +434,23 @@ class CrowdWorld:
 
     # ---------------------------------------------------------------------------------------------------- observe
 
-    def observe(self) -> dict[str, np.ndarray]:
-        """The policy's observation of every environment (SPEC section 2), perturbed by observation noise if set."""
-        robot, humans, mask = _observe(
-            self.positions, self.velocities, self.radii, self.goals, self.preferred_speeds[:, 0], self.active,
-            self.heading, self.config.max_humans,
-        )
+    def observe(self, envs: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The policy's observation of every environment (or of `envs` only, in that order; SPEC section 2),
+        perturbed by observation noise if set."""
+        if envs is None:
+            positions, velocities, radii, goals = self.positions, self.velocities, self.radii, self.goals
+            speeds, active, heading, keys, steps = (self.preferred_speeds[:, 0], self.active, self.heading,
+                                                    self.noise_keys, self.steps)
+        else:
+            envs = np.asarray(envs, dtype=np.int64)
+            positions, velocities, radii, goals = (self.positions[envs], self.velocities[envs], self.radii[envs],
+                                                   self.goals[envs])
+            speeds, active, heading, keys, steps = (self.preferred_speeds[envs, 0], self.active[envs],
+                                                    self.heading[envs], self.noise_keys[envs], self.steps[envs])
+        robot, humans, mask = _observe(positions, velocities, radii, goals, speeds, active, heading,
+                                       self.config.max_humans)
         if self.config.perturbation.observation_noise > 0.0:
-            _add_observation_noise(robot, humans, mask, self.noise_keys, self.steps,
-                                   self.config.perturbation.observation_noise)
+            _add_observation_noise(robot, humans, mask, keys, steps, self.config.perturbation.observation_noise)
         return {"robot": robot, "humans": humans, "humans_mask": mask}
 
     def episode_summary(self, env: int, outcome: int) -> dict[str, float | int | str]:
