@@ -1,0 +1,23 @@
+"""Reinforcement learning for socnav: ODV-PPO with dropout on Stable-Baselines3 (SPEC section 3).
+Policy network (LSTM extractor, ODV actor, critic), the ODVPPO algorithm and the five named presets.
+"""
+
+from socnav.rl.extractor import HumanLSTMExtractor
+from socnav.rl.odv_ppo import ODVPPO, variance_loss
+from socnav.rl.policy import NonFiniteError, ODVActorCriticPolicy, check_finite
+from socnav.rl.presets import ALGOS, PRESETS, AlgoConfig, large_batch_overrides, make_model, resolve_config
+
+__all__ = [
+    "ALGOS",
+    "PRESETS",
+    "AlgoConfig",
+    "HumanLSTMExtractor",
+    "NonFiniteError",
+    "ODVActorCriticPolicy",
+    "ODVPPO",
+    "check_finite",
+    "large_batch_overrides",
+    "make_model",
+    "resolve_config",
+    "variance_loss",
+]
