@@ -34,4 +34,6 @@ def test_demo_writes_tables_and_animation(tmp_path):
     result = runner.invoke(app, ["demo", "--episodes", "2", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "orca_circle_crossing.gif").stat().st_size > 10_000
-    assert len(list(tmp_path.glob("*.csv"))) == 8
+    assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
+    assert len(list(tmp_path.glob("*.csv"))) == 9
+    assert "odv-ppo-drop (pretrained)" in result.output

@@ -58,19 +58,108 @@ def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table
     return table
 
 
-def _evaluate(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int, label: str) -> pd.DataFrame:
+def _evaluate(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int, label: str,
+              deterministic: bool = True) -> pd.DataFrame:
     from socnav.envs.rollout import rollout_episodes
 
     with _progress() as progress:
         task = progress.add_task(label, total=episodes)
         return rollout_episodes(
-            policy, config, episodes, seed=seed, n_envs=n_envs, progress=lambda n: progress.advance(task, n)
+            policy, config, episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
+            progress=lambda n: progress.advance(task, n),
         )
+
+
+def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str]) -> dict[str, Any]:
+    """Hyperparameter overrides from a YAML file, then `--set key=value` pairs (values parsed as YAML)."""
+    import yaml
+
+    from socnav.rl.presets import ALGOS, resolve_config
+
+    if algo not in ALGOS:
+        _fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
+    overrides: dict[str, Any] = {}
+    if algo_config is not None:
+        if not algo_config.is_file():
+            _fail(f"--algo-config: no such file {algo_config}")
+        loaded = yaml.safe_load(algo_config.read_text()) or {}
+        if not isinstance(loaded, dict):
+            _fail(f"--algo-config {algo_config} must hold a mapping of hyperparameters")
+        overrides.update(loaded)
+    for setting in settings:
+        key, sep, value = setting.partition("=")
+        if not sep or not key:
+            _fail(f"--set expects key=value, got {setting!r}")
+        overrides[key.strip()] = yaml.safe_load(value)
+    try:
+        resolve_config(algo, overrides)
+    except ValueError as exc:
+        _fail(" ".join(str(exc).split()))
+    return overrides
+
+
+@app.command()
+def train(
+    scenario: Optional[str] = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
+    algo: str = typer.Option("odv-ppo-drop", help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
+    seed: int = typer.Option(0, help="seed of the run (network init, dropout, training episodes)"),
+    timesteps: int = typer.Option(200_000, min=1, help="total environment steps"),
+    n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
+    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    algo_config: Optional[Path] = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
+    settings: list[str] = typer.Option([], "--set", help="hyperparameter override key=value (repeatable)"),
+    eval_every: Optional[int] = typer.Option(None, min=1, help="timesteps between evaluations/checkpoints"),
+    eval_episodes: int = typer.Option(50, min=1, help="validation episodes per evaluation"),
+    out: Optional[Path] = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>)"),
+    resume: Optional[Path] = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
+) -> None:
+    """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
+    import json
+
+    from socnav.rl.training import TrainingInterrupted
+    from socnav.rl.training import train as train_run
+
+    if resume is not None:
+        run_file = resume / "run.json"
+        if not run_file.is_file():
+            _fail(f"--resume {resume}: no run.json there (not a socnav training run directory)")
+        asked = json.loads(run_file.read_text())
+        env_config = load_config(asked["env_config"])
+        algo, seed, timesteps = asked["algo"], asked["seed"], asked["timesteps"]
+        n_envs, overrides, out = asked["n_envs"], asked["overrides"], resume
+        eval_every, eval_episodes = asked["eval_every"], asked["eval_episodes"]
+    else:
+        env_config = _env_config(scenario, config, n_humans)
+        overrides = _algo_overrides(algo, algo_config, settings)
+        out = out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}"
+    console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}")
+    try:
+        result = train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
+                           eval_every=eval_every, eval_episodes=eval_episodes, resume=resume is not None,
+                           progress=True)
+    except TrainingInterrupted as exc:
+        console.print(f"[bold red]error:[/] {exc}")
+        raise typer.Exit(code=1)
+    console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
+                                f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
+    console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
+
+
+def _load_learned_policy(model: str) -> Any:
+    from socnav.rl.persistence import PolicyLoadError, load_policy
+
+    try:
+        return load_policy(model)
+    except PolicyLoadError as exc:
+        _fail(str(exc))
 
 
 @app.command()
 def evaluate(
-    policy: str = typer.Option("orca", help="baseline controller: orca | straight"),
+    policy: str = typer.Option("orca", help="baseline controller: orca | straight (ignored with --model)"),
+    model: Optional[str] = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
+    stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())}"),
     episodes: int = typer.Option(200, min=1, help="number of evaluation episodes"),
     seed: int = typer.Option(0, help="episode k uses seed + k"),
@@ -84,16 +173,25 @@ def evaluate(
     from socnav.envs.rollout import summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
 
-    if policy not in CONTROLLERS:
+    if model is None and policy not in CONTROLLERS:
         _fail(f"--policy {policy!r} is not known; allowed: {', '.join(CONTROLLERS)}")
     env_config = _env_config(scenario, config, n_humans)
-    out = out or Path("runs") / "evaluate" / f"{policy}_{env_config.scenario}_seed{seed}.csv"
+    if model is not None:
+        actor = _load_learned_policy(model)
+        name = "pretrained" if model == "pretrained" else Path(model).stem
+        if actor.observation_space["humans"].shape[0] != env_config.max_humans:
+            _fail(f"the model observes max_humans={actor.observation_space['humans'].shape[0]} but the env config "
+                  f"has max_humans={env_config.max_humans}; set max_humans in --config to match")
+    else:
+        actor, name = make_controller(policy, env_config), policy
+    out = out or Path("runs") / "evaluate" / f"{name}_{env_config.scenario}_seed{seed}.csv"
     if out.suffix not in TABLE_FORMATS:
         _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
-    records = _evaluate(make_controller(policy, env_config), env_config, episodes, seed, n_envs, f"{policy} / {env_config.scenario}")
+    records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
+                        deterministic=not stochastic)
     write_table_atomic(records, out)
     world = env_config.scenario + ("" if env_config.robot_visible else " (humans ignore the robot)")
-    console.print(metrics_table([(policy, summarize(records))], f"{world}, seeds {seed}..{seed + episodes - 1}"))
+    console.print(metrics_table([(name, summarize(records))], f"{world}, seeds {seed}..{seed + episodes - 1}"))
     console.print(f"per-episode records: {out}")
 
 
@@ -102,8 +200,10 @@ def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
     episodes: int = typer.Option(100, min=1, help="episodes per scenario and controller"),
     seed: int = typer.Option(0, help="first episode seed"),
+    train_steps: int = typer.Option(0, min=0, help="train a fresh ODV-PPO-Drop policy for this many steps "
+                                                    "(0: use the pretrained one shipped with socnav)"),
 ) -> None:
-    """Simulate every scenario with the baseline controllers, print the metrics and write an animation (GIF)."""
+    """Baselines in every scenario, then an ODV-PPO-Drop policy on position swap: metrics and animations (GIF)."""
     from socnav.envs.controllers import make_controller
     from socnav.envs.rollout import record_episode, summarize
     from socnav.io import write_table_atomic
@@ -117,11 +217,27 @@ def demo(
             write_table_atomic(records, out / f"{name}_{scenario}.csv")
             rows.append((f"{name} / {scenario}", summarize(records)))
     console.print(metrics_table(rows, f"Baseline controllers, {episodes} episodes each (seeds {seed}..)"))
-
     env_config = load_config({"scenario": "circle_crossing"})
     frames, summary = record_episode(make_controller("orca", env_config), env_config, seed=seed)
     gif = save_animation(frames, out / "orca_circle_crossing.gif", fps=round(1 / env_config.time_step))
-    console.print(f"animation of one episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
+    console.print(f"animation of one ORCA episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
+
+    swap = load_config({"scenario": "position_swap", "n_humans": 1})
+    if train_steps:
+        from socnav.rl.training import train as train_run
+
+        console.print(f"training ODV-PPO-Drop on position swap with one human for {train_steps:,} steps")
+        result = train_run(swap, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
+        model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
+    else:
+        model_path, label = "pretrained", "odv-ppo-drop (pretrained)"
+    policy = _load_learned_policy(model_path)
+    records = _evaluate(policy, swap, episodes, seed, 32, f"{label} / position_swap")
+    write_table_atomic(records, out / "odv_ppo_drop_position_swap.csv")
+    console.print(metrics_table([(label, summarize(records))], f"position swap, one human, {episodes} episodes"))
+    frames, summary = record_episode(policy, swap, seed=seed)
+    gif = save_animation(frames, out / "odv_ppo_drop_position_swap.gif", fps=round(1 / swap.time_step))
+    console.print(f"animation of one learned-policy episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
 
 
 def main() -> None:

@@ -21,7 +21,51 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-__all__ = ["HumanLSTMExtractor"]
+__all__ = ["Dropout", "HumanLSTMExtractor"]
+
+class Dropout(nn.Dropout):
+    """`nn.Dropout` with the mask drawn as ``uniform >= p``: the same distribution, ~25 % cheaper on CPU.
+
+    torch's CPU dropout draws its mask with `bernoulli_`, which is markedly slower than the vectorised uniform
+    generator at these sizes; a subclass keeps `isinstance(m, nn.Dropout)` true for MC-dropout and for users.
+    """
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        keep = (th.rand_like(x) >= self.p).to(x.dtype)
+        return x * keep * (1.0 / (1.0 - self.p))
+
+
+#: Sequences up to this length run through the explicit LSTM equations below instead of `nn.LSTM`'s kernel.
+SHORT_SEQUENCE = 4
+
+
+def _run_lstm(lstm: nn.LSTM, x: th.Tensor) -> th.Tensor:
+    """Outputs (B, L, H) of a single-layer, batch-first `lstm` from the zero state, the same values as `lstm(x)[0]`.
+
+    For the few humans of most scenes the oneDNN LSTM kernel costs more in per-call overhead than in arithmetic
+    (forward + backward at L = 1, B = 128: ~1.8 ms vs ~1.0 ms written out, one thread), and PPO makes thousands of
+    such small gradient steps. Longer sequences use the kernel. Same parameters either way:
+        i, f, g, o = split(W_ih x_t + b_ih + W_hh h_{t-1} + b_hh)
+        c_t = sigmoid(f) * c_{t-1} + sigmoid(i) * tanh(g),   h_t = sigmoid(o) * tanh(c_t),   h_0 = c_0 = 0
+    """
+    steps = x.shape[1]
+    if steps > SHORT_SEQUENCE:
+        return lstm(x)[0]
+    input_gates = nn.functional.linear(x, lstm.weight_ih_l0, lstm.bias_ih_l0 + lstm.bias_hh_l0)  # (B, L, 4H)
+    outputs = []
+    hidden = cell = None
+    for t in range(steps):
+        gates = input_gates[:, t]
+        if hidden is not None:  # W_hh h_{t-1} vanishes at t = 0
+            gates = gates + nn.functional.linear(hidden, lstm.weight_hh_l0)
+        input_gate, forget_gate, candidate, output_gate = gates.chunk(4, dim=1)
+        new_cell = th.sigmoid(input_gate) * th.tanh(candidate)
+        cell = new_cell if cell is None else th.sigmoid(forget_gate) * cell + new_cell
+        hidden = th.sigmoid(output_gate) * th.tanh(cell)
+        outputs.append(hidden)
+    return th.stack(outputs, dim=1)
 
 
 class HumanLSTMExtractor(BaseFeaturesExtractor):
@@ -64,8 +108,8 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
             for i in range(n_lstm_layers)
         )
         # input_dropout before layer 0, then one dropout in front of every further layer.
-        self.input_dropouts = nn.ModuleList(nn.Dropout(dropout_p) for _ in range(n_lstm_layers))
-        self.h_dropout = nn.Dropout(dropout_p)
+        self.input_dropouts = nn.ModuleList(Dropout(dropout_p) for _ in range(n_lstm_layers))
+        self.h_dropout = Dropout(dropout_p)
         # Feature range of h, tracked from rollout observations (+inf / -inf = nothing seen yet).
         self.register_buffer("h_min", th.full((lstm_hidden_size,), float("inf")))
         self.register_buffer("h_max", th.full((lstm_hidden_size,), float("-inf")))
@@ -85,7 +129,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
 
         x = humans[:, :max_n]  # (B, L, F): trimmed to the longest real sequence in the batch
         for dropout, lstm in zip(self.input_dropouts, self.lstm_layers):
-            x, _ = lstm(dropout(x))  # (B, L, H)
+            x = _run_lstm(lstm, dropout(x))  # (B, L, H)
         # h_b = x[b, n_b - 1]; rows after n_b - 1 were computed from padding but are never read.
         last = (n - 1).clamp(min=0)
         h = x[th.arange(batch, device=x.device), last]  # (B, H)

@@ -163,8 +163,8 @@ class ODVPPO(PPO):
         schedule = self.variance_schedule()  # t / T
         sigma_coef = schedule * self.variance_coef  # (t / T) * lambda_sigma
 
-        logs: dict[str, list[float]] = {k: [] for k in ("pg", "value", "entropy", "variance", "clip", "std")}
-        approx_kl_divs: list[float] = []
+        logs: dict[str, list[th.Tensor]] = {k: [] for k in ("pg", "value", "entropy", "variance", "clip", "std")}
+        approx_kl_divs: list[th.Tensor] = []
         loss = th.zeros(())
         continue_training = True
         for epoch in range(self.n_epochs):
@@ -208,19 +208,20 @@ class ODVPPO(PPO):
                 )
 
                 with th.no_grad():  # http://joschu.net/blog/kl-approx.html, as in SB3
-                    approx_kl = float(th.mean((ratio - 1) - log_ratio))
-                approx_kl_divs.append(approx_kl)
-                logs["pg"].append(pg_loss.item())
-                logs["value"].append(value_loss.item())
-                logs["entropy"].append(entropy_loss.item())
-                logs["variance"].append(sigma_loss.item())
-                logs["clip"].append(float(th.mean((th.abs(ratio - 1) > clip_range).float())))
-                logs["std"].append(float(log_std.detach().exp().mean()))
+                    approx_kl = th.mean((ratio - 1) - log_ratio)
+                    # kept as tensors and reduced once per update: a host round trip per value and step adds up
+                    approx_kl_divs.append(approx_kl)
+                    logs["pg"].append(pg_loss.detach())
+                    logs["value"].append(value_loss.detach())
+                    logs["entropy"].append(entropy_loss.detach())
+                    logs["variance"].append(sigma_loss.detach())
+                    logs["clip"].append(th.mean((th.abs(ratio - 1) > clip_range).float()))
+                    logs["std"].append(log_std.detach().exp().mean())
 
-                if self.target_kl is not None and approx_kl > 1.5 * self.target_kl:
+                if self.target_kl is not None and float(approx_kl) > 1.5 * self.target_kl:
                     continue_training = False
                     if self.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl:.2f}")
+                        print(f"Early stopping at step {epoch} due to reaching max kl: {float(approx_kl):.2f}")
                     break
 
                 policy.optimizer.zero_grad()
@@ -236,16 +237,17 @@ class ODVPPO(PPO):
         buffer = self.rollout_buffer
         explained_var = explained_variance(buffer.values.flatten(), buffer.returns.flatten())
         record = self.logger.record
-        record("train/entropy_loss", float(np.mean(logs["entropy"])))
-        record("train/policy_gradient_loss", float(np.mean(logs["pg"])))
-        record("train/value_loss", float(np.mean(logs["value"])))
-        record("train/approx_kl", float(np.mean(approx_kl_divs)))
-        record("train/clip_fraction", float(np.mean(logs["clip"])))
+        mean = lambda values: float(th.stack(values).mean()) if values else float("nan")  # noqa: E731
+        record("train/entropy_loss", mean(logs["entropy"]))
+        record("train/policy_gradient_loss", mean(logs["pg"]))
+        record("train/value_loss", mean(logs["value"]))
+        record("train/approx_kl", mean(approx_kl_divs))
+        record("train/clip_fraction", mean(logs["clip"]))
         record("train/loss", loss.item())
         record("train/explained_variance", float(explained_var))
-        record("train/std", float(np.mean(logs["std"])))
+        record("train/std", mean(logs["std"]))
         if self._logs_variance():
-            record("train/variance_loss", float(np.mean(logs["variance"])))
+            record("train/variance_loss", mean(logs["variance"]))
             record("train/variance_schedule", schedule)
         record("train/n_updates", self._n_updates, exclude="tensorboard")
         record("train/clip_range", clip_range)

@@ -41,7 +41,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.distributions import Normal
 
-from socnav.rl.extractor import HumanLSTMExtractor
+from socnav.rl.extractor import Dropout, HumanLSTMExtractor
 
 _HAS_FUSED_CPU_ADAM = tuple(int(v) for v in th.__version__.split(".")[:2]) >= (2, 4)
 
@@ -129,7 +129,7 @@ class DropoutMlpExtractor(nn.Module):
         actor: list[nn.Module] = []
         last = feature_dim
         for size in pi:
-            actor += [nn.Linear(last, size), activation_fn(), nn.Dropout(dropout_p)]
+            actor += [nn.Linear(last, size), activation_fn(), Dropout(dropout_p)]
             last = size
         self.latent_dim_pi = last
         critic: list[nn.Module] = []

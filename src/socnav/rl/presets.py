@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from socnav.rl.odv_ppo import ODVPPO
 from socnav.rl.policy import ODVActorCriticPolicy
 
-__all__ = ["ALGOS", "PRESETS", "AlgoConfig", "AlgoName", "large_batch_overrides", "make_model", "resolve_config"]
+__all__ = ["ALGOS", "PRESETS", "AlgoConfig", "AlgoName", "large_batch_overrides", "make_model", "policy_kwargs_for", "resolve_config"]
 
 AlgoName = Literal["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]
 
@@ -128,6 +128,22 @@ def resolve_config(algo: str, overrides: dict[str, Any] | None = None) -> AlgoCo
     return AlgoConfig.model_validate({**PRESETS[algo].model_dump(), **overrides})
 
 
+def policy_kwargs_for(cfg: AlgoConfig) -> dict[str, Any]:
+    """The ``ODVActorCriticPolicy`` constructor arguments of a resolved config (also used to rebuild saved policies)."""
+    return dict(
+        net_arch=dict(pi=list(cfg.net_arch_pi), vf=list(cfg.net_arch_vf)),
+        ortho_init=cfg.ortho_init,
+        log_std_init=cfg.log_std_init,
+        odv=cfg.odv,
+        dropout_p=cfg.p_train,
+        p_test=cfg.p_test,
+        log_std_min=cfg.log_std_min,
+        log_std_max=cfg.log_std_max,
+        lstm_hidden_size=cfg.lstm_hidden_size,
+        n_lstm_layers=cfg.n_lstm_layers,
+    )
+
+
 def make_model(
     algo: str,
     env: Any,
@@ -151,18 +167,7 @@ def make_model(
     cfg = resolve_config(algo, overrides)
     if cfg.torch_threads is not None:
         th.set_num_threads(cfg.torch_threads)
-    policy_kwargs = dict(
-        net_arch=dict(pi=list(cfg.net_arch_pi), vf=list(cfg.net_arch_vf)),
-        ortho_init=cfg.ortho_init,
-        log_std_init=cfg.log_std_init,
-        odv=cfg.odv,
-        dropout_p=cfg.p_train,
-        p_test=cfg.p_test,
-        log_std_min=cfg.log_std_min,
-        log_std_max=cfg.log_std_max,
-        lstm_hidden_size=cfg.lstm_hidden_size,
-        n_lstm_layers=cfg.n_lstm_layers,
-    )
+    policy_kwargs = policy_kwargs_for(cfg)
     model = ODVPPO(
         ODVActorCriticPolicy,
         env,
