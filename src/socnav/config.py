@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Mapping, Union
+from typing import Any, Literal, Mapping, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -83,6 +83,9 @@ class EnvConfig(_Strict):
     cooperation: Range = Field((0.25, 0.5), description="human share of avoidance w.r.t. the robot ~ U[min, max]")
     robot_visible: bool = Field(True, description="False: humans ignore the robot (out-of-distribution variant)")
     max_heading_change: float = Field(math.pi / 6, gt=0, le=math.pi, description="rad per step")
+    initial_heading: Literal["random", "goal"] = Field(
+        "random", description="robot heading at the start: uniform in [-pi, pi) or pointing at its goal"
+    )
 
     circle_radius: float = Field(7.0, gt=0, description="metres, circle scenarios and position swap")
     circle_jitter: float = Field(0.5, ge=0, description="circle crossing: start/goal jitter (uniform +- m)")

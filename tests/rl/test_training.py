@@ -178,3 +178,11 @@ def test_killed_training_resumes_to_the_same_total(tmp_path):
     evals = pd.read_csv(out / "eval.csv")
     assert list(evals["timesteps"]) == list(range(512, 6144 + 1, 512))
     assert load_policy(out / "model.zip").socnav_metadata["timesteps"] == 6144
+
+
+def test_same_seed_gives_the_same_training_run(tmp_path):
+    runs = [train(ENV, "odv-ppo-drop", seed=4, timesteps=1024, out_dir=tmp_path / name, n_envs=4, eval_every=512,
+                  eval_episodes=2, tensorboard=False) for name in ("a", "b")]
+    first, second = (load_policy(run.model_path).state_dict() for run in runs)
+    assert all(th.equal(first[key], second[key]) for key in first)
+    assert pd.read_csv(tmp_path / "a" / "curve.csv")["ep_rew_mean"].equals(pd.read_csv(tmp_path / "b" / "curve.csv")["ep_rew_mean"])

@@ -342,6 +342,9 @@ class CrowdWorld:
             initial = self.scenario.sample(rng, 1, self.config)
             self.load(env, initial)
             self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
+            if self.config.initial_heading == "random":
+                # Drawn last, so starts, goals and noise are the same episode for either setting.
+                self.heading[env] = rng.uniform(-math.pi, math.pi)
 
     def load(self, env: int, initial: InitialState) -> None:
         """Start environment `env` from a given initial state (its first env), e.g. a staged encounter."""
