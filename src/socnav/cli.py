@@ -240,6 +240,10 @@ def demo(
     console.print(f"animation of one learned-policy episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
 
 
+from socnav.experiments.cli import register as _register_experiments  # noqa: E402
+_register_experiments(app)  # socnav run / report / tune
+
+
 def main() -> None:
     app()
 
