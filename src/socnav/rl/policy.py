@@ -394,20 +394,23 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         p = self.p_test if p is None else float(p)
         if not 0.0 <= p < 1.0:
             raise ValueError(f"MC-dropout probability must lie in [0, 1), got {p}")
-        modes = [(m, m.training) for m in self.modules()]
+        modules = list(self.modules())
+        modes = [m.training for m in modules]
         layers = self.dropout_layers()
         old_p = [d.p for d in layers]
-        self.train(False)
+        # object.__setattr__: nn.Module.__setattr__ / train() cost ~4 us per module, a fifth of an MC estimate.
+        for m in modules:
+            object.__setattr__(m, "training", False)
         for d in layers:
             d.p = p
-            d.train(True)
+            object.__setattr__(d, "training", True)
         try:
             yield self
         finally:
             for d, q in zip(layers, old_p):
                 d.p = q
-            for m, mode in modes:
-                m.training = mode
+            for m, mode in zip(modules, modes):
+                object.__setattr__(m, "training", mode)
 
     @contextmanager
     def feature_range_tracking(self) -> Iterator[None]:
