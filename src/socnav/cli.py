@@ -147,8 +147,13 @@ def train(
 
 
 def _load_learned_policy(model: str) -> Any:
+    import torch
+
     from socnav.rl.persistence import PolicyLoadError, load_policy
 
+    # Batched inference on small matrices: one thread is faster than torch's intra-op pool, which also collapses
+    # when the cores are shared.
+    torch.set_num_threads(1)
     try:
         return load_policy(model)
     except PolicyLoadError as exc:

@@ -24,6 +24,17 @@ class Policy(Protocol):
                 deterministic: bool = True) -> tuple[np.ndarray, Any]: ...
 
 
+class StepObserver(Protocol):
+    """Sees every step of a rollout, e.g. to record per-step uncertainties (`socnav.uncertainty.recording`)."""
+
+    def on_step(self, observation: dict[str, np.ndarray], actions: np.ndarray, result: Any,
+                episodes: np.ndarray) -> None:
+        """`episodes[e]` is the episode environment e played this step (-1: none, its result is to be ignored)."""
+
+    def on_episode_start(self, envs: np.ndarray) -> None:
+        """Environments `envs` start a new episode (called before their first observation is used)."""
+
+
 def rollout_episodes(
     policy: Policy,
     config: ConfigLike,
@@ -32,10 +43,13 @@ def rollout_episodes(
     n_envs: int = 16,
     deterministic: bool = True,
     progress: Callable[[int], None] | None = None,
+    observer: StepObserver | None = None,
 ) -> pd.DataFrame:
     """Run `n_episodes` episodes (episode k from seed `seed + k`) and return one record per episode.
 
-    `progress(n)` is called with the number of episodes finished at each step that finishes some.
+    `progress(n)` is called with the number of episodes finished at each step that finishes some. Policies and
+    observers with an `on_episode_start(envs)` method are told when environments start new episodes (stateful
+    policies such as `socnav.safety.SafePolicy` keep per-environment windows).
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
@@ -46,11 +60,18 @@ def rollout_episodes(
     for env in range(n_envs):
         world.seed(env, seed + env)
     world.reset()
+    listeners = [x.on_episode_start for x in (policy, observer) if hasattr(x, "on_episode_start")]
+    for listener in listeners:
+        listener(np.arange(n_envs))
     next_episode = n_envs
     records: list[dict[str, Any]] = []
     while len(records) < n_episodes:
-        actions, _ = policy.predict(world.observe(), deterministic=deterministic)
-        result = world.step(np.asarray(actions))
+        observation = world.observe()
+        actions, _ = policy.predict(observation, deterministic=deterministic)
+        actions = np.asarray(actions)
+        result = world.step(actions)
+        if observer is not None:
+            observer.on_step(observation, actions, result, running.copy())
         done = np.flatnonzero(result.terminated | result.truncated)
         finished = done[running[done] >= 0]
         for env in finished:
@@ -64,6 +85,8 @@ def rollout_episodes(
                 running[env] = -1
         if len(done):
             world.reset(done)
+            for listener in listeners:
+                listener(done)
         if len(finished):
             if progress is not None:
                 progress(len(finished))
