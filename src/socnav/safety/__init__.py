@@ -1,0 +1,59 @@
+"""Safe action selection (paper IV-C, SPEC section 5): a probability-of-collision rule on the windowed
+uncertainty and the nearest human, and a cautious ORCA controller that takes over when it fires.
+
+Example::
+
+    from socnav.safety import SafePolicy, Thresholds
+    from socnav.uncertainty import MCDropoutEstimator
+
+    safe = SafePolicy(policy, MCDropoutEstimator(policy, k=20, p_test=0.5), Thresholds.preset("mc"), config)
+    actions, _ = safe.predict(obs)             # batched; safe.last_fallback says where the fallback acted
+    safe.reset(done_envs)                      # at episode boundaries (or pass episode_start to predict)
+"""
+
+from socnav.safety.calibration import (
+    RECORD_COLUMNS,
+    CalibrationResult,
+    calibrate,
+    collect_records,
+    evaluate_thresholds,
+)
+from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
+from socnav.safety.rule import (
+    PROXIMITY_VARIANTS,
+    THRESHOLD_PRESETS,
+    NearestHuman,
+    RuleConditions,
+    Thresholds,
+    ThresholdsError,
+    collision_probability,
+    load_thresholds,
+    nearest_human,
+    proximity_score,
+    rule_conditions,
+    save_thresholds,
+)
+from socnav.safety.safe_policy import SafePolicy
+
+__all__ = [
+    "CAUTIOUS_RADIUS_SCALE",
+    "PROXIMITY_VARIANTS",
+    "RECORD_COLUMNS",
+    "THRESHOLD_PRESETS",
+    "CalibrationResult",
+    "CautiousController",
+    "NearestHuman",
+    "RuleConditions",
+    "SafePolicy",
+    "Thresholds",
+    "ThresholdsError",
+    "calibrate",
+    "collect_records",
+    "collision_probability",
+    "evaluate_thresholds",
+    "load_thresholds",
+    "nearest_human",
+    "proximity_score",
+    "rule_conditions",
+    "save_thresholds",
+]

@@ -1,0 +1,383 @@
+"""Calibrating the rule's thresholds from rollouts (the paper tuned them by hand; SPEC section 5).
+
+**Records** -- one row per step of calibration rollouts of the PLAIN policy (no fallback), a pandas DataFrame:
+
+==================  ==========================================================================================
+``episode``         episode id, unique over the whole frame (e.g. an int offset per perturbation)
+``step``            step index in the episode (0-based); the row is the observation at that step and the
+                    action chosen from it
+``perturbed``       bool: the episode ran in a perturbed world (the collisions to prevent) or not (the
+                    false activations to avoid)
+``u_ep_heading``    WINDOWED epistemic heading uncertainty at that step
+``u_feat``          WINDOWED predictive feature uncertainty
+``gap``             nearest-human gap ``d(t)`` from the observation (``inf`` without humans)
+``relative_speed``  ``|dv|`` to the nearest human
+``previous_gap``    ``d(t-1)`` of the same episode, NaN at its first step
+``collided``        per episode (repeated on its rows): the episode ended in a collision
+``collision_step``  per episode: the ``step`` whose action led to the collision (its last step); NaN if none
+``closing_speed``   optional: needed for ``proximity="closing-speed"``
+==================  ==========================================================================================
+
+:func:`collect_records` produces this frame from rollouts.
+
+**Objective -- a documented proxy.** Whether the fallback would have prevented a collision cannot be known
+without re-running the episode with it. We count a collision of a perturbed episode as *preventable* if the rule
+would have fired at one of the last ``lookback`` steps up to and including ``collision_step`` (default 4 steps =
+1 s at dt = 0.25 s). :func:`calibrate` chooses ``(lambda_ep, lambda_feat, lambda_prox, beta1)`` maximising the
+fraction of perturbed-episode collisions flagged so, subject to the fallback-activation rate -- the fraction of
+steps of UNPERTURBED episodes where the rule fires -- being at most ``false_activation_budget``. Ties go to the
+lowest activation rate, then to the least eager rule (larger ``lambda_ep``, larger ``lambda_feat``, smaller
+``lambda_prox``, smaller ``beta1``). ``inf`` for an uncertainty threshold means that condition is switched off.
+
+The proxy is optimistic (the cautious controller may still collide, or cause a later collision) and the records
+come from the plain policy's trajectories; the chosen thresholds must therefore be EVALUATED with real rollouts
+of :class:`~socnav.safety.SafePolicy` on held-out seeds (prevented collisions, SPEC section 5), never judged by the
+calibration score.
+
+The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
+of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the
+three lambdas and a fixed ``beta1`` list, or explicit candidate lists given in ``grid``. All
+``lambda_ep`` x ``lambda_feat`` pairs of one ``(beta1, lambda_prox)`` are scored at once with 2-D cumulative
+histograms, so large grids are cheap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from socnav.config import ConfigLike, load_config
+from socnav.safety.rule import Proximity, Thresholds, _check_proximity, proximity_score, rule_conditions
+
+__all__ = [
+    "DEFAULT_BETA1_GRID",
+    "RECORD_COLUMNS",
+    "CalibrationResult",
+    "calibrate",
+    "collect_records",
+    "evaluate_thresholds",
+]
+
+RECORD_COLUMNS = ("episode", "step", "perturbed", "u_ep_heading", "u_feat", "gap", "relative_speed",
+                  "previous_gap", "collided", "collision_step")
+DEFAULT_BETA1_GRID = (0.0, 0.25, 0.5, 1.0, 2.0)
+GRID_KEYS = ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """The chosen thresholds and their proxy scores on the calibration records.
+
+    ``prevented_fraction``: fraction of perturbed-episode collisions flagged within ``lookback`` steps (proxy);
+    ``false_activation_rate``: fraction of unperturbed steps where the rule fires; ``frontier``: for every
+    evaluated ``(beta1, lambda_prox)``, its best feasible ``(lambda_ep, lambda_feat)`` and scores.
+    """
+
+    thresholds: Thresholds
+    prevented_fraction: float
+    false_activation_rate: float
+    n_collisions: int
+    n_unperturbed_steps: int
+    lookback: int
+    false_activation_budget: float
+    frontier: pd.DataFrame = field(repr=False)
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+
+def _speed_column(records: pd.DataFrame, proximity: Proximity) -> np.ndarray:
+    _check_proximity(proximity)
+    column = "relative_speed" if proximity == "abs-relative-speed" else "closing_speed"
+    if column not in records:
+        raise ValueError(f"records need a {column!r} column for proximity={proximity!r}")
+    return records[column].to_numpy(np.float64)
+
+
+def _validate(records: pd.DataFrame) -> pd.DataFrame:
+    missing = [c for c in RECORD_COLUMNS if c not in records]
+    if missing:
+        raise ValueError(f"calibration records lack columns {missing}; required: {', '.join(RECORD_COLUMNS)}")
+    per_episode = records.groupby("episode", sort=False)[["perturbed", "collided"]].nunique()
+    if (per_episode > 1).any().any():
+        raise ValueError("each episode id must have one 'perturbed' and one 'collided' value; are episode ids "
+                         "unique across the perturbed and unperturbed rollouts?")
+    return records.reset_index(drop=True)
+
+
+def _window_rows(records: pd.DataFrame, lookback: int) -> np.ndarray:
+    """Mask of the rows at the last `lookback` steps up to the collision of perturbed collision episodes."""
+    collided = records["collided"].to_numpy(bool) & records["perturbed"].to_numpy(bool)
+    step = records["step"].to_numpy(np.float64)
+    end = records["collision_step"].to_numpy(np.float64)
+    with np.errstate(invalid="ignore"):
+        return collided & (step <= end) & (step > end - lookback)
+
+
+def _candidates(values: np.ndarray, focus: np.ndarray, n_quantiles: int, add_inf: bool) -> np.ndarray:
+    """Midpoints between distinct quantiles of `values` and of `focus` (finite, >= 0), plus inf if asked."""
+    levels = np.linspace(0.0, 1.0, n_quantiles)
+    points = []
+    for data in (values, focus):
+        data = data[np.isfinite(data)]
+        if data.size:
+            points.append(np.quantile(data, levels))
+    points = np.unique(np.concatenate(points)) if points else np.zeros(0)
+    candidates = (points[1:] + points[:-1]) / 2 if points.size > 1 else points
+    candidates = candidates[candidates >= 0]
+    if add_inf:
+        candidates = np.append(candidates, np.inf)
+    return np.unique(candidates)
+
+
+def _explicit(grid: Mapping[str, Sequence[float]] | None, key: str) -> np.ndarray | None:
+    if grid is None or key not in grid:
+        return None
+    values = np.unique(np.asarray(list(grid[key]), dtype=np.float64))
+    if values.size == 0 or np.isnan(values).any() or (values < 0).any():
+        raise ValueError(f"grid[{key!r}] must be a non-empty list of numbers >= 0, got {list(grid[key])}")
+    return values
+
+
+def _bins(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """k with: value > thresholds[a] (the condition holds) iff a < k. NaN never holds (k = 0)."""
+    values = np.where(np.isnan(values), -np.inf, values)
+    return np.searchsorted(thresholds, values, side="left")
+
+
+def _not_firing(k_ep: np.ndarray, k_feat: np.ndarray, n_ep: int, n_feat: int) -> np.ndarray:
+    """(n_ep, n_feat) count of items with neither condition holding at (lambda_ep[a], lambda_feat[b])."""
+    histogram = np.zeros((n_ep + 1, n_feat + 1), dtype=np.int64)
+    np.add.at(histogram, (k_ep, k_feat), 1)
+    return histogram.cumsum(axis=0).cumsum(axis=1)[:n_ep, :n_feat]
+
+
+# ------------------------------------------------------------------------------------------------ scoring
+
+def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback: int = 4) -> dict[str, float]:
+    """The calibration proxy of given thresholds on records (via the rule itself): ``prevented_fraction``,
+    ``false_activation_rate``, ``n_collisions``, ``n_unperturbed_steps``."""
+    records = _validate(records)
+    fire = rule_conditions(records["u_ep_heading"], records["u_feat"], records["gap"],
+                           _speed_column(records, thresholds.proximity), records["previous_gap"], thresholds).p_col
+    window = _window_rows(records, lookback)
+    perturbed = records["perturbed"].to_numpy(bool)
+    collisions = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
+    flagged = records.loc[window & fire, "episode"].unique()
+    unperturbed = ~perturbed
+    return {
+        "prevented_fraction": len(flagged) / len(collisions) if len(collisions) else float("nan"),
+        "false_activation_rate": float(fire[unperturbed].mean()) if unperturbed.any() else float("nan"),
+        "n_collisions": int(len(collisions)),
+        "n_unperturbed_steps": int(unperturbed.sum()),
+    }
+
+
+def calibrate(
+    records: pd.DataFrame,
+    false_activation_budget: float = 0.05,
+    grid: Mapping[str, Sequence[float]] | None = None,
+    lookback: int = 4,
+    proximity: Proximity = "abs-relative-speed",
+    n_quantiles: int = 41,
+) -> CalibrationResult:
+    """Choose the rule's thresholds on calibration records (see the module docstring for the format and proxy).
+
+    :param records: per-step records of perturbed and unperturbed rollouts of the plain policy.
+    :param false_activation_budget: the most fallback activations allowed, as a fraction of unperturbed steps.
+    :param grid: optional explicit candidates per key (``lambda_ep``, ``lambda_feat``, ``lambda_prox``,
+        ``beta1``); the others are quantile-based (``beta1``: :data:`DEFAULT_BETA1_GRID`).
+    :param lookback: a collision counts as prevented if the rule fired in its last ``lookback`` steps.
+    :param proximity: speed term of ``c_prox`` (kept fixed, not searched).
+    :param n_quantiles: quantile levels per candidate grid.
+
+    Deterministic. The result's scores are the proxy on these records; evaluate on held-out seeds with real
+    :class:`~socnav.safety.SafePolicy` rollouts.
+    """
+    if not 0.0 <= false_activation_budget <= 1.0:
+        raise ValueError(f"false_activation_budget must be in [0, 1], got {false_activation_budget}")
+    if lookback < 1:
+        raise ValueError(f"lookback must be >= 1, got {lookback}")
+    if grid is not None:
+        unknown = set(grid) - set(GRID_KEYS)
+        if unknown:
+            raise ValueError(f"unknown grid keys {sorted(unknown)}; allowed: {', '.join(GRID_KEYS)}")
+    records = _validate(records)
+    perturbed = records["perturbed"].to_numpy(bool)
+    unperturbed = ~perturbed
+    n_unperturbed = int(unperturbed.sum())
+    if n_unperturbed == 0:
+        raise ValueError("calibration records hold no unperturbed steps: the false-activation rate is undefined")
+    window = _window_rows(records, lookback)
+    collision_ids = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
+    n_collisions = len(collision_ids)
+    if n_collisions == 0:
+        raise ValueError("no collisions in the perturbed episodes of the records: nothing to calibrate for")
+
+    u_ep = records["u_ep_heading"].to_numpy(np.float64)
+    u_feat = records["u_feat"].to_numpy(np.float64)
+    gap = records["gap"].to_numpy(np.float64)
+    speed = _speed_column(records, proximity)
+    previous_gap = records["previous_gap"].to_numpy(np.float64)
+    approaching = np.isnan(previous_gap) | (gap <= previous_gap)  # c_ap, as in the rule
+
+    lambda_ep = _explicit(grid, "lambda_ep")
+    lambda_ep = _candidates(u_ep, u_ep[window], n_quantiles, True) if lambda_ep is None else lambda_ep
+    lambda_feat = _explicit(grid, "lambda_feat")
+    lambda_feat = _candidates(u_feat, u_feat[window], n_quantiles, True) if lambda_feat is None else lambda_feat
+    betas = _explicit(grid, "beta1")
+    betas = np.asarray(DEFAULT_BETA1_GRID) if betas is None else betas
+    fixed_prox = _explicit(grid, "lambda_prox")
+
+    k_ep, k_feat = _bins(u_ep, lambda_ep), _bins(u_feat, lambda_feat)
+    n_ep, n_feat = len(lambda_ep), len(lambda_feat)
+    episode_codes = pd.factorize(records["episode"])[0]
+    window_index = np.flatnonzero(window)
+    collision_code = {code: i for i, code in enumerate(np.unique(episode_codes[window_index]))}
+    window_episode = np.array([collision_code[c] for c in episode_codes[window_index]], dtype=np.int64)
+    n_window_episodes = len(collision_code)
+    # Collision episodes without rows in their window can never be flagged: they count as not flagged.
+
+    # Order in which ties are broken: larger lambda_ep and lambda_feat first (least eager).
+    ep_rank = np.arange(n_ep)[::-1][:, None] * np.ones((1, n_feat), dtype=np.int64)
+    feat_rank = np.ones((n_ep, 1), dtype=np.int64) * np.arange(n_feat)[::-1][None, :]
+    best: tuple | None = None
+    frontier_rows: list[dict[str, Any]] = []
+    for beta in betas:
+        score = proximity_score(gap, speed, float(beta), proximity)
+        if fixed_prox is None:
+            relevant = approaching & np.isfinite(score)
+            prox_candidates = _candidates(score[relevant], score[window & relevant], n_quantiles, False)
+            finite_window = score[window & relevant]
+            if finite_window.size:
+                top = float(finite_window.max())
+                prox_candidates = np.unique(np.append(prox_candidates, top + max(1e-6, 1e-6 * abs(top))))
+            prox_candidates = prox_candidates[prox_candidates >= 0]
+        else:
+            prox_candidates = fixed_prox
+        for lam_prox in prox_candidates:
+            gate = approaching & np.isfinite(gap) & (score < lam_prox)
+            gated_unperturbed = gate & unperturbed
+            quiet = _not_firing(k_ep[gated_unperturbed], k_feat[gated_unperturbed], n_ep, n_feat)
+            false_rate = (int(gated_unperturbed.sum()) - quiet) / n_unperturbed
+            gated_window = gate[window_index]
+            max_ep = np.zeros(n_window_episodes, dtype=np.int64)
+            max_feat = np.zeros(n_window_episodes, dtype=np.int64)
+            np.maximum.at(max_ep, window_episode[gated_window], k_ep[window_index][gated_window])
+            np.maximum.at(max_feat, window_episode[gated_window], k_feat[window_index][gated_window])
+            unflagged = _not_firing(max_ep, max_feat, n_ep, n_feat) + (n_collisions - n_window_episodes)
+            prevented = (n_collisions - unflagged) / n_collisions
+            feasible = false_rate <= false_activation_budget + 1e-12
+            if not feasible.any():
+                continue
+            # Best feasible (a, b) for this (beta, lambda_prox): max prevented, min false rate, least eager.
+            keys = np.lexsort((feat_rank[feasible], ep_rank[feasible], false_rate[feasible], -prevented[feasible]))
+            a, b = np.argwhere(feasible)[keys[0]]
+            row = {"beta1": float(beta), "lambda_prox": float(lam_prox), "lambda_ep": float(lambda_ep[a]),
+                   "lambda_feat": float(lambda_feat[b]), "prevented_fraction": float(prevented[a, b]),
+                   "false_activation_rate": float(false_rate[a, b])}
+            frontier_rows.append(row)
+            candidate = (-row["prevented_fraction"], row["false_activation_rate"], -row["lambda_ep"],
+                         -row["lambda_feat"], row["lambda_prox"], row["beta1"])
+            if best is None or candidate < best[0]:
+                best = (candidate, row)
+    frontier = pd.DataFrame(frontier_rows, columns=["beta1", "lambda_prox", "lambda_ep", "lambda_feat",
+                                                    "prevented_fraction", "false_activation_rate"])
+    if best is None:  # only possible with an explicit grid without inf and a budget too small
+        raise ValueError("no candidate thresholds meet the false-activation budget; add inf to grid['lambda_ep'] "
+                         "and grid['lambda_feat'] or raise the budget")
+    row = best[1]
+    thresholds = Thresholds.create(lambda_ep=row["lambda_ep"], lambda_feat=row["lambda_feat"],
+                                   lambda_prox=row["lambda_prox"], beta1=row["beta1"], proximity=proximity)
+    return CalibrationResult(
+        thresholds=thresholds,
+        prevented_fraction=row["prevented_fraction"],
+        false_activation_rate=row["false_activation_rate"],
+        n_collisions=n_collisions,
+        n_unperturbed_steps=n_unperturbed,
+        lookback=lookback,
+        false_activation_budget=false_activation_budget,
+        frontier=frontier,
+    )
+
+
+# ------------------------------------------------------------------------------------------------ collecting
+
+def collect_records(
+    policy: Any,
+    estimator: Any,
+    config: ConfigLike,
+    n_episodes: int,
+    seed: int = 0,
+    perturbed: bool | None = None,
+    window: int = 4,
+    n_envs: int = 8,
+    episode_offset: int = 0,
+    deterministic: bool = True,
+) -> pd.DataFrame:
+    """Per-step calibration records (module docstring) of ``n_episodes`` plain-policy episodes (episode k from
+    seed ``seed + k``, id ``episode_offset + k``), with the windowed uncertainty of ``estimator``.
+
+    ``perturbed``: the flag to store; None: True iff the config has any perturbation switched on.
+    Concatenate the frames of an unperturbed and some perturbed configs (distinct ``episode_offset``).
+    """
+    from socnav.safety.safe_policy import SafePolicy
+    from socnav.sim.world import OUTCOME_COLLISION, CrowdWorld
+
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    config = load_config(config)
+    if perturbed is None:
+        pert = config.perturbation
+        perturbed = bool(pert.observation_noise or pert.heading_noise or pert.speed_noise
+                         or pert.human_speed_factor != 1.0 or pert.total_agents is not None)
+    n_envs = max(1, min(n_envs, n_episodes))
+    world = CrowdWorld(config, n_envs)
+    for env in range(n_envs):
+        world.seed(env, seed + env)
+    world.reset()
+    probe = SafePolicy(policy, estimator, Thresholds.never(), config, window=window, n_envs=n_envs)
+    running = np.arange(n_envs)
+    steps = np.zeros(n_envs, dtype=np.int64)
+    next_episode, n_finished = n_envs, 0
+    columns: dict[str, list[np.ndarray]] = {key: [] for key in (
+        "episode", "step", "u_ep_heading", "u_feat", "gap", "relative_speed", "closing_speed", "previous_gap")}
+    outcomes: dict[int, tuple[bool, float]] = {}
+    while n_finished < n_episodes:
+        actions, _ = probe.predict(world.observe(), deterministic=deterministic)
+        live = running >= 0
+        nearest = probe.last_nearest
+        assert nearest is not None
+        for key, values in (("episode", running + episode_offset), ("step", steps),
+                            ("u_ep_heading", probe.last_uncertainty["u_ep_heading"]),
+                            ("u_feat", probe.last_uncertainty["u_feat"]), ("gap", nearest.gap),
+                            ("relative_speed", nearest.relative_speed), ("closing_speed", nearest.closing_speed),
+                            ("previous_gap", probe.last_previous_gap)):
+            columns[key].append(np.asarray(values)[live])
+        result = world.step(np.asarray(actions))
+        steps += 1
+        done = np.flatnonzero(result.terminated | result.truncated)
+        for env in done:
+            if running[env] < 0:
+                continue
+            collided = int(result.outcome[env]) == OUTCOME_COLLISION
+            outcomes[int(running[env]) + episode_offset] = (collided, float(steps[env] - 1) if collided else np.nan)
+            n_finished += 1
+            if next_episode < n_episodes:
+                running[env] = next_episode
+                world.seed(env, seed + next_episode)
+                next_episode += 1
+            else:
+                running[env] = -1
+        if len(done):
+            world.reset(done)
+            probe.reset(done)
+            steps[done] = 0
+    frame = pd.DataFrame({key: np.concatenate(values) for key, values in columns.items()})
+    frame["perturbed"] = bool(perturbed)
+    frame["collided"] = frame["episode"].map(lambda e: outcomes[e][0]).astype(bool)
+    frame["collision_step"] = frame["episode"].map(lambda e: outcomes[e][1]).astype(np.float64)
+    ordered = [*RECORD_COLUMNS, "closing_speed"]
+    return frame[ordered].sort_values(["episode", "step"], ignore_index=True)

@@ -1,0 +1,173 @@
+"""Safe action selection as a policy wrapper (paper IV-C, SPEC section 5).
+
+At every step, for every environment of the batch:
+
+1. the wrapped policy's own action: ``policy.predict(obs, state, episode_start, deterministic)`` -- NOT the
+   estimator's mean action (for MC-dropout that is the mean over dropout masks, which is not what the plain policy
+   does); so with a rule that never fires the wrapper is exactly the wrapped policy;
+2. the uncertainty ``estimator(obs)`` (any object with ``u_ep`` (B, 2; index 1 = heading change), ``u_al`` and
+   ``u_feat`` (B,) attributes, e.g. ``socnav.uncertainty.Uncertainty``), windowed per environment over the last
+   ``window`` steps of the current episode (mean of ``min(window, steps so far)`` values, as
+   ``socnav.uncertainty.WindowedUncertainty``; a simple ring buffer kept here);
+3. the nearest human's gap and speed term from the observation and the previous step's gap of the same episode;
+4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap``; where it fires, the action is replaced by the
+   :class:`~socnav.safety.cautious.CautiousController`'s.
+
+Episode boundaries: call :meth:`SafePolicy.reset` with the environments whose episode ended (before the next
+``predict`` sees their new first observation), or pass SB3's ``episode_start`` to ``predict``. Without either,
+windows and the previous gap run on across episodes.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Union
+
+import numpy as np
+
+from socnav.config import ConfigLike, load_config
+from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
+from socnav.safety.rule import NearestHuman, RuleConditions, Thresholds, load_thresholds, nearest_human, rule_conditions
+
+__all__ = ["SafePolicy"]
+
+SPEED, HEADING = 0, 1
+
+
+class SafePolicy:
+    """Wrap ``policy`` so that a cautious ORCA controller takes over when the collision rule fires.
+
+    :param policy: anything with ``predict(obs, state=None, episode_start=None, deterministic=True)``, batched.
+    :param estimator: callable ``estimator(obs) -> Uncertainty``-like (``u_ep``, ``u_al``, ``u_feat``).
+    :param thresholds: a :class:`Thresholds`, a preset name (``mc``, ``ensemble``), a file path or a mapping.
+    :param config: the env config (limits for the cautious controller).
+    :param window: uncertainty window ``w`` in steps (paper: 4).
+    :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
+    :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
+
+    After each ``predict``: ``last_fallback`` (B,) bool, ``last_conditions`` (:class:`RuleConditions`),
+    ``last_uncertainty`` (dict of windowed (B,) arrays ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``,
+    ``u_al_speed``, ``u_feat``), ``last_nearest`` (:class:`NearestHuman`), ``last_previous_gap`` (B,), and
+    ``episode_fallbacks`` (n_envs,) -- fallback steps in the current episode (zeroed by :meth:`reset`).
+    """
+
+    def __init__(
+        self,
+        policy: Any,
+        estimator: Any,
+        thresholds: Union[Thresholds, str, Mapping[str, Any]],
+        config: ConfigLike = None,
+        window: int = 4,
+        n_envs: int | None = None,
+        radius_scale: float = CAUTIOUS_RADIUS_SCALE,
+    ):
+        if int(window) < 1:
+            raise ValueError(f"window must be >= 1, got {window}")
+        if n_envs is not None and int(n_envs) < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        self.policy = policy
+        self.estimator = estimator
+        self.thresholds = load_thresholds(thresholds)
+        self.config = load_config(config)
+        self.window = int(window)
+        self.cautious = CautiousController(self.config, radius_scale=radius_scale)
+        self.n_envs: int | None = None
+        self.last_fallback = np.zeros(0, dtype=bool)
+        self.last_conditions: RuleConditions | None = None
+        self.last_uncertainty: dict[str, np.ndarray] = {}
+        self.last_nearest: NearestHuman | None = None
+        self.last_previous_gap = np.zeros(0)
+        if n_envs is not None:
+            self._allocate(int(n_envs))
+
+    # ------------------------------------------------------------------------------------------- state
+
+    def _allocate(self, n_envs: int) -> None:
+        self.n_envs = n_envs
+        self._buffer = np.zeros((n_envs, self.window, 5))  # [u_ep speed, u_ep heading, u_al speed, u_al heading, u_feat]
+        self._count = np.zeros(n_envs, dtype=np.int64)
+        self._pos = np.zeros(n_envs, dtype=np.int64)
+        self._previous_gap = np.full(n_envs, np.nan)
+        self.episode_fallbacks = np.zeros(n_envs, dtype=np.int64)
+
+    def _index(self, envs: Any) -> np.ndarray:
+        assert self.n_envs is not None
+        if envs is None:
+            return np.arange(self.n_envs)
+        index = np.asarray(envs)
+        if index.dtype == bool:
+            return np.flatnonzero(index)
+        return np.atleast_1d(index).astype(np.int64)
+
+    def on_episode_start(self, envs: Any) -> None:
+        """`socnav.envs.rollout.rollout_episodes` hook: environments `envs` start new episodes."""
+        self.reset(envs)
+
+    def reset(self, envs: Any = None) -> None:
+        """Start new episodes in ``envs`` (indices, a boolean mask, or None for all): empty their uncertainty
+        windows, forget their previous gap (so ``c_ap`` is True at their first step) and zero their
+        ``episode_fallbacks``."""
+        if self.n_envs is None:
+            return
+        index = self._index(envs)
+        self._count[index] = 0
+        self._pos[index] = 0
+        self._buffer[index] = 0.0
+        self._previous_gap[index] = np.nan
+        self.episode_fallbacks[index] = 0
+
+    def _push(self, values: np.ndarray) -> np.ndarray:
+        rows = np.arange(self.n_envs)
+        self._buffer[rows, self._pos] = values
+        self._pos = (self._pos + 1) % self.window
+        self._count = np.minimum(self._count + 1, self.window)
+        valid = np.arange(self.window)[None, :] < self._count[:, None]  # filled slots (writes start at slot 0)
+        return (self._buffer * valid[:, :, None]).sum(axis=1) / self._count[:, None]
+
+    # ------------------------------------------------------------------------------------------- acting
+
+    def predict(self, observation: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        """Batched safe actions (a single observation gives a single action); returns ``(actions, state)``."""
+        single = np.asarray(observation["robot"]).ndim == 1
+        obs = {key: np.asarray(value)[None] if single else np.asarray(value) for key, value in observation.items()}
+        batch = obs["robot"].shape[0]
+        if self.n_envs is None:
+            self._allocate(batch)
+        elif batch != self.n_envs:
+            raise ValueError(f"SafePolicy keeps per-environment windows for {self.n_envs} environments but got a "
+                             f"batch of {batch}; create it with n_envs={batch} (the batch size must stay fixed)")
+        if episode_start is not None:
+            self.reset(np.asarray(episode_start, dtype=bool).reshape(-1))
+
+        actions, state = self.policy.predict(observation, state=state, episode_start=episode_start,
+                                             deterministic=deterministic)
+        actions = np.array(actions, dtype=np.float32).reshape(batch, -1)
+
+        u = self.estimator(obs)
+        u_ep, u_al = np.asarray(u.u_ep, dtype=np.float64), np.asarray(u.u_al, dtype=np.float64)
+        values = np.column_stack([u_ep[:, SPEED], u_ep[:, HEADING], u_al[:, SPEED], u_al[:, HEADING],
+                                  np.asarray(u.u_feat, dtype=np.float64).reshape(batch)])
+        windowed = self._push(values)
+        self.last_uncertainty = {"u_ep_speed": windowed[:, 0], "u_ep_heading": windowed[:, 1],
+                                 "u_al_speed": windowed[:, 2], "u_al_heading": windowed[:, 3],
+                                 "u_feat": windowed[:, 4]}
+
+        nearest = nearest_human(obs)
+        previous_gap = self._previous_gap.copy()
+        conditions = rule_conditions(windowed[:, 1], windowed[:, 4], nearest.gap,
+                                     nearest.speed(self.thresholds.proximity), previous_gap, self.thresholds)
+        # No human this step: nothing to compare with next step either.
+        self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)
+        fallback = conditions.p_col
+        if fallback.any():
+            chosen = np.flatnonzero(fallback)
+            cautious, _ = self.cautious.predict({key: value[chosen] for key, value in obs.items()})
+            actions[chosen] = cautious
+        self.episode_fallbacks += fallback
+        self.last_fallback, self.last_conditions, self.last_nearest = fallback, conditions, nearest
+        self.last_previous_gap = previous_gap
+        return (actions[0] if single else actions), state
+
+    def __repr__(self) -> str:
+        return (f"SafePolicy(policy={type(self.policy).__name__}, estimator={type(self.estimator).__name__}, "
+                f"thresholds={self.thresholds!r}, window={self.window})")
