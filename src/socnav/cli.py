@@ -200,6 +200,80 @@ def evaluate(
     console.print(f"per-episode records: {out}")
 
 
+def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int) -> tuple[Any, Any]:
+    """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`."""
+    import glob
+
+    from socnav.uncertainty import ESTIMATOR_KINDS, make_estimator
+
+    if kind not in ESTIMATOR_KINDS:
+        _fail(f"--estimator {kind!r} is not known; allowed: {', '.join(ESTIMATOR_KINDS)}")
+    if kind == "mc":
+        if model is None:
+            _fail("--estimator mc needs --model PATH (or --model pretrained)")
+        policy = _load_learned_policy(model)
+        return policy, make_estimator("mc", policy, k=k)
+    if members is None:
+        _fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
+    paths = sorted(glob.glob(members))
+    if len(paths) < 2:
+        _fail(f"--members {members!r} matches {len(paths)} policy file(s); an ensemble needs at least 2")
+    policies = [_load_learned_policy(path) for path in paths]
+    policy = _load_learned_policy(model) if model is not None else policies[0]
+    return policy, make_estimator("ensemble", policies)
+
+
+def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
+    import yaml
+
+    perturbation: dict[str, Any] = {}
+    for setting in settings:
+        key, sep, value = setting.partition("=")
+        if not sep or not key:
+            _fail(f"--perturb expects key=value (e.g. observation_noise=0.6), got {setting!r}")
+        perturbation[key.strip()] = yaml.safe_load(value)
+    return perturbation
+
+
+@app.command()
+def animate(
+    model: Optional[str] = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
+    estimator: str = typer.Option("mc", help="mc | ensemble"),
+    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    k: int = typer.Option(20, min=2, help="MC-dropout samples"),
+    scenario: Optional[str] = typer.Option("position_swap", help=f"one of: {', '.join(scenario_names())}"),
+    n_humans: Optional[int] = typer.Option(1, min=0, help="humans per episode"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. heading_noise=0.8"),
+    safety: Optional[str] = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
+    seed: int = typer.Option(0, help="episode seed"),
+    out: Path = typer.Option(Path("runs") / "animate" / "episode.gif", help="output .gif or .mp4"),
+) -> None:
+    """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
+    from socnav.experiments.animate import animate_episode
+
+    if out.suffix not in (".gif", ".mp4"):
+        _fail(f"--out must end in .gif or .mp4, got {out.name!r}")
+    env_config = _env_config(scenario, config, n_humans)
+    perturbation = _perturbation_overrides(perturb)
+    try:
+        env_config = load_config(env_config, perturbation={**env_config.perturbation.model_dump(), **perturbation})
+    except ConfigError as exc:
+        _fail(str(exc))
+    policy, uncertainty = _estimator(estimator, model, members, k)
+    thresholds = None
+    if safety is not None:
+        from socnav.safety import ThresholdsError, load_thresholds
+
+        try:
+            thresholds = load_thresholds(safety)
+        except (ThresholdsError, OSError) as exc:
+            _fail(f"--safety: {exc}")
+    path, summary = animate_episode(policy, uncertainty, env_config, out, seed=seed, thresholds=thresholds)
+    console.print(f"{summary.get('outcome', 'running')} after {summary.get('length', '?')} steps, "
+                  f"fallback on {summary['fallback_steps']} steps: {path}")
+
+
 @app.command()
 def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
