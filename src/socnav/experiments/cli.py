@@ -1,0 +1,240 @@
+"""`socnav run`, `socnav report` and `socnav tune`: added to the main `socnav` app by ``register(app)``.
+
+Heavy modules (torch, ray, optuna, matplotlib) load inside the commands, so `socnav --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.console import Console
+
+console = Console(soft_wrap=True)
+
+__all__ = ["register"]
+
+
+def _fail(message: str, code: int = 2) -> None:
+    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code=code)
+
+
+class _ProgressReporter:
+    """Rich progress: one bar for the sweep (units done / running / failed), a spinner line per running unit."""
+
+    def __init__(self) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+                                 MofNCompleteColumn(), TextColumn("{task.fields[counts]}"), TimeElapsedColumn(),
+                                 console=console, transient=False)
+        self.sweep: Any = None
+        self.tasks: dict[str, Any] = {}
+        self.counts = {"done": 0, "skipped": 0, "failed": 0}
+
+    def _counts(self) -> str:
+        return (f"[green]done {self.counts['done']}[/] · running {len(self.tasks)} · "
+                f"[red]failed {self.counts['failed']}[/] · skipped {self.counts['skipped']}")
+
+    def start(self, total: int, already_done: int, redo: dict[str, int]) -> None:
+        self.counts["skipped"] = already_done
+        if already_done:
+            console.print(f"{already_done} of {total} units already done: skipped")
+        notes = {"partial": "half-done (resumed or redone)", "corrupt": "corrupt (redone)",
+                 "stale": "stale: parameters or inputs changed (redone)"}
+        for state, count in redo.items():
+            if state in notes:
+                console.print(f"{count} unit(s) {notes[state]}")
+        self.sweep = self.progress.add_task("units", total=total, completed=already_done, counts=self._counts())
+        self.progress.start()
+
+    def unit_started(self, unit: Any) -> None:
+        self.tasks[unit.id] = self.progress.add_task(f"  [cyan]{unit.id}[/]", total=None, counts="")
+        self.progress.update(self.sweep, counts=self._counts())
+
+    def unit_finished(self, unit: Any, outcome: Any) -> None:
+        task = self.tasks.pop(unit.id, None)
+        if task is not None:
+            self.progress.remove_task(task)
+        if outcome.status in ("failed", "blocked"):
+            self.counts["failed"] += 1
+            where = f" (see {unit.id}/error.txt)" if outcome.status == "failed" else ""
+            self.progress.console.print(f"[bold red]✗ {outcome.status}[/] {unit.id}: {outcome.error}{where}",
+                                        highlight=False)
+        else:
+            self.counts["done" if outcome.status == "done" else "skipped"] += 1
+            self.progress.console.print(f"[green]✓[/] {unit.id} ({outcome.wall_time_s:.0f} s)", highlight=False)
+        self.progress.update(self.sweep, advance=1, counts=self._counts())
+
+    def stop(self) -> None:
+        self.progress.stop()
+
+
+def run(
+    experiment: Path = typer.Argument(..., help="experiment YAML (e.g. configs/experiments/table1.yaml)"),
+    budget: Optional[str] = typer.Option(None, help="named budget of the experiment, e.g. quick | paper "
+                                                    "(default: the grid as written)"),
+    backend: str = typer.Option("local", help="local (process pool on this machine) | ray (Ray cluster)"),
+    address: Optional[str] = typer.Option(None, help="Ray cluster address (e.g. auto or ray://head:10001); "
+                                                     "default: start a local Ray"),
+    workers: Optional[int] = typer.Option(None, min=0, help="units at a time (local default: CPU count; "
+                                                            "0 runs in this process; ray default: cluster CPUs)"),
+    retries: int = typer.Option(1, min=0, help="retries of a unit whose worker died (Ray: max_retries)"),
+    out: Optional[Path] = typer.Option(None, help="run directory (default runs/<name>-<budget>, or runs/<name> without --budget)"),
+    dry_run: bool = typer.Option(False, "--dry-run", help="validate and list the units and their state; run nothing"),
+) -> None:
+    """Run an experiment: train and evaluate every unit not yet done; resumable, failures reported per unit."""
+    from socnav.experiments.runner import RunnerError, run_experiment, unit_states
+    from socnav.experiments.spec import ExperimentError, load_experiment, plan_units
+
+    if backend not in ("local", "ray"):
+        _fail(f"--backend {backend!r} is not known; allowed: local, ray")
+    if address is not None and backend != "ray":
+        _fail("--address is for --backend ray")
+    try:
+        resolved = load_experiment(experiment, budget)
+        units = plan_units(resolved)
+    except ExperimentError as exc:
+        _fail(str(exc))
+        return
+    root = out or Path("runs") / (resolved.name + (f"-{resolved.budget}" if resolved.budget else ""))
+    n_train = sum(unit.kind == "train" for unit in units)
+    console.print(f"experiment [bold]{resolved.name}[/] (budget {resolved.budget or 'as written'}): {len(units)} "
+                  f"units ({n_train} trainings of {resolved.grid.timesteps:,} steps) -> {root}", highlight=False)
+    if dry_run:
+        states = unit_states(root, units) if root.exists() else {u.id: "pending" for u in units}
+        for unit in units:
+            console.print(f"  {states[unit.id]:8s} {unit.id}", highlight=False)
+        return
+    if backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            _fail("--backend ray needs Ray: pip install 'socnav[ray]'")
+    reporter = _ProgressReporter()
+    started = time.perf_counter()
+    try:
+        summary = run_experiment(resolved, root, backend=backend, workers=workers, address=address,  # type: ignore[arg-type]
+                                 retries=retries, source=experiment, reporter=reporter)
+    except RunnerError as exc:
+        reporter.stop()
+        _fail(str(exc))
+        return
+    except KeyboardInterrupt:
+        reporter.stop()
+        console.print("[yellow]interrupted[/]: finished units are kept; run the same command again to continue")
+        raise typer.Exit(code=130)
+    reporter.stop()
+    elapsed = time.perf_counter() - started
+    console.print(f"{summary.count('done')} done, {summary.count('skipped')} already done, "
+                  f"{len(summary.failed)} failed in {elapsed:.0f} s; results in {root}", highlight=False)
+    if summary.failed:
+        for outcome in summary.failed:
+            console.print(f"  [red]{outcome.status}[/] {outcome.id}: {outcome.error}", highlight=False)
+        console.print("run the same command again to retry the failed units (finished ones are skipped)")
+        raise typer.Exit(code=1)
+    console.print(f"report: socnav report {root}", highlight=False)
+
+
+def report(
+    results_dir: Path = typer.Argument(..., help="run directory written by `socnav run`"),
+    out: Optional[Path] = typer.Option(None, help="report directory (default RESULTS_DIR/report)"),
+) -> None:
+    """Tables (Markdown + CSV), figures (PNG + SVG) and report.md from an experiment's run directory."""
+    from socnav.experiments.report import build_report
+    from socnav.experiments.runner import RunnerError
+
+    if not results_dir.is_dir():
+        _fail(f"no such run directory: {results_dir}")
+    try:
+        page = build_report(results_dir, out)
+    except (RunnerError, ValueError) as exc:
+        _fail(str(exc))
+        return
+    console.print(f"report: {page}", highlight=False)
+    for name in sorted(p.name for p in page.parent.iterdir() if p.is_file() and p.name != page.name):
+        console.print(f"  {page.parent / name}", highlight=False)
+
+
+def tune(
+    algo: str = typer.Option(..., help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
+    scenario: str = typer.Option(..., help="training scenario"),
+    trials: int = typer.Option(..., min=1, help="trials to run (added to the study if it exists)"),
+    storage: str = typer.Option("sqlite:///runs/tune.db", help="Optuna storage URL (any Optuna RDB URL)"),
+    timesteps: int = typer.Option(100_000, min=1, help="training timesteps per trial"),
+    study_name: Optional[str] = typer.Option(None, help="study name (default <algo>_<scenario>)"),
+    n_envs: int = typer.Option(16, min=1, help="training environments per trial"),
+    eval_every: Optional[int] = typer.Option(None, min=1, help="timesteps between validations reported to "
+                                                               "the pruner (default a fifth of the trial)"),
+    eval_episodes: int = typer.Option(20, min=1, help="validation episodes per evaluation"),
+    metric: str = typer.Option("return_mean", help="objective: return_mean | goal_pct | collision_pct"),
+    seed: int = typer.Option(0, help="training seed of every trial (and the sampler's seed)"),
+    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    out: Optional[Path] = typer.Option(None, help="trial run directories (default runs/tune/<study>)"),
+    timeout: Optional[float] = typer.Option(None, min=1, help="stop starting trials after this many seconds"),
+    write_preset: Optional[Path] = typer.Option(None, "--write-preset", help="write the best values as a "
+                                                                            "preset YAML here"),
+) -> None:
+    """Optuna search of PPO hyperparameters with median pruning; prints the best values, writes a preset YAML."""
+    from rich.table import Table
+
+    from socnav.config import ConfigError, load_config
+    from socnav.rl.presets import ALGOS
+
+    if algo not in ALGOS:
+        _fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
+    from socnav.experiments.tune import METRICS, tune as run_tune, write_preset as save_preset
+
+    if metric not in METRICS:
+        _fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")
+    overrides: dict[str, Any] = {"scenario": scenario}
+    if n_humans is not None:
+        overrides["n_humans"] = n_humans
+    try:
+        env_config = load_config(config, **overrides)
+    except ConfigError as exc:
+        _fail(str(exc))
+        return
+    try:
+        import optuna
+    except ImportError:
+        _fail("socnav tune needs Optuna: pip install 'socnav[tune]'")
+        return
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+    def on_trial(study: Any, trial: Any) -> None:
+        value = "-" if trial.value is None else f"{trial.value:.3f}"
+        console.print(f"trial {trial.number}: {trial.state.name.lower()} {metric}={value} {trial.params}",
+                      highlight=False)
+
+    console.print(f"tuning {algo} on {env_config.scenario}: {trials} trial(s) of {timesteps:,} steps, "
+                  f"storage {storage}", highlight=False)
+    try:
+        result = run_tune(env_config, algo, trials, timesteps=timesteps, storage=storage, study_name=study_name,
+                          out_dir=out, n_envs=n_envs, eval_every=eval_every, eval_episodes=eval_episodes,
+                          seed=seed, metric=metric, timeout=timeout, on_trial=on_trial)
+    except (RuntimeError, ValueError) as exc:
+        _fail(str(exc), code=1)
+        return
+    table = Table(title=f"best of study {result.study_name!r}: trial #{result.best_trial}, "
+                        f"{metric} = {result.best_value:.4f}")
+    table.add_column("hyperparameter")
+    table.add_column("value", justify="right")
+    for key, value in result.best_params.items():
+        table.add_row(key, f"{value:.3g}" if isinstance(value, float) else str(value))
+    console.print(table)
+    console.print(f"trials: {result.counts}", highlight=False)
+    if write_preset is not None:
+        path = save_preset(write_preset, result, algo, env_config.scenario, timesteps)
+        console.print(f"preset: {path} (socnav train --algo {algo} --algo-config {path})", highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the experiment commands (run, report, tune) to the `socnav` app."""
+    app.command("run")(run)
+    app.command("report")(report)
+    app.command("tune")(tune)

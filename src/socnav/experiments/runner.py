@@ -1,0 +1,614 @@
+"""Running an experiment: its units of work in a run directory of plain files, on a local process pool or on Ray,
+skipping finished units, redoing half-written or corrupt ones, and recording every failure without stopping others.
+
+Run directory (``socnav run`` writes it, ``socnav report`` reads it)::
+
+    experiment.yaml                       the experiment file as given
+    resolved.json                         the experiment with its budget applied (what runs), socnav version
+    units.json                            the plan: every unit's id, kind, parameters, dependencies, spec hash
+    .lock                                 held (flock) while a runner works in the directory
+    train/<scenario>/<algo>/seed<k>/      one training unit (socnav.rl.training.train's run directory):
+        unit.json                         what the unit was asked to do (with its spec hash)
+        model.zip curve.csv eval.csv run.json tb/ checkpoints/
+        done.json                         the completion marker (below); error.txt when the unit failed
+    eval/<train scenario>/<algo>/seed<k>/<eval scenario>/   one evaluation of that policy:
+        unit.json  episodes.parquet (one row per test episode)  summary.json  done.json  [error.txt]
+
+A unit is finished iff its ``done.json`` -- written last, atomically -- parses, carries the unit's current spec
+hash, lists outputs whose sizes and SHA-256 digests match the files, and records the digests of the inputs it
+read (an evaluation: its training unit's model.zip) equal to those inputs' current digests. Anything else is
+redone: a training unit that has no marker but a sound checkpoint resumes from it; a corrupt, stale or
+half-written unit is wiped first. Every file a unit writes is written atomically and rewritten, never appended,
+so a sweep killed at any moment and run again ends with each unit's results exactly once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import shutil
+import socket
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Literal
+
+from socnav.experiments.spec import Experiment, Unit, plan_units
+from socnav.io import write_text_atomic
+
+__all__ = [
+    "EXECUTORS", "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir",
+    "read_plan", "register_executor", "run_experiment", "unit_dir", "unit_state", "unit_states",
+]
+
+DONE_FILE = "done.json"
+UNIT_FILE = "unit.json"
+ERROR_FILE = "error.txt"
+UnitState = Literal["done", "pending", "partial", "corrupt", "stale"]
+
+
+class RunnerError(RuntimeError):
+    """The run cannot start (busy or foreign run directory, missing backend); the message says why."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Files and markers
+# --------------------------------------------------------------------------------------------------------------
+
+def unit_dir(root: Path, unit: Unit | str) -> Path:
+    return Path(root) / (unit if isinstance(unit, str) else unit.id)
+
+
+def file_digest(path: Path) -> dict[str, Any]:
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return {"size": path.stat().st_size, "sha256": digest.hexdigest()}
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def mark_done(root: Path, unit: Unit, outputs: list[str], inputs: dict[str, dict[str, Any]] | None = None,
+              extra: dict[str, Any] | None = None) -> Path:
+    """Write the unit's completion marker (last, atomically): digests of its `outputs` (paths relative to the unit
+    directory) and of the `inputs` it read (``{"<unit id>/<file>": digest}``)."""
+    directory = unit_dir(root, unit)
+    marker = {
+        "unit": unit.id, "kind": unit.kind, "spec_hash": unit.spec_hash,
+        "outputs": {name: file_digest(directory / name) for name in outputs},
+        "inputs": inputs or {}, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": socket.gethostname(),
+        **(extra or {}),
+    }
+    return write_text_atomic(directory / DONE_FILE, json.dumps(_json_safe(marker), indent=2, sort_keys=True))
+
+
+def _json_safe(value: Any) -> Any:
+    """Strict JSON: NaN / infinities become null, numpy scalars plain numbers."""
+    if isinstance(value, dict):
+        return {str(key): _json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(item) for item in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _marker(root: Path, unit_id: str) -> dict[str, Any] | None:
+    marker = _read_json(unit_dir(root, unit_id) / DONE_FILE)
+    return marker if isinstance(marker, dict) else None
+
+
+def unit_state(root: Path, unit: Unit, check_inputs: bool = True) -> UnitState:
+    """done | pending (nothing there) | partial (started, no marker) | corrupt (marker or outputs damaged) |
+    stale (finished for other parameters, or its inputs changed since)."""
+    directory = unit_dir(root, unit)
+    if not (directory / DONE_FILE).exists():
+        return "partial" if directory.exists() else "pending"
+    marker = _marker(root, unit.id)
+    if marker is None or not isinstance(marker.get("outputs"), dict) or not isinstance(marker.get("inputs"), dict):
+        return "corrupt"
+    if marker.get("spec_hash") != unit.spec_hash:
+        return "stale"
+    for name, expected in marker["outputs"].items():
+        path = directory / name
+        if not path.is_file() or path.stat().st_size != expected.get("size") or file_digest(path) != expected:
+            return "corrupt"
+    if check_inputs:
+        for name, expected in marker["inputs"].items():
+            dep_id, _, file_name = name.rpartition("/")
+            dep_marker = _marker(root, dep_id)
+            if dep_marker is None or dep_marker.get("outputs", {}).get(file_name) != expected:
+                return "stale"
+    return "done"
+
+
+def unit_states(root: Path, units: list[Unit]) -> dict[str, UnitState]:
+    """State of every unit; a unit whose dependency is not done is not done either."""
+    states: dict[str, UnitState] = {}
+    for unit in units:
+        state = unit_state(root, unit)
+        if state == "done" and any(states.get(dep) != "done" for dep in unit.deps):
+            state = "stale"
+        states[unit.id] = state
+    return states
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Executors: what a unit kind does (later experiments register their own)
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class ExecutorResult:
+    outputs: list[str]
+    inputs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+Executor = Callable[[Path, Unit, Path], ExecutorResult]  # (run root, unit, unit directory) -> result
+#: unit kind -> function doing the unit's work in its (prepared) directory.
+EXECUTORS: dict[str, Executor] = {}
+#: unit kind -> function(unit directory) telling whether a partial unit may be continued (else it is wiped).
+RESUMABLE: dict[str, Callable[[Path], bool]] = {}
+
+
+def register_executor(kind: str, resumable: Callable[[Path], bool] | None = None) -> Callable[[Executor], Executor]:
+    def decorate(function: Executor) -> Executor:
+        EXECUTORS[kind] = function
+        if resumable is not None:
+            RESUMABLE[kind] = resumable
+        return function
+
+    return decorate
+
+
+def _sound_checkpoint(directory: Path) -> bool:
+    """A training checkpoint that `train(resume=True)` can load: a readable SB3 zip whose step is the one its
+    state.json names."""
+    import zipfile
+
+    checkpoint, state_file = directory / "checkpoints" / "latest.zip", directory / "checkpoints" / "state.json"
+    if not checkpoint.exists() and not state_file.exists():
+        return True  # nothing to resume from: train(resume=True) starts fresh, no need to wipe
+    state = _read_json(state_file)
+    if not isinstance(state, dict) or not isinstance(state.get("num_timesteps"), int) or not checkpoint.is_file():
+        return False
+    try:
+        with zipfile.ZipFile(checkpoint) as archive:
+            if archive.testzip() is not None:
+                return False
+            # killed between writing the model and its state: the two name different steps (train would refuse)
+            data = json.loads(archive.read("data"))
+            return data.get("num_timesteps") == state["num_timesteps"]
+    except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError):
+        return False
+
+
+def _single_threaded_torch() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # units run side by side, one per core
+
+
+@register_executor("train", resumable=_sound_checkpoint)
+def _execute_train(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    from socnav.rl.training import train
+
+    p = unit.params
+    _single_threaded_torch()
+    resume = (directory / "checkpoints" / "state.json").is_file()
+    result = train(p["env"], p["algo"], p["seed"], p["timesteps"], directory, n_envs=p["n_envs"],
+                   overrides=p["overrides"], eval_every=p["eval_every"], eval_episodes=p["validation_episodes"],
+                   resume=resume, progress=False, tensorboard=True)
+    return ExecutorResult(["model.zip", "curve.csv", "eval.csv", "run.json"],
+                          extra={"timesteps": result.timesteps, "train_wall_time_s": result.wall_time_s,
+                                 "resumed": resume, "final_validation": result.final_eval})
+
+
+@register_executor("eval")
+def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    from socnav.envs.rollout import rollout_episodes, summarize
+    from socnav.io import write_table_atomic
+    from socnav.rl.persistence import load_policy
+
+    p = unit.params
+    _single_threaded_torch()
+    (train_id,) = unit.deps
+    model = unit_dir(root, train_id) / "model.zip"
+    model_digest = file_digest(model)
+    records = rollout_episodes(load_policy(model), p["env"], p["episodes"], seed=p["seed"], n_envs=p["n_envs"],
+                               deterministic=p["deterministic"])
+    summary = summarize(records)
+    records.insert(0, "eval_scenario", p["eval_scenario"])
+    records.insert(0, "train_seed", p["train_seed"])
+    records.insert(0, "algo", p["algo"])
+    records.insert(0, "train_scenario", p["train_scenario"])
+    write_table_atomic(records, directory / "episodes.parquet")
+    write_text_atomic(directory / "summary.json", json.dumps(_json_safe(summary), indent=2, sort_keys=True))
+    return ExecutorResult(["episodes.parquet", "summary.json"], inputs={f"{train_id}/model.zip": model_digest})
+
+
+# --------------------------------------------------------------------------------------------------------------
+# One unit, in whatever process runs it
+# --------------------------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def _file_lock(path: Path, blocking: bool = True) -> Iterator[bool]:
+    """An exclusive flock on `path` (released when the holder dies); yields False if not blocking and busy."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no locking
+        yield True
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        except OSError:  # a filesystem without flock (some network mounts): go on unlocked
+            yield True
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _unit_lock_path(root: Path, unit: Unit) -> Path:
+    return Path(root) / ".locks" / (unit.id.replace("/", "__") + ".lock")
+
+
+def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
+    """Do one unit unless it is already done; never raises for the unit's own errors.
+
+    Returns ``{"id", "status": "done" | "skipped" | "failed", "wall_time_s", "error"?}``; a failure leaves the
+    traceback in the unit's ``error.txt``. Holds a per-unit lock, so a stray copy of the same unit (a worker of a
+    killed runner, a retried Ray task) never writes the unit at the same time.
+    """
+    unit, run_root = Unit.from_json(unit_json), Path(root)
+    started = time.perf_counter()
+    directory = unit_dir(run_root, unit)
+    with _file_lock(_unit_lock_path(run_root, unit)):
+        try:
+            state = unit_state(run_root, unit)
+            if state == "done":
+                return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
+            if unit.kind not in EXECUTORS:
+                raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(EXECUTORS)}")
+            _prepare_unit_dir(run_root, unit, state)
+            result = EXECUTORS[unit.kind](run_root, unit, directory)
+            elapsed = time.perf_counter() - started
+            mark_done(run_root, unit, result.outputs, result.inputs, {"wall_time_s": elapsed, **result.extra})
+            return {"id": unit.id, "status": "done", "wall_time_s": elapsed}
+        except Exception as exc:  # the unit's own failure: recorded, reported, the sweep goes on
+            text = traceback.format_exc()
+            with contextlib.suppress(OSError):
+                write_text_atomic(directory / ERROR_FILE, text)
+            return {"id": unit.id, "status": "failed", "wall_time_s": time.perf_counter() - started,
+                    "error": f"{type(exc).__name__}: {exc}".strip()}
+
+
+def _prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
+    """Wipe what cannot be continued; keep a partial unit of the same spec whose kind can resume."""
+    directory = unit_dir(root, unit)
+    keep = False
+    if state == "partial":
+        recorded = _read_json(directory / UNIT_FILE)
+        same_spec = isinstance(recorded, dict) and recorded.get("spec_hash") == unit.spec_hash
+        keep = same_spec and unit.kind in RESUMABLE and RESUMABLE[unit.kind](directory)
+    if directory.exists() and not keep:
+        shutil.rmtree(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / ERROR_FILE).unlink(missing_ok=True)
+    (directory / DONE_FILE).unlink(missing_ok=True)
+    write_text_atomic(directory / UNIT_FILE, json.dumps(unit.to_json(), indent=2, sort_keys=True))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The run directory
+# --------------------------------------------------------------------------------------------------------------
+
+def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = None) -> list[Unit]:
+    """Create/check the run directory, write the plan; refuse a directory holding another experiment or budget."""
+    import socnav
+
+    units = plan_units(experiment)
+    root.mkdir(parents=True, exist_ok=True)
+    existing = _read_json(root / "resolved.json")
+    if existing is not None:
+        before = (existing.get("experiment", {}).get("name"), existing.get("experiment", {}).get("budget"))
+        now = (experiment.name, experiment.budget)
+        if before != now:
+            raise RunnerError(
+                f"{root} holds experiment {before[0]!r} with budget {before[1]!r}, not {now[0]!r} with budget "
+                f"{now[1]!r}; choose another --out (units of a different budget would overwrite its results)"
+            )
+    if source is not None:
+        write_text_atomic(root / "experiment.yaml", Path(source).read_text())
+    write_text_atomic(root / "resolved.json", json.dumps(
+        {"experiment": experiment.to_json(), "socnav_version": socnav.__version__}, indent=2, sort_keys=True))
+    write_text_atomic(root / "units.json", json.dumps([unit.to_json() for unit in units], indent=2))
+    return units
+
+
+def read_plan(root: Path) -> tuple[dict[str, Any], list[Unit]]:
+    """The resolved experiment and the units of a run directory."""
+    resolved, plan = _read_json(root / "resolved.json"), _read_json(root / "units.json")
+    if not isinstance(resolved, dict) or not isinstance(plan, list):
+        raise RunnerError(f"{root} is not a socnav run directory (no readable resolved.json / units.json)")
+    return resolved["experiment"], [Unit.from_json(item) for item in plan]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Backends
+# --------------------------------------------------------------------------------------------------------------
+
+class WorkerLost(RuntimeError):
+    """The process running a unit died (killed, out of memory) before reporting."""
+
+
+def _worker_init(parent_pid: int) -> None:
+    """Pool worker start: exit as soon as the runner is gone, so a killed sweep leaves no unit running."""
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(3)
+            time.sleep(0.5)
+
+    threading.Thread(target=watch, name="socnav-parent-watch", daemon=True).start()
+
+
+class _LocalBackend:
+    """A pool of spawned processes (one unit each at a time); workers=0 runs units in this process."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool: Any = None
+        self.inline_results: dict[int, dict[str, Any]] = {}
+
+    @property
+    def capacity(self) -> int:
+        return max(1, self.workers)
+
+    def _pool(self) -> Any:
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_worker_init, initargs=(os.getpid(),))
+        return self.pool
+
+    def submit(self, unit: Unit, root: Path) -> Any:
+        if self.workers == 0:
+            handle = len(self.inline_results)
+            self.inline_results[handle] = execute_unit(unit.to_json(), str(root))
+            return handle
+        return self._pool().submit(execute_unit, unit.to_json(), str(root))
+
+    def wait(self, handles: list[Any], timeout: float) -> list[Any]:
+        if self.workers == 0:
+            return list(handles)
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        done, _ = wait(handles, timeout=timeout, return_when=FIRST_COMPLETED)
+        return list(done)
+
+    def result(self, handle: Any) -> dict[str, Any]:
+        if self.workers == 0:
+            return self.inline_results.pop(handle)
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return handle.result()
+        except BrokenProcessPool:
+            self._reset()
+            raise WorkerLost("the worker process died (killed or out of memory)") from None
+
+    def _reset(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            self.pool = None
+
+    def close(self, cancel: bool = False) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=not cancel, cancel_futures=cancel)
+            self.pool = None
+
+
+class _RayBackend:
+    """Units as Ray tasks (1 CPU each, retried on worker/node failure); the run directory must be on a filesystem
+    every Ray node sees (or the cluster is this machine)."""
+
+    def __init__(self, address: str | None, workers: int, retries: int):
+        try:
+            import ray
+        except ImportError:
+            raise RunnerError("the ray backend needs Ray: pip install 'socnav[ray]'") from None
+        self.ray = ray
+        self.started_here = False
+        if not ray.is_initialized():
+            if address is None:  # a Ray of our own on this machine, quiet
+                ray.init(log_to_driver=False, configure_logging=False, include_dashboard=False)
+            else:  # an existing cluster ("auto", "host:6379") or a Ray Client address ("ray://host:10001")
+                ray.init(address=address, log_to_driver=False)
+            self.started_here = True
+        self.workers = workers
+        self.task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=False)(execute_unit)
+
+    @property
+    def capacity(self) -> int:
+        if self.workers > 0:
+            return self.workers
+        return max(1, int(self.ray.cluster_resources().get("CPU", 1)))
+
+    def submit(self, unit: Unit, root: Path) -> Any:
+        return self.task.options(name=unit.id).remote(unit.to_json(), str(root))
+
+    def wait(self, handles: list[Any], timeout: float) -> list[Any]:
+        done, _ = self.ray.wait(handles, num_returns=1, timeout=timeout)
+        return list(done)
+
+    def result(self, handle: Any) -> dict[str, Any]:
+        try:
+            return self.ray.get(handle)
+        except self.ray.exceptions.RayError as exc:
+            raise WorkerLost(f"Ray task failed after retries: {type(exc).__name__}: {exc}") from None
+
+    def close(self, cancel: bool = False) -> None:
+        if self.started_here:
+            self.ray.shutdown()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The sweep
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class UnitOutcome:
+    id: str
+    status: Literal["done", "skipped", "failed", "blocked"]
+    wall_time_s: float = 0.0
+    error: str | None = None
+
+
+@dataclass
+class RunSummary:
+    root: Path
+    outcomes: dict[str, UnitOutcome]
+
+    def count(self, status: str) -> int:
+        return sum(outcome.status == status for outcome in self.outcomes.values())
+
+    @property
+    def failed(self) -> list[UnitOutcome]:
+        return [o for o in self.outcomes.values() if o.status in ("failed", "blocked")]
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+class Reporter:
+    """What the sweep tells its observer (the CLI's progress display); every method may be left as is."""
+
+    def start(self, total: int, already_done: int, redo: dict[str, int]) -> None: ...
+    def unit_started(self, unit: Unit) -> None: ...
+    def unit_finished(self, unit: Unit, outcome: UnitOutcome) -> None: ...
+
+
+def run_experiment(
+    experiment: Experiment,
+    root: str | Path,
+    backend: Literal["local", "ray"] = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    retries: int = 1,
+    source: Path | None = None,
+    reporter: Reporter | None = None,
+) -> RunSummary:
+    """Run every unit of `experiment` not yet done in `root`; returns each unit's outcome.
+
+    :param workers: units at a time (local default: the number of CPUs; 0 runs them in this process);
+        with Ray, the most tasks in flight (default: the cluster's CPUs).
+    :param retries: times a unit is retried after its worker died (Ray: ``max_retries``); a unit raising an
+        error is not retried, it fails with ``error.txt``.
+    :raises RunnerError: another runner holds `root`, `root` holds another experiment, or Ray is missing.
+    """
+    root = Path(root).resolve()
+    reporter = reporter or Reporter()
+    root.mkdir(parents=True, exist_ok=True)
+    with _file_lock(root / ".lock", blocking=False) as locked:
+        if not locked:
+            raise RunnerError(f"another socnav run is working in {root} (its .lock is held)")
+        units = prepare_run_dir(root, experiment, source)
+        return _sweep(units, root, backend, workers, address, retries, reporter)
+
+
+def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None, address: str | None,
+           retries: int, reporter: Reporter) -> RunSummary:
+    states = unit_states(root, units)
+    outcomes: dict[str, UnitOutcome] = {u.id: UnitOutcome(u.id, "skipped") for u in units if states[u.id] == "done"}
+    todo = [unit for unit in units if states[unit.id] != "done"]
+    redo: dict[str, int] = {}
+    for unit in todo:
+        redo[states[unit.id]] = redo.get(states[unit.id], 0) + 1
+    reporter.start(len(units), len(outcomes), redo)
+    if not todo:
+        return RunSummary(root, outcomes)
+
+    if workers is None:
+        workers = (os.cpu_count() or 1) if backend_name == "local" else 0
+    backend: Any
+    if backend_name == "local":
+        backend = _LocalBackend(workers)
+    elif backend_name == "ray":
+        backend = _RayBackend(address, workers, retries)
+    else:
+        raise RunnerError(f"unknown backend {backend_name!r}; allowed: local, ray")
+
+    by_id = {unit.id: unit for unit in units}
+    waiting = list(todo)
+    running: dict[Any, Unit] = {}
+    attempts: dict[str, int] = {}
+    cancelled = True
+    try:
+        while waiting or running:
+            for unit in list(waiting):  # units whose dependencies failed can never run
+                bad = [dep for dep in unit.deps if dep in outcomes and outcomes[dep].status in ("failed", "blocked")]
+                if bad:
+                    waiting.remove(unit)
+                    outcome = UnitOutcome(unit.id, "blocked", error=f"dependency {bad[0]} failed")
+                    outcomes[unit.id] = outcome
+                    reporter.unit_finished(unit, outcome)
+            ready = [u for u in waiting if all(dep in outcomes and outcomes[dep].status in ("done", "skipped")
+                                               for dep in u.deps)]
+            for unit in ready[: max(0, backend.capacity - len(running))]:
+                waiting.remove(unit)
+                reporter.unit_started(unit)
+                running[backend.submit(unit, root)] = unit
+            if not running:
+                if waiting:  # cannot happen with a valid plan; never spin
+                    raise RunnerError(f"units wait for dependencies that are not planned: {[u.id for u in waiting]}")
+                break
+            for handle in backend.wait(list(running), timeout=0.5):
+                if handle not in running:  # put back after its pool broke (below)
+                    continue
+                unit = running.pop(handle)
+                try:
+                    result = backend.result(handle)
+                    outcome = UnitOutcome(unit.id, result["status"], result.get("wall_time_s", 0.0),
+                                          result.get("error"))
+                except WorkerLost as exc:
+                    attempts[unit.id] = attempts.get(unit.id, 0) + 1
+                    if backend_name == "local" and attempts[unit.id] <= retries:
+                        waiting.insert(0, unit)
+                        for other_handle, other in list(running.items()):  # the whole pool went down with it
+                            running.pop(other_handle)
+                            waiting.insert(0, other)
+                        continue
+                    outcome = UnitOutcome(unit.id, "failed", error=str(exc))
+                    with contextlib.suppress(OSError):
+                        write_text_atomic(unit_dir(root, unit) / ERROR_FILE, f"{exc}\n")
+                outcomes[unit.id] = outcome
+                reporter.unit_finished(unit, outcome)
+        cancelled = False
+    finally:
+        backend.close(cancel=cancelled)
+    ordered = {unit.id: outcomes[unit.id] for unit in by_id.values() if unit.id in outcomes}
+    return RunSummary(root, ordered)

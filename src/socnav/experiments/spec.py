@@ -1,0 +1,488 @@
+"""Experiment files: a YAML grid (algorithms x training scenarios x seeds, evaluated in several scenarios), named
+budgets that override parts of the grid, and the expansion of a resolved experiment into units of work.
+
+An experiment file (see ``configs/experiments/table1.yaml``)::
+
+    name: table1                     # names the default run directory (runs/<name>-<budget>)
+    kind: table1                     # which planner expands it and which report sections describe it
+    env: {}                          # env overrides for every environment (training and evaluation)
+    scenario_env:                    # env overrides per scenario, applied wherever that scenario is used
+      circle_crossing: {n_humans: 5}
+    grid:
+      algorithms: [ppo, odv-ppo-drop]
+      train_scenarios: [circle_crossing, random]
+      seeds: 15                      # an int n means seeds 0..n-1; or a list [0, 3, 7]
+      timesteps: 1000000
+      n_envs: 16                     # training environments per run
+      eval_every: null               # periodic validation (null: a tenth of the run)
+      validation_episodes: 50        # episodes per periodic validation
+      overrides: {}                  # AlgoConfig fields for every algorithm
+      algo_overrides:                # AlgoConfig fields per algorithm: a mapping or a preset YAML path
+        ppo: presets/ppo_tuned.yaml  #   (relative to this file; `socnav tune --write-preset` writes one)
+    evaluation:
+      scenarios: [circle_interaction, circle_crossing, random]
+      episodes: 200                  # test episodes per policy and scenario
+      seed: 0                        # episode k uses seed + k: every policy sees the same episodes
+    budgets:
+      quick: {seeds: 2, timesteps: 200000, episodes: 100}
+      paper: {seeds: 15, episodes: 200}
+
+Every field is validated before any work starts; errors name the field and the allowed values.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from socnav.config import ConfigError, load_config
+
+__all__ = [
+    "Budget", "Evaluation", "Experiment", "ExperimentError", "Grid", "PLANNERS", "Unit", "load_experiment",
+    "plan_units", "register_planner", "resolve_budget",
+]
+
+SPEC_VERSION = 1
+
+
+class ExperimentError(ConfigError):
+    """An experiment file is wrong; the message names the file, the field and what is allowed."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+Seeds = Union[int, list[int]]
+
+
+def _algorithms() -> tuple[str, ...]:
+    from socnav.rl.presets import ALGOS  # imports torch: only when an experiment is validated
+
+    return ALGOS
+
+
+def _scenarios() -> list[str]:
+    from socnav.sim.scenarios import scenario_names
+
+    return scenario_names()
+
+
+def _check_names(values: list[str], allowed: Any, what: str) -> list[str]:
+    allowed = list(allowed)
+    if not values:
+        raise ValueError(f"needs at least one {what}; allowed: {', '.join(allowed)}")
+    for value in values:
+        if value not in allowed:
+            raise ValueError(f"unknown {what} {value!r}; allowed: {', '.join(allowed)}")
+    duplicates = sorted({value for value in values if values.count(value) > 1})
+    if duplicates:
+        raise ValueError(f"{what} listed twice: {', '.join(duplicates)}")
+    return values
+
+
+def _seed_list(value: Seeds) -> list[int]:
+    seeds = list(range(value)) if isinstance(value, int) else list(value)
+    if isinstance(value, int) and value < 1:
+        raise ValueError("an integer seed count must be >= 1 (n means seeds 0..n-1)")
+    if not seeds:
+        raise ValueError("needs at least one seed")
+    if any(seed < 0 for seed in seeds):
+        raise ValueError("seeds must be >= 0")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError("a seed is listed twice")
+    return seeds
+
+
+class Grid(_Strict):
+    """What is trained: every algorithm on every training scenario with every seed."""
+
+    algorithms: list[str] = Field(description="preset names (socnav.rl.ALGOS)")
+    train_scenarios: list[str] = Field(description="registered scenario names")
+    seeds: Seeds = Field(description="an int n (seeds 0..n-1) or a list of seeds")
+    timesteps: int = Field(gt=0, description="environment steps per training run")
+    n_envs: int = Field(16, gt=0, description="training environments per run")
+    eval_every: Optional[int] = Field(None, gt=0, description="timesteps between validations (null: a tenth)")
+    validation_episodes: int = Field(50, gt=0, description="episodes per periodic validation during training")
+    overrides: dict[str, Any] = Field(default_factory=dict, description="AlgoConfig fields for every algorithm")
+    algo_overrides: dict[str, Union[dict[str, Any], str]] = Field(
+        default_factory=dict, description="per algorithm: AlgoConfig fields, or a preset YAML path"
+    )
+
+    @field_validator("algorithms")
+    @classmethod
+    def _known_algorithms(cls, value: list[str]) -> list[str]:
+        return _check_names(value, _algorithms(), "algorithm")
+
+    @field_validator("train_scenarios")
+    @classmethod
+    def _known_scenarios(cls, value: list[str]) -> list[str]:
+        return _check_names(value, _scenarios(), "scenario")
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, value: Seeds) -> list[int]:
+        return _seed_list(value)
+
+    @field_validator("algo_overrides")
+    @classmethod
+    def _override_keys(cls, value: dict[str, Any]) -> dict[str, Any]:
+        for name in value:
+            if name not in _algorithms():
+                raise ValueError(f"unknown algorithm {name!r}; allowed: {', '.join(_algorithms())}")
+        return value
+
+
+class Evaluation(_Strict):
+    """How every trained policy is tested: `episodes` episodes (seeds `seed`, `seed`+1, ...) in each scenario."""
+
+    scenarios: list[str] = Field(description="registered scenario names")
+    episodes: int = Field(200, gt=0, description="test episodes per policy and scenario")
+    seed: int = Field(0, ge=0, description="episode k uses seed + k (disjoint from training seeds >= 2**40)")
+    n_envs: int = Field(32, gt=0, description="environments stepped together during evaluation")
+    deterministic: bool = Field(True, description="mean action (True) or sampled actions")
+
+    @field_validator("scenarios")
+    @classmethod
+    def _known_scenarios(cls, value: list[str]) -> list[str]:
+        return _check_names(value, _scenarios(), "scenario")
+
+
+class Budget(_Strict):
+    """A named budget: any field given replaces the grid's / evaluation's value; `overrides` merges."""
+
+    description: str = ""
+    seeds: Optional[Seeds] = None
+    timesteps: Optional[int] = Field(None, gt=0)
+    n_envs: Optional[int] = Field(None, gt=0)
+    eval_every: Optional[int] = Field(None, gt=0)
+    validation_episodes: Optional[int] = Field(None, gt=0)
+    episodes: Optional[int] = Field(None, gt=0, description="evaluation episodes per policy and scenario")
+    eval_n_envs: Optional[int] = Field(None, gt=0)
+    algorithms: Optional[list[str]] = None
+    train_scenarios: Optional[list[str]] = None
+    eval_scenarios: Optional[list[str]] = None
+    overrides: Optional[dict[str, Any]] = None
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, value: Optional[Seeds]) -> Optional[list[int]]:
+        return None if value is None else _seed_list(value)
+
+    @field_validator("algorithms")
+    @classmethod
+    def _known_algorithms(cls, value: Optional[list[str]]) -> Optional[list[str]]:
+        return None if value is None else _check_names(value, _algorithms(), "algorithm")
+
+    @field_validator("train_scenarios", "eval_scenarios")
+    @classmethod
+    def _known_scenarios(cls, value: Optional[list[str]]) -> Optional[list[str]]:
+        return None if value is None else _check_names(value, _scenarios(), "scenario")
+
+
+class Experiment(_Strict):
+    """A validated experiment file. After `resolve_budget`, `budget` names the budget that was applied."""
+
+    name: str = Field(description="letters, digits, '.', '_' or '-'")
+    kind: str = Field("table1", description="planner and report sections (see PLANNERS)")
+    description: str = ""
+    env: dict[str, Any] = Field(default_factory=dict, description="env overrides for every environment")
+    scenario_env: dict[str, dict[str, Any]] = Field(default_factory=dict, description="env overrides per scenario")
+    grid: Grid
+    evaluation: Evaluation
+    budgets: dict[str, Budget] = Field(default_factory=dict)
+    budget: Optional[str] = Field(None, description="set by resolve_budget: the budget applied (null: none)")
+
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, value: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+            raise ValueError("must consist of letters, digits, '.', '_' or '-' (it names a directory)")
+        return value
+
+    @field_validator("kind")
+    @classmethod
+    def _known_kind(cls, value: str) -> str:
+        if value not in PLANNERS:
+            raise ValueError(f"unknown experiment kind {value!r}; allowed: {', '.join(PLANNERS)}")
+        return value
+
+    @field_validator("scenario_env")
+    @classmethod
+    def _scenario_keys(cls, value: dict[str, Any]) -> dict[str, Any]:
+        for name in value:
+            if name not in _scenarios():
+                raise ValueError(f"unknown scenario {name!r}; allowed: {', '.join(_scenarios())}")
+        return value
+
+    # ---- derived values ----
+    def env_config(self, scenario: str) -> dict[str, Any]:
+        """The (partial) env config of `scenario` in this experiment: env, then scenario_env[scenario]."""
+        return _merge({**self.env, "scenario": scenario}, self.scenario_env.get(scenario, {}))
+
+    def algo_overrides(self, algo: str) -> dict[str, Any]:
+        """Hyperparameter overrides of `algo`: grid.overrides, then grid.algo_overrides[algo] (inlined)."""
+        extra = self.grid.algo_overrides.get(algo, {})
+        if not isinstance(extra, dict):
+            raise ExperimentError(f"grid.algo_overrides.{algo}: preset path {extra!r} was not loaded")
+        return {**self.grid.overrides, **extra}
+
+    def to_json(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Loading and validation
+# --------------------------------------------------------------------------------------------------------------
+
+def _format_error(error: ValidationError, source: str) -> str:
+    lines = [f"invalid experiment ({source}):"]
+    for item in error.errors():
+        loc = tuple(item["loc"])
+        where = ".".join(str(part) for part in loc) or "<root>"
+        message = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "extra_forbidden":
+            model = _model_at(loc[:-1])
+            allowed = ", ".join(model.model_fields) if model is not None else "see the docs"
+            message = f"unknown field; allowed fields here: {allowed}"
+        elif item["type"] == "missing":
+            message = "required field is missing"
+        got = "" if item["type"] == "missing" else f" (got {item.get('input')!r})"
+        lines.append(f"  - {where}: {message}{got}")
+    return "\n".join(lines)
+
+
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    model: type[BaseModel] = Experiment
+    for index, part in enumerate(loc):
+        if model is Experiment and part == "budgets":
+            return Budget if len(loc) == index + 2 else None
+        info = model.model_fields.get(str(part))
+        if info is None or not (isinstance(info.annotation, type) and issubclass(info.annotation, BaseModel)):
+            return None
+        model = info.annotation
+    return model
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ExperimentError(f"experiment file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ExperimentError(f"experiment file {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ExperimentError(f"experiment file {path} must hold a mapping of fields, got {type(data).__name__}")
+    return data
+
+
+def parse_experiment(data: dict[str, Any], source: str = "dict", base_dir: Path | None = None) -> Experiment:
+    """Validate an experiment mapping (no budget applied): schema, env configs, hyperparameter overrides."""
+    try:
+        experiment = Experiment.model_validate(data)
+    except ValidationError as exc:
+        raise ExperimentError(_format_error(exc, source)) from None
+    if experiment.budget is not None:
+        raise ExperimentError(f"invalid experiment ({source}):\n  - budget: set by --budget, not in the file")
+    experiment = _inline_presets(experiment, source, base_dir)
+    _check_consistency(experiment, source)
+    for name in experiment.budgets:
+        _check_consistency(resolve_budget(experiment, name), f"{source}, budget {name!r}")
+    return experiment
+
+
+def load_experiment(path: str | Path, budget: str | None = None) -> Experiment:
+    """Read and validate an experiment file and apply `budget` (None: the grid as written).
+
+    :raises ExperimentError: the message names the file, the field and the allowed values.
+    """
+    path = Path(path)
+    experiment = parse_experiment(_read_yaml(path), str(path), path.parent)
+    return resolve_budget(experiment, budget)
+
+
+def _inline_presets(experiment: Experiment, source: str, base_dir: Path | None) -> Experiment:
+    """Replace preset paths in grid.algo_overrides by their contents (the resolved experiment is self-contained)."""
+    inlined: dict[str, dict[str, Any]] = {}
+    for algo, value in experiment.grid.algo_overrides.items():
+        if isinstance(value, str):
+            preset = Path(value)
+            if not preset.is_absolute() and base_dir is not None:
+                preset = base_dir / preset
+            if not preset.is_file():
+                raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
+                                      f"preset file not found: {preset}")
+            loaded = yaml.safe_load(preset.read_text()) or {}
+            if not isinstance(loaded, dict):
+                raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
+                                      f"{preset} must hold a mapping of hyperparameters")
+            value = loaded
+        inlined[algo] = dict(value)
+    grid = experiment.grid.model_copy(update={"algo_overrides": inlined})
+    return experiment.model_copy(update={"grid": grid})
+
+
+def _check_consistency(experiment: Experiment, source: str) -> None:
+    """Env configs and hyperparameters of every unit are valid, and every policy fits every evaluation env."""
+    from socnav.rl.presets import resolve_config
+
+    max_humans: dict[str, int] = {}
+    for scenario in dict.fromkeys(experiment.grid.train_scenarios + experiment.evaluation.scenarios):
+        try:
+            config = load_config(experiment.env_config(scenario))
+        except ConfigError as exc:
+            detail = str(exc).split("\n", 1)[-1]
+            raise ExperimentError(f"invalid experiment ({source}): env of scenario {scenario!r} "
+                                  f"(env + scenario_env.{scenario}):\n{detail}") from None
+        max_humans[scenario] = config.max_humans
+    if len(set(max_humans.values())) > 1:
+        raise ExperimentError(
+            f"invalid experiment ({source}): env.max_humans differs between scenarios ({max_humans}); every policy "
+            "is evaluated in every scenario, so the observation size (max_humans) must be the same everywhere"
+        )
+    for algo in experiment.grid.algorithms:
+        try:
+            resolve_config(algo, experiment.algo_overrides(algo))
+        except ValueError as exc:
+            message = " ".join(str(exc).split())
+            raise ExperimentError(
+                f"invalid experiment ({source}): grid.overrides / grid.algo_overrides.{algo}: {message}"
+            ) from None
+
+
+def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
+    """The experiment with budget `budget` applied to its grid and evaluation (None: unchanged)."""
+    if budget is None:
+        return experiment.model_copy(update={"budget": None})
+    if budget not in experiment.budgets:
+        allowed = ", ".join(experiment.budgets) or "none (this experiment defines no budgets)"
+        raise ExperimentError(f"unknown budget {budget!r} for experiment {experiment.name!r}; allowed: {allowed}")
+    chosen = experiment.budgets[budget]
+    grid_update: dict[str, Any] = {}
+    for key in ("seeds", "timesteps", "n_envs", "eval_every", "validation_episodes", "algorithms", "train_scenarios"):
+        if getattr(chosen, key) is not None:
+            grid_update[key] = getattr(chosen, key)
+    if chosen.overrides is not None:
+        grid_update["overrides"] = {**experiment.grid.overrides, **chosen.overrides}
+    evaluation_update: dict[str, Any] = {}
+    for key, target in (("episodes", "episodes"), ("eval_n_envs", "n_envs"), ("eval_scenarios", "scenarios")):
+        if getattr(chosen, key) is not None:
+            evaluation_update[target] = getattr(chosen, key)
+    return experiment.model_copy(update={
+        "grid": experiment.grid.model_copy(update=grid_update),
+        "evaluation": experiment.evaluation.model_copy(update=evaluation_update),
+        "budget": budget,
+    })
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Units of work
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Unit:
+    """One unit of work: `kind` names its executor (runner.EXECUTORS), `params` is everything it needs (JSON).
+
+    `id` is also the unit's directory relative to the run directory; `deps` are ids of units whose outputs it reads.
+    """
+
+    id: str
+    kind: str
+    params: dict[str, Any] = field(hash=False)
+    deps: tuple[str, ...] = ()
+
+    @property
+    def spec_hash(self) -> str:
+        """Digest of what the unit is asked to do: a finished unit with another digest is stale."""
+        payload = json.dumps({"kind": self.kind, "params": self.params, "deps": list(self.deps),
+                              "version": SPEC_VERSION}, sort_keys=True, default=str)
+        return hashlib.sha256(payload.encode()).hexdigest()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"id": self.id, "kind": self.kind, "params": self.params, "deps": list(self.deps),
+                "spec_hash": self.spec_hash}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "Unit":
+        return cls(data["id"], data["kind"], data["params"], tuple(data.get("deps", ())))
+
+
+Planner = Callable[[Experiment], list[Unit]]
+#: experiment kind -> function expanding a resolved experiment into units (dependencies before dependants).
+PLANNERS: dict[str, Planner] = {}
+
+
+def register_planner(kind: str) -> Callable[[Planner], Planner]:
+    """Decorator registering the unit planner of an experiment kind (later experiments add their own)."""
+
+    def decorate(function: Planner) -> Planner:
+        PLANNERS[kind] = function
+        return function
+
+    return decorate
+
+
+def train_unit_id(scenario: str, algo: str, seed: int) -> str:
+    return f"train/{scenario}/{algo}/seed{seed}"
+
+
+def eval_unit_id(train_scenario: str, algo: str, seed: int, eval_scenario: str) -> str:
+    return f"eval/{train_scenario}/{algo}/seed{seed}/{eval_scenario}"
+
+
+@register_planner("table1")
+def plan_train_eval(experiment: Experiment) -> list[Unit]:
+    """One training unit per (training scenario, algorithm, seed); one evaluation unit per trained policy and
+    evaluation scenario, depending on its training unit."""
+    grid, evaluation = experiment.grid, experiment.evaluation
+    trains: list[Unit] = []
+    evals: list[Unit] = []
+    for scenario in grid.train_scenarios:
+        for algo in grid.algorithms:
+            for seed in grid.seeds:  # type: ignore[union-attr]
+                train = Unit(train_unit_id(scenario, algo, seed), "train", {
+                    "train_scenario": scenario, "algo": algo, "seed": seed, "timesteps": grid.timesteps,
+                    "env": experiment.env_config(scenario), "overrides": experiment.algo_overrides(algo),
+                    "n_envs": grid.n_envs, "eval_every": grid.eval_every,
+                    "validation_episodes": grid.validation_episodes,
+                })
+                trains.append(train)
+                for eval_scenario in evaluation.scenarios:
+                    evals.append(Unit(eval_unit_id(scenario, algo, seed, eval_scenario), "eval", {
+                        "train_scenario": scenario, "algo": algo, "train_seed": seed,
+                        "eval_scenario": eval_scenario, "env": experiment.env_config(eval_scenario),
+                        "episodes": evaluation.episodes, "seed": evaluation.seed, "n_envs": evaluation.n_envs,
+                        "deterministic": evaluation.deterministic,
+                    }, deps=(train.id,)))
+    return trains + evals
+
+
+def plan_units(experiment: Experiment) -> list[Unit]:
+    """The units of a resolved experiment, every unit after the units it depends on."""
+    units = PLANNERS[experiment.kind](experiment)
+    seen: set[str] = set()
+    for unit in units:
+        if unit.id in seen:
+            raise ExperimentError(f"experiment {experiment.name!r}: unit {unit.id} planned twice")
+        missing = [dep for dep in unit.deps if dep not in seen]
+        if missing:
+            raise ExperimentError(f"experiment {experiment.name!r}: unit {unit.id} is planned before {missing}")
+        seen.add(unit.id)
+    return units

@@ -1,0 +1,183 @@
+"""Optuna search of the PPO hyperparameters of a preset: each trial trains with sampled values, reports its periodic
+validation results to Optuna (median pruning stops poor trials early), and the best values become a preset YAML
+that `socnav train --algo-config`, and experiment files (``grid.algo_overrides.<algo>: preset.yaml``), read.
+
+Searched (SB3 names, as in ``socnav.rl.presets.AlgoConfig``)::
+
+    learning_rate  log-uniform [1e-5, 1e-3]        gamma       {0.95, 0.98, 0.99, 0.995, 0.999}
+    n_steps        {64, 128, 256, 512} per env     gae_lambda  {0.8, 0.9, 0.92, 0.95, 0.98, 1.0}
+    batch_size     {64, 128, 256, 512}             clip_range  {0.1, 0.2, 0.3, 0.4}
+    n_epochs       {3, 5, 10, 20}                  ent_coef    log-uniform [1e-8, 1e-1]
+
+A batch larger than one rollout (n_steps x n_envs) is cut to the rollout. Studies live in an Optuna RDB storage
+(SQLite by default), so a search can be continued, inspected with optuna-dashboard, or run by several
+``socnav tune`` processes at once on the same storage and study name.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import yaml
+
+from socnav.config import ConfigLike, load_config
+from socnav.io import read_table, write_text_atomic
+
+__all__ = ["SEARCHED", "TuneResult", "sample_params", "tune", "write_preset"]
+
+DEFAULT_STORAGE = "sqlite:///runs/tune.db"
+SEARCHED = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef")
+METRICS = {"return_mean": "maximize", "goal_pct": "maximize", "collision_pct": "minimize"}
+
+
+def _optuna() -> Any:
+    try:
+        import optuna
+    except ImportError:
+        raise RuntimeError("socnav tune needs Optuna: pip install 'socnav[tune]'") from None
+    return optuna
+
+
+def sample_params(trial: Any, n_envs: int) -> dict[str, Any]:
+    """One point of the search space (AlgoConfig field -> value)."""
+    params = {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
+        "n_steps": trial.suggest_categorical("n_steps", [64, 128, 256, 512]),
+        "batch_size": trial.suggest_categorical("batch_size", [64, 128, 256, 512]),
+        "n_epochs": trial.suggest_categorical("n_epochs", [3, 5, 10, 20]),
+        "gamma": trial.suggest_categorical("gamma", [0.95, 0.98, 0.99, 0.995, 0.999]),
+        "gae_lambda": trial.suggest_categorical("gae_lambda", [0.8, 0.9, 0.92, 0.95, 0.98, 1.0]),
+        "clip_range": trial.suggest_categorical("clip_range", [0.1, 0.2, 0.3, 0.4]),
+        "ent_coef": trial.suggest_float("ent_coef", 1e-8, 1e-1, log=True),
+    }
+    params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
+    return params
+
+
+def _ensure_sqlite_dir(storage: str) -> None:
+    prefix = "sqlite:///"
+    if storage.startswith(prefix) and storage != prefix + ":memory:":
+        Path(storage[len(prefix):]).parent.mkdir(parents=True, exist_ok=True)
+
+
+@dataclass
+class TuneResult:
+    study_name: str
+    storage: str
+    best_value: float
+    best_params: dict[str, Any]
+    best_trial: int
+    counts: dict[str, int]
+    metric: str
+
+
+def tune(
+    config: ConfigLike,
+    algo: str,
+    trials: int,
+    timesteps: int = 100_000,
+    storage: str = DEFAULT_STORAGE,
+    study_name: str | None = None,
+    out_dir: str | Path | None = None,
+    n_envs: int = 16,
+    eval_every: int | None = None,
+    eval_episodes: int = 20,
+    seed: int = 0,
+    metric: str = "return_mean",
+    timeout: float | None = None,
+    n_startup_trials: int = 3,
+    on_trial: Callable[[Any, Any], None] | None = None,
+) -> TuneResult:
+    """Run `trials` more trials of the study (created or continued) and return its best so far.
+
+    Every trial trains `algo` for `timesteps` steps on env `config` (seed `seed`, so trials differ only in their
+    hyperparameters) in ``out_dir/trial_<n>``, evaluating every `eval_every` steps on `eval_episodes` validation
+    episodes; each evaluation's `metric` is reported to Optuna and a MedianPruner stops trials below the median.
+    The objective is the final validation `metric` (return_mean / goal_pct: maximized; collision_pct: minimized).
+    """
+    optuna = _optuna()
+    from socnav.rl.presets import resolve_config
+    from socnav.rl.training import TrainingInterrupted, train
+
+    if metric not in METRICS:
+        raise ValueError(f"unknown metric {metric!r}; allowed: {', '.join(METRICS)}")
+    if trials < 1:
+        raise ValueError(f"trials must be >= 1, got {trials}")
+    env_config = load_config(config)
+    resolve_config(algo)  # unknown algo: fail before creating a study
+    study_name = study_name or f"{algo}_{env_config.scenario}"
+    out_dir = Path(out_dir) if out_dir is not None else Path("runs") / "tune" / study_name
+    eval_every = eval_every or max(1, timesteps // 5)
+    _ensure_sqlite_dir(storage)
+    study = optuna.create_study(
+        study_name=study_name, storage=storage, load_if_exists=True, direction=METRICS[metric],
+        sampler=optuna.samplers.TPESampler(seed=seed),
+        pruner=optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0),
+    )
+    study.set_user_attr("algo", algo)
+    study.set_user_attr("env_config", env_config.model_dump(mode="json"))
+    study.set_user_attr("timesteps", timesteps)
+    study.set_user_attr("metric", metric)
+
+    def objective(trial: Any) -> float:
+        params = sample_params(trial, n_envs)
+        run_dir = out_dir / f"trial_{trial.number}"
+        evals = run_dir / "eval.csv"
+        reported: set[int] = set()
+
+        def report_validations(_timesteps: int, _success: float | None) -> None:
+            # train() appends a row to eval.csv at every periodic validation: report the new ones, maybe prune.
+            if not evals.is_file():
+                return
+            try:
+                rows = read_table(evals)
+            except Exception:  # noqa: BLE001 - a file being replaced; the next call reads it
+                return
+            for row in rows.itertuples(index=False):
+                step = int(row.timesteps)
+                if step in reported or step >= timesteps:
+                    continue
+                reported.add(step)
+                trial.report(float(getattr(row, metric)), step)
+                if trial.should_prune():
+                    raise optuna.TrialPruned(f"pruned at {step} timesteps ({metric}={getattr(row, metric):.3f})")
+
+        try:
+            result = train(env_config, algo, seed, timesteps, run_dir, n_envs=n_envs, overrides=params,
+                           eval_every=eval_every, eval_episodes=eval_episodes, progress=report_validations,
+                           tensorboard=False)
+        except TrainingInterrupted as exc:
+            trial.set_user_attr("error", str(exc))
+            return float("nan")  # Optuna records the trial as failed and goes on
+        value = float(result.final_eval[metric])
+        trial.set_user_attr("final_eval", {k: float(v) for k, v in result.final_eval.items()})
+        return value if math.isfinite(value) else float("nan")
+
+    callbacks = [on_trial] if on_trial is not None else None
+    study.optimize(objective, n_trials=trials, timeout=timeout, callbacks=callbacks, gc_after_trial=True)
+    states = optuna.trial.TrialState
+    counts = {name.lower(): len(study.get_trials(deepcopy=False, states=(state,)))
+              for name, state in (("COMPLETE", states.COMPLETE), ("PRUNED", states.PRUNED), ("FAIL", states.FAIL))}
+    try:
+        best = study.best_trial
+    except ValueError:
+        raise RuntimeError(f"study {study_name!r} has no completed trial yet (pruned: {counts['pruned']}, "
+                           f"failed: {counts['fail']}); run more trials or longer ones") from None
+    params = dict(best.params)
+    params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
+    return TuneResult(study_name, storage, float(best.value), params, best.number, counts, metric)
+
+
+def write_preset(path: str | Path, result: TuneResult, algo: str, scenario: str, timesteps: int) -> Path:
+    """Write the best hyperparameters as a preset YAML (a mapping of AlgoConfig fields; provenance in comments)."""
+    header = (
+        f"# socnav preset: Optuna study {result.study_name!r} ({result.storage})\n"
+        f"# algo {algo}, scenario {scenario}, {timesteps:,} timesteps per trial; best trial #{result.best_trial}\n"
+        f"# {result.metric} = {result.best_value:.4f}; trials: {result.counts}\n"
+        f"# use: socnav train --algo {algo} --algo-config THIS_FILE, or grid.algo_overrides.{algo}: THIS_FILE\n"
+    )
+    values = {key: (float(value) if isinstance(value, float) else value) for key, value in result.best_params.items()}
+    return write_text_atomic(path, header + yaml.safe_dump(values, sort_keys=False))

@@ -1,0 +1,248 @@
+"""Reports: Table 1's numbers equal an independent computation from hand-built per-episode records, the best values
+are marked, the training-curve figure and report.md are written, and sections plug in per experiment kind."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from socnav.cli import app
+from socnav.experiments import report as report_module
+from socnav.experiments.report import (
+    SECTIONS, build_report, register_section, table1_frame, table1_markdown, training_curve_frame,
+)
+from socnav.experiments.runner import file_digest, mark_done, prepare_run_dir, unit_dir
+from socnav.experiments.spec import parse_experiment
+from socnav.io import write_table_atomic
+
+runner = CliRunner()
+ALGOS = ["ppo", "odv-ppo-drop"]
+TRAIN = ["circle_crossing", "random"]
+EVAL = ["circle_interaction", "random"]
+SEEDS = [0, 1, 2]
+EPISODES = 7
+
+
+def _experiment():
+    return parse_experiment({
+        "name": "handmade", "description": "records built by hand",
+        "grid": {"algorithms": ALGOS, "train_scenarios": TRAIN, "seeds": SEEDS, "timesteps": 1000},
+        "evaluation": {"scenarios": EVAL, "episodes": EPISODES},
+    }, "test")
+
+
+def _records(rng: np.random.Generator, train_scenario: str, algo: str, seed: int, eval_scenario: str) -> pd.DataFrame:
+    outcome = rng.choice(["goal", "collision", "timeout"], size=EPISODES, p=[0.6, 0.15, 0.25])
+    return pd.DataFrame({
+        "train_scenario": train_scenario, "algo": algo, "train_seed": seed, "eval_scenario": eval_scenario,
+        "episode": np.arange(EPISODES), "seed": np.arange(EPISODES), "outcome": outcome,
+        "return": rng.normal(2.0, 3.0, EPISODES), "length": rng.integers(20, 200, EPISODES),
+        "intrusion_events": rng.integers(0, 4, EPISODES), "min_gap": rng.uniform(0, 2, EPISODES),
+    })
+
+
+def _curve(rng: np.random.Generator, seed: int) -> pd.DataFrame:
+    steps = np.arange(1, 11) * 100
+    rewards = np.where(steps < 300, np.nan, np.linspace(-5, 4, 10) + rng.normal(0, 0.5, 10))
+    return pd.DataFrame({"timesteps": steps, "wall_time_s": steps / 1000, "ep_rew_mean": rewards,
+                         "ep_len_mean": 50.0, "success_rate": 0.5})
+
+
+@pytest.fixture
+def handmade_run(tmp_path) -> tuple[Path, pd.DataFrame, pd.DataFrame, list]:
+    """A run directory whose units were 'finished' with hand-built outputs (no training)."""
+    root = tmp_path / "run"
+    units = prepare_run_dir(root, _experiment())
+    rng = np.random.default_rng(7)
+    all_records, all_curves = [], []
+    for unit in units:
+        directory = unit_dir(root, unit)
+        directory.mkdir(parents=True, exist_ok=True)
+        p = unit.params
+        if unit.kind == "train":
+            (directory / "model.zip").write_bytes(rng.bytes(64))
+            curve = _curve(rng, p["seed"])
+            write_table_atomic(curve, directory / "curve.csv")
+            all_curves.append(curve.assign(train_scenario=p["train_scenario"], algo=p["algo"], seed=p["seed"]))
+            mark_done(root, unit, ["model.zip", "curve.csv"])
+        else:
+            records = _records(rng, p["train_scenario"], p["algo"], p["train_seed"], p["eval_scenario"])
+            write_table_atomic(records, directory / "episodes.parquet")
+            all_records.append(records)
+            model = f"{unit.deps[0]}/model.zip"
+            mark_done(root, unit, ["episodes.parquet"], inputs={model: file_digest(root / model)})
+    return root, pd.concat(all_records, ignore_index=True), pd.concat(all_curves, ignore_index=True), units
+
+
+def _expected_table(records: pd.DataFrame) -> dict[tuple[str, str, str], dict[str, float]]:
+    """Table 1 computed independently: plain loops over groups, numpy per seed."""
+    expected = {}
+    for key, group in records.groupby(["train_scenario", "algo", "eval_scenario"]):
+        per_seed = []
+        for _, episodes in group.groupby("train_seed"):
+            n = len(episodes)
+            per_seed.append({
+                "goal": 100 * np.sum(episodes["outcome"].to_numpy() == "goal") / n,
+                "collision": 100 * np.sum(episodes["outcome"].to_numpy() == "collision") / n,
+                "timeout": 100 * np.sum(episodes["outcome"].to_numpy() == "timeout") / n,
+                "pv": episodes["intrusion_events"].to_numpy().sum() / n * 200,
+                "return": episodes["return"].to_numpy().mean(),
+            })
+        expected[key] = {
+            "goal_pct": np.mean([s["goal"] for s in per_seed]),
+            "collision_pct": np.mean([s["collision"] for s in per_seed]),
+            "timeout_pct": np.mean([s["timeout"] for s in per_seed]),
+            "pv": np.mean([s["pv"] for s in per_seed]),
+            "return_mean": np.mean([s["return"] for s in per_seed]),
+            "return_std": np.std(group["return"].to_numpy()),
+            "return_seed_std": np.std([s["return"] for s in per_seed]),
+            "n_seeds": len(per_seed), "episodes": len(group),
+        }
+    return expected
+
+
+def _check_against(table: pd.DataFrame, expected: dict) -> None:
+    assert len(table) == len(expected)
+    for row in table.to_dict("records"):
+        want = expected[(row["train_scenario"], row["algo"], row["eval_scenario"])]
+        for column, value in want.items():
+            assert row[column] == pytest.approx(value, rel=1e-12, abs=1e-12), column
+
+
+def test_table1_numbers_equal_a_direct_computation(handmade_run):
+    root, records, _, _ = handmade_run
+    expected = _expected_table(records)
+    _check_against(table1_frame(records), expected)
+    page = build_report(root)
+    _check_against(pd.read_csv(page.parent / "table1.csv"), expected)
+    text = page.read_text()
+    assert "Units finished: 36 of 36." in text and "Partial" not in text
+    assert "| Circle Crossing | PPO |" in text and "ODV-PPO-Drop" in text
+    assert "![training curves](training_curves.png)" in text
+
+
+def test_partial_run_is_reported_and_left_out(handmade_run):
+    root, records, _, units = handmade_run
+    missing = next(u for u in units if u.kind == "eval")
+    (unit_dir(root, missing) / "episodes.parquet").write_bytes(b"half")  # corrupt: no longer done
+    page = build_report(root)
+    text = page.read_text()
+    assert "Partial results" in text and missing.id in text and "corrupt" in text
+    p = missing.params
+    kept = records[~((records["train_scenario"] == p["train_scenario"]) & (records["algo"] == p["algo"])
+                     & (records["train_seed"] == p["train_seed"]) & (records["eval_scenario"] == p["eval_scenario"]))]
+    _check_against(pd.read_csv(page.parent / "table1.csv"), _expected_table(kept))
+
+
+def test_best_values_are_bold_per_training_scenario():
+    rows = [
+        # train_scenario, algo, eval_scenario, goal, col, to, pv, return, std
+        ("random", "ppo", "random", 80.0, 5.0, 15.0, 40.0, 2.0, 1.0),
+        ("random", "odv-ppo-drop", "random", 90.0, 5.0, 5.0, 60.0, 3.0, 2.0),
+        ("circle_crossing", "ppo", "random", 10.0, 1.0, 89.0, 10.0, -1.0, 0.5),
+        ("circle_crossing", "odv-ppo-drop", "random", 20.0, 2.0, 78.0, 12.0, -2.0, 0.7),
+    ]
+    table = pd.DataFrame(rows, columns=["train_scenario", "algo", "eval_scenario", "goal_pct", "collision_pct",
+                                        "timeout_pct", "pv", "return_mean", "return_std"])
+    markdown = table1_markdown(table, ALGOS, ["circle_crossing", "random"], ["random"])
+    cells = [[c.strip() for c in line.strip().strip("|").split("|")] for line in markdown.splitlines()[2:]]
+    # rows: Circle Crossing / PPO, ODV-PPO-Drop, then Random / PPO, ODV-PPO-Drop; best within each training block
+    assert [row[:2] for row in cells] == [["Circle Crossing", "PPO"], ["", "ODV-PPO-Drop"], ["Random", "PPO"],
+                                          ["", "ODV-PPO-Drop"]]
+    assert cells[0][2:] == ["10.00", "**1.00**", "89.00", "**10**", "**-1.00 ± 0.50**"]
+    assert cells[1][2:] == ["**20.00**", "2.00", "**78.00**", "12", "-2.00 ± 0.70"]
+    assert cells[2][2:] == ["80.00", "**5.00**", "15.00", "**40**", "2.00 ± 1.00"]  # collision tie: both bold
+    assert cells[3][2:] == ["**90.00**", "**5.00**", "**5.00**", "60", "**3.00 ± 2.00**"]
+
+
+def test_missing_cells_are_dashes():
+    table = pd.DataFrame([("random", "ppo", "random", 80.0, 5.0, 15.0, 40.0, 2.0, 1.0)],
+                         columns=["train_scenario", "algo", "eval_scenario", "goal_pct", "collision_pct",
+                                  "timeout_pct", "pv", "return_mean", "return_std"])
+    markdown = table1_markdown(table, ALGOS, ["random"], ["random", "circle_crossing"])
+    ppo, odv = markdown.splitlines()[-2:]
+    assert ppo.count("–") == 5 and "**80.00**" in ppo  # circle_crossing not evaluated
+    assert odv.count("–") == 10  # a planned algorithm without results shows as missing
+
+
+def test_training_curves_mean_and_band_over_seeds(handmade_run):
+    root, _, curves, _ = handmade_run
+    frame = training_curve_frame(curves)
+    for (scenario, algo), group in curves.groupby(["train_scenario", "algo"]):
+        valid = group.dropna(subset=["ep_rew_mean"])
+        direct = valid.groupby("timesteps")["ep_rew_mean"].agg(["mean", lambda v: np.std(v.to_numpy())])
+        got = frame[(frame["train_scenario"] == scenario) & (frame["algo"] == algo)].set_index("timesteps")
+        np.testing.assert_allclose(got["mean"], direct["mean"], rtol=1e-12)
+        np.testing.assert_allclose(got["std"], direct.iloc[:, 1], rtol=1e-12, atol=1e-12)
+        assert (got["n_seeds"] == len(SEEDS)).all()
+    # seeds logged at different steps are interpolated onto a common grid inside the range all cover
+    a = pd.DataFrame({"train_scenario": "x", "algo": "ppo", "seed": 0, "timesteps": [0, 10, 20], "ep_rew_mean": [0., 1., 2.]})
+    b = pd.DataFrame({"train_scenario": "x", "algo": "ppo", "seed": 1, "timesteps": [5, 15], "ep_rew_mean": [1., 3.]})
+    mixed = training_curve_frame(pd.concat([a, b]))
+    assert mixed["timesteps"].tolist() == [10.0]
+    assert mixed["mean"].tolist() == pytest.approx([(1.0 + 2.0) / 2])
+
+    build_report(root)
+    png, svg = root / "report" / "training_curves.png", root / "report" / "training_curves.svg"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "<svg" in svg.read_text()[:2000]
+
+
+def test_sections_are_registered_per_experiment_kind(handmade_run, monkeypatch):
+    root, _, _, _ = handmade_run
+    monkeypatch.setitem(SECTIONS, "table1", list(SECTIONS["table1"]))
+
+    @register_section("table1", "extra")
+    def extra(context) -> str:
+        (context.out_dir / "extra.txt").write_text(str(len(context.done("eval"))))
+        return "## Extra section"
+
+    page = build_report(root, root / "elsewhere")
+    text = page.read_text()
+    assert page.parent == root / "elsewhere"
+    assert text.index("## Table 1") < text.index("## Training curves") < text.index("## Comparison") \
+        < text.index("## Extra section")
+    assert (root / "elsewhere" / "extra.txt").read_text() == "24"
+    resolved = json.loads((root / "resolved.json").read_text())
+    resolved["experiment"]["kind"] = "table7"
+    (root / "resolved.json").write_text(json.dumps(resolved))
+    with pytest.raises(ValueError, match="no report sections for experiment kind 'table7'"):
+        build_report(root)
+    assert report_module.SECTIONS is SECTIONS
+
+
+def test_paper_table_holds_the_spec_excerpt(handmade_run):
+    from socnav.experiments.report import paper_table1
+
+    paper = paper_table1().set_index(["train_scenario", "algo", "eval_scenario"])
+    assert len(paper) == 5 * 3 * 3
+    assert tuple(paper.loc[("circle_crossing", "ppo", "circle_crossing"), ["goal_pct", "collision_pct"]]) == (86.1, 7.07)
+    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "circle_crossing"), ["goal_pct", "collision_pct"]]) == (99.1, 0.83)
+    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "random"), ["goal_pct", "collision_pct"]]) == (88.07, 2.10)
+    total = paper["goal_pct"] + paper["collision_pct"] + paper["timeout_pct"]
+    assert ((total - 100).abs() <= 0.3 + 1e-9).all()  # the paper's own rounding (one row sums to 100.3)
+    root, records, _, _ = handmade_run
+    text = build_report(root).read_text()
+    assert "## Comparison with the paper" in text
+    compared = pd.read_csv(root / "report" / "table1_vs_paper.csv")
+    assert len(compared) == 2 * 2 * 2  # every handmade cell is a paper cell
+    row = compared[(compared["train_scenario"] == "random") & (compared["algo"] == "ppo")
+                   & (compared["eval_scenario"] == "random")].iloc[0]
+    assert row["goal_pct_paper"] == 80.40
+
+
+def test_report_command(handmade_run, tmp_path):
+    root, _, _, _ = handmade_run
+    result = runner.invoke(app, ["report", str(root)])
+    assert result.exit_code == 0, result.output
+    for name in ("report.md", "table1.md", "table1.csv", "training_curves.png", "training_curves.svg"):
+        assert (root / "report" / name).is_file(), name
+    result = runner.invoke(app, ["report", str(tmp_path / "nothing")])
+    assert result.exit_code == 2 and "no such run directory" in result.output
+    (tmp_path / "empty").mkdir()
+    result = runner.invoke(app, ["report", str(tmp_path / "empty")])
+    assert result.exit_code == 2 and "not a socnav run directory" in result.output

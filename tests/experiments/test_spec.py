@@ -1,0 +1,188 @@
+"""Experiment files: the shipped ones load, budgets override the grid, units expand as planned, and bad files fail
+before any work starts with a message naming the field and the allowed values."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from socnav.cli import app
+from socnav.experiments.spec import ExperimentError, load_experiment, parse_experiment, plan_units
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "experiments"
+ALGOS = ["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]
+SCENARIOS = ["circle_interaction", "circle_crossing", "random"]
+runner = CliRunner()
+
+
+def _minimal() -> dict:
+    return {
+        "name": "tiny",
+        "grid": {"algorithms": ["ppo"], "train_scenarios": ["circle_crossing"], "seeds": [0], "timesteps": 1000},
+        "evaluation": {"scenarios": ["random"], "episodes": 5},
+    }
+
+
+def _error(data: dict, tmp_path: Path | None = None) -> str:
+    with pytest.raises(ExperimentError) as info:
+        if tmp_path is None:
+            parse_experiment(data, "test")
+        else:
+            path = tmp_path / "bad.yaml"
+            path.write_text(yaml.safe_dump(data))
+            load_experiment(path)
+    return str(info.value)
+
+
+def test_table1_budgets_expand_to_the_paper_grid():
+    paper = load_experiment(CONFIGS / "table1.yaml", "paper")
+    assert paper.grid.algorithms == ALGOS
+    assert paper.grid.train_scenarios == SCENARIOS and paper.evaluation.scenarios == SCENARIOS
+    assert paper.grid.seeds == list(range(15)) and paper.evaluation.episodes == 200
+    units = plan_units(paper)
+    trains = [u for u in units if u.kind == "train"]
+    evals = [u for u in units if u.kind == "eval"]
+    assert len(trains) == 5 * 3 * 15 and len(evals) == 5 * 3 * 15 * 3
+    assert all(u.deps == (f"train/{u.params['train_scenario']}/{u.params['algo']}/seed{u.params['train_seed']}",)
+               for u in evals)
+    assert {u.params["seed"] for u in evals} == {0}  # every policy sees the same test episodes
+
+    quick = load_experiment(CONFIGS / "table1.yaml", "quick")
+    assert quick.budget == "quick" and len(quick.grid.seeds) <= 2
+    assert quick.grid.timesteps < paper.grid.timesteps and quick.evaluation.episodes < 200
+    # The quick budget fits a 2-core laptop in < 2 h even at 1,000 env-steps/s per process (half the measured
+    # ~2,000): training steps of all units / (2 processes x 1,000 steps/s).
+    steps = sum(u.params["timesteps"] for u in plan_units(quick) if u.kind == "train")
+    assert steps / (2 * 1000) < 2 * 3600 * 0.75
+
+    grid = load_experiment(CONFIGS / "table1.yaml")
+    assert grid.budget is None and grid.grid.timesteps == paper.grid.timesteps
+
+
+def test_smoke_experiment_is_two_small_trainings():
+    smoke = load_experiment(CONFIGS / "smoke.yaml", "quick")
+    units = plan_units(smoke)
+    assert [u.kind for u in units].count("train") == 2
+    assert all(u.params["timesteps"] <= 5000 for u in units if u.kind == "train")
+
+
+def test_budget_overrides_merge_and_unknown_budget_names_the_allowed_ones():
+    data = _minimal()
+    data["grid"]["overrides"] = {"n_epochs": 3}
+    data["budgets"] = {"small": {"seeds": 2, "timesteps": 10, "episodes": 2, "overrides": {"batch_size": 32},
+                                 "eval_scenarios": ["circle_crossing", "random"]}}
+    experiment = parse_experiment(data, "test")
+    from socnav.experiments.spec import resolve_budget
+
+    small = resolve_budget(experiment, "small")
+    assert small.grid.seeds == [0, 1] and small.grid.timesteps == 10 and small.evaluation.episodes == 2
+    assert small.grid.overrides == {"n_epochs": 3, "batch_size": 32}
+    assert len(plan_units(small)) == 2 + 2 * 2
+    with pytest.raises(ExperimentError, match=r"unknown budget 'paper'.*allowed: small"):
+        resolve_budget(experiment, "paper")
+
+
+def test_unknown_algorithm_names_field_and_allowed_values():
+    data = _minimal()
+    data["grid"]["algorithms"] = ["ppo", "sac"]
+    message = _error(data)
+    assert "grid.algorithms" in message and "'sac'" in message
+    assert all(algo in message for algo in ALGOS)
+
+
+def test_missing_field_is_named(tmp_path):
+    data = _minimal()
+    del data["grid"]["timesteps"]
+    message = _error(data, tmp_path)
+    assert "grid.timesteps" in message and "missing" in message and "bad.yaml" in message
+
+
+def test_wrong_type_is_named():
+    data = _minimal()
+    data["grid"]["timesteps"] = "lots"
+    message = _error(data)
+    assert "grid.timesteps" in message and "integer" in message and "'lots'" in message
+
+
+def test_unknown_field_lists_the_allowed_fields():
+    data = _minimal()
+    data["evaluation"]["episode"] = 3  # typo of episodes
+    message = _error(data)
+    assert "evaluation.episode" in message and "episodes" in message and "scenarios" in message
+    data = _minimal()
+    data["budgets"] = {"quick": {"timestep": 5}}
+    message = _error(data)
+    assert "budgets.quick.timestep" in message and "timesteps" in message
+
+
+@pytest.mark.parametrize("patch, expected", [
+    ({"evaluation": {"scenarios": ["mall"]}}, ["evaluation.scenarios", "'mall'", "circle_crossing"]),
+    ({"scenario_env": {"mall": {}}}, ["scenario_env", "'mall'", "random"]),
+    ({"env": {"n_humans": -1}}, ["n_humans", "circle_crossing"]),
+    ({"env": {"humans": 3}}, ["humans", "unknown field"]),
+    ({"grid": {"overrides": {"learning_rat": 0.1}}}, ["learning_rat", "allowed keys", "learning_rate"]),
+    ({"grid": {"seeds": 0}}, ["grid.seeds", ">= 1"]),
+    ({"grid": {"seeds": [1, 1]}}, ["grid.seeds", "twice"]),
+    ({"name": "table 1/x"}, ["name", "letters"]),
+    ({"kind": "table9"}, ["kind", "'table9'", "table1"]),
+    ({"scenario_env": {"random": {"max_humans": 12}}}, ["max_humans", "same everywhere"]),
+])
+def test_invalid_values_name_the_problem(patch, expected):
+    data = _minimal()
+    for key, value in patch.items():
+        data[key] = {**data[key], **value} if isinstance(value, dict) and isinstance(data.get(key), dict) else value
+    message = _error(data)
+    for fragment in expected:
+        assert fragment in message, (fragment, message)
+
+
+def test_algo_override_preset_file_is_inlined(tmp_path):
+    (tmp_path / "presets").mkdir()
+    (tmp_path / "presets" / "ppo.yaml").write_text("# tuned\nlearning_rate: 0.0001\nn_epochs: 4\n")
+    data = _minimal()
+    data["grid"]["overrides"] = {"n_epochs": 7, "gamma": 0.95}
+    data["grid"]["algo_overrides"] = {"ppo": "presets/ppo.yaml"}
+    path = tmp_path / "exp.yaml"
+    path.write_text(yaml.safe_dump(data))
+    (unit,) = [u for u in plan_units(load_experiment(path)) if u.kind == "train"]
+    assert unit.params["overrides"] == {"n_epochs": 4, "gamma": 0.95, "learning_rate": 0.0001}
+    data["grid"]["algo_overrides"] = {"ppo": "presets/missing.yaml"}
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ExperimentError, match="grid.algo_overrides.ppo: preset file not found"):
+        load_experiment(path)
+
+
+def test_spec_hash_follows_the_parameters():
+    first = plan_units(parse_experiment(_minimal()))
+    again = plan_units(parse_experiment(_minimal()))
+    assert [u.spec_hash for u in first] == [u.spec_hash for u in again]
+    data = _minimal()
+    data["grid"]["timesteps"] = 2000
+    changed = plan_units(parse_experiment(data))
+    assert first[0].spec_hash != changed[0].spec_hash
+    # The evaluation asks for the same thing; it goes stale through its input (the model's digest, see runner).
+    assert first[1].spec_hash == changed[1].spec_hash
+    data["evaluation"]["episodes"] = 6
+    assert plan_units(parse_experiment(data))[1].spec_hash != first[1].spec_hash
+
+
+def test_cli_rejects_bad_experiment_before_any_work(tmp_path):
+    data = _minimal()
+    data["grid"]["algorithms"] = ["ppo-dropout"]
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "runs"
+    result = runner.invoke(app, ["run", str(path), "--out", str(out)])
+    assert result.exit_code == 2
+    assert "grid.algorithms" in result.output and "ppo-drop" in result.output
+    assert not out.exists()
+    path.write_text("name: x\ngrid: [unclosed\n")
+    result = runner.invoke(app, ["run", str(path), "--out", str(out)])
+    assert result.exit_code == 2 and "not valid YAML" in result.output and not out.exists()
+    result = runner.invoke(app, ["run", str(CONFIGS / "smoke.yaml"), "--budget", "huge", "--out", str(out)])
+    assert result.exit_code == 2 and "unknown budget 'huge'" in result.output and "quick" in result.output
+    result = runner.invoke(app, ["run", str(CONFIGS / "smoke.yaml"), "--backend", "slurm", "--out", str(out)])
+    assert result.exit_code == 2 and "local, ray" in result.output and not out.exists()
