@@ -612,3 +612,7 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
         backend.close(cancel=cancelled)
     ordered = {unit.id: outcomes[unit.id] for unit in by_id.values() if unit.id in outcomes}
     return RunSummary(root, ordered)
+
+
+# The executors of the other experiment kinds register themselves on import (also in pool / Ray workers).
+from socnav.experiments import uncertainty_units  # noqa: E402,F401

@@ -37,7 +37,7 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, Literal, Optional, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -155,6 +155,69 @@ class Evaluation(_Strict):
         return _check_names(value, _scenarios(), "scenario")
 
 
+def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
+    from socnav.experiments.perturbations import PERTURBATION_FIELDS
+
+    for name, strengths in value.items():
+        if name not in PERTURBATION_FIELDS:
+            raise ValueError(f"unknown perturbation {name!r}; allowed: {', '.join(PERTURBATION_FIELDS)}")
+        if len(strengths) < 2 or sorted(strengths) != list(strengths):
+            raise ValueError(f"{name}: strengths must be increasing, the first being the unperturbed one (sigma(0))")
+    return value
+
+
+def _paper_grids() -> dict[str, list[float]]:
+    from socnav.experiments.perturbations import PAPER_GRIDS
+
+    return {name: list(values) for name, values in PAPER_GRIDS.items()}
+
+
+Estimator = Literal["mc", "ensemble"]
+
+
+class Study(_Strict):
+    """The perturbation study (paper Table 2): per estimator and perturbation, episodes at every strength with the
+    uncertainty estimated at every step. All policies of `grid` form the ensemble; seed `mc_seed` acts (for both
+    estimators, so they see identical episodes) and is the MC-dropout policy."""
+
+    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
+    perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
+                                                  description="perturbation -> strengths, sigma(0) first")
+    k: int = Field(20, ge=2, description="MC-dropout samples")
+    p_test: Optional[float] = Field(None, ge=0, lt=1, description="MC-dropout probability (null: the policy's)")
+    window: int = Field(4, ge=1, description="steps of the windowed uncertainty")
+    mc_seed: int = Field(0, ge=0, description="training seed of the acting / MC-dropout policy")
+
+    @field_validator("perturbations")
+    @classmethod
+    def _grid(cls, value: dict[str, list[float]]) -> dict[str, list[float]]:
+        return _perturbation_grid(value)
+
+
+class Safety(_Strict):
+    """The safety evaluation (paper Table 3): per estimator and perturbation, the same episodes without the safety
+    layer, with the paper's thresholds and (if `calibrate`) with thresholds calibrated on disjoint perturbations
+    and seeds; `repeats` independent blocks of `evaluation.episodes` episodes give mean +- std."""
+
+    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
+    perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids)
+    repeats: int = Field(3, ge=1)
+    thresholds: dict[str, str] = Field(default_factory=lambda: {"mc": "mc", "ensemble": "ensemble"},
+                                       description="estimator -> paper preset name or threshold file")
+    calibrate: bool = True
+    calibration_episodes: int = Field(40, ge=1, description="episodes per calibration configuration")
+    false_activation_budget: float = Field(0.05, ge=0, le=1)
+    proximity: Literal["abs-relative-speed", "closing-speed"] = "abs-relative-speed"
+    k: int = Field(20, ge=2)
+    window: int = Field(4, ge=1)
+    mc_seed: int = Field(0, ge=0)
+
+    @field_validator("perturbations")
+    @classmethod
+    def _grid(cls, value: dict[str, list[float]]) -> dict[str, list[float]]:
+        return _perturbation_grid(value)
+
+
 class Budget(_Strict):
     """A named budget: any field given replaces the grid's / evaluation's value; `overrides` merges."""
 
@@ -170,6 +233,15 @@ class Budget(_Strict):
     train_scenarios: Optional[list[str]] = None
     eval_scenarios: Optional[list[str]] = None
     overrides: Optional[dict[str, Any]] = None
+    study_perturbations: Optional[dict[str, list[float]]] = None
+    safety_perturbations: Optional[dict[str, list[float]]] = None
+    repeats: Optional[int] = Field(None, ge=1)
+    calibration_episodes: Optional[int] = Field(None, ge=1)
+
+    @field_validator("study_perturbations", "safety_perturbations")
+    @classmethod
+    def _grids(cls, value: Optional[dict[str, list[float]]]) -> Optional[dict[str, list[float]]]:
+        return None if value is None else _perturbation_grid(value)
 
     @field_validator("seeds")
     @classmethod
@@ -197,6 +269,8 @@ class Experiment(_Strict):
     scenario_env: dict[str, dict[str, Any]] = Field(default_factory=dict, description="env overrides per scenario")
     grid: Grid
     evaluation: Evaluation
+    study: Optional[Study] = Field(None, description="kind uncertainty: the perturbation study (Table 2)")
+    safety: Optional[Safety] = Field(None, description="kind uncertainty: the safety evaluation (Table 3)")
     budgets: dict[str, Budget] = Field(default_factory=dict)
     budget: Optional[str] = Field(None, description="set by resolve_budget: the budget applied (null: none)")
 
@@ -385,11 +459,20 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
     for key, target in (("episodes", "episodes"), ("eval_n_envs", "n_envs"), ("eval_scenarios", "scenarios")):
         if getattr(chosen, key) is not None:
             evaluation_update[target] = getattr(chosen, key)
-    return experiment.model_copy(update={
+    update: dict[str, Any] = {
         "grid": experiment.grid.model_copy(update=grid_update),
         "evaluation": experiment.evaluation.model_copy(update=evaluation_update),
         "budget": budget,
-    })
+    }
+    if experiment.study is not None and chosen.study_perturbations is not None:
+        update["study"] = experiment.study.model_copy(update={"perturbations": chosen.study_perturbations})
+    if experiment.safety is not None:
+        safety_update = {key: value for key, value in (("perturbations", chosen.safety_perturbations),
+                                                       ("repeats", chosen.repeats),
+                                                       ("calibration_episodes", chosen.calibration_episodes))
+                         if value is not None}
+        update["safety"] = experiment.safety.model_copy(update=safety_update)
+    return experiment.model_copy(update=update)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -447,6 +530,15 @@ def eval_unit_id(train_scenario: str, algo: str, seed: int, eval_scenario: str) 
     return f"eval/{train_scenario}/{algo}/seed{seed}/{eval_scenario}"
 
 
+def _train_unit(experiment: Experiment, scenario: str, algo: str, seed: int) -> Unit:
+    grid = experiment.grid
+    return Unit(train_unit_id(scenario, algo, seed), "train", {
+        "train_scenario": scenario, "algo": algo, "seed": seed, "timesteps": grid.timesteps,
+        "env": experiment.env_config(scenario), "overrides": experiment.algo_overrides(algo),
+        "n_envs": grid.n_envs, "eval_every": grid.eval_every, "validation_episodes": grid.validation_episodes,
+    })
+
+
 @register_planner("table1")
 def plan_train_eval(experiment: Experiment) -> list[Unit]:
     """One training unit per (training scenario, algorithm, seed); one evaluation unit per trained policy and
@@ -457,12 +549,7 @@ def plan_train_eval(experiment: Experiment) -> list[Unit]:
     for scenario in grid.train_scenarios:
         for algo in grid.algorithms:
             for seed in grid.seeds:  # type: ignore[union-attr]
-                train = Unit(train_unit_id(scenario, algo, seed), "train", {
-                    "train_scenario": scenario, "algo": algo, "seed": seed, "timesteps": grid.timesteps,
-                    "env": experiment.env_config(scenario), "overrides": experiment.algo_overrides(algo),
-                    "n_envs": grid.n_envs, "eval_every": grid.eval_every,
-                    "validation_episodes": grid.validation_episodes,
-                })
+                train = _train_unit(experiment, scenario, algo, seed)
                 trains.append(train)
                 for eval_scenario in evaluation.scenarios:
                     evals.append(Unit(eval_unit_id(scenario, algo, seed, eval_scenario), "eval", {
@@ -472,6 +559,57 @@ def plan_train_eval(experiment: Experiment) -> list[Unit]:
                         "deterministic": evaluation.deterministic,
                     }, deps=(train.id,)))
     return trains + evals
+
+
+@register_planner("uncertainty")
+def plan_uncertainty(experiment: Experiment) -> list[Unit]:
+    """Train the policies of `grid` (one scenario, one algorithm: the ensemble members), then one study unit per
+    (estimator, perturbation) and, with `safety`, one calibration unit per estimator and one safety unit per
+    (estimator, perturbation)."""
+    grid, evaluation = experiment.grid, experiment.evaluation
+    if len(grid.train_scenarios) != 1 or len(grid.algorithms) != 1:
+        raise ExperimentError(f"experiment {experiment.name!r}: kind uncertainty trains one algorithm on one "
+                              "scenario (grid.algorithms and grid.train_scenarios must each name one)")
+    scenario, algo = grid.train_scenarios[0], grid.algorithms[0]
+    trains = [_train_unit(experiment, scenario, algo, seed) for seed in grid.seeds]  # type: ignore[union-attr]
+    members = tuple(unit.id for unit in trains)
+    units = list(trains)
+    common = {"env": experiment.env_config(scenario), "episodes": evaluation.episodes, "seed": evaluation.seed,
+              "n_envs": evaluation.n_envs}
+
+    def policies(estimator: str, mc_seed: int) -> tuple[str, ...]:
+        acting = train_unit_id(scenario, algo, mc_seed)
+        if acting not in members:
+            raise ExperimentError(f"experiment {experiment.name!r}: mc_seed {mc_seed} is not among grid.seeds")
+        return (acting,) if estimator == "mc" else (acting, *[m for m in members if m != acting])
+
+    if experiment.study is not None:
+        study = experiment.study
+        for estimator in study.estimators:
+            for perturbation, strengths in study.perturbations.items():
+                units.append(Unit(f"study/{estimator}/{perturbation}", "uncertainty_study", {
+                    **common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
+                    "k": study.k, "p_test": study.p_test, "window": study.window,
+                }, deps=policies(estimator, study.mc_seed)))
+    if experiment.safety is not None:
+        safety = experiment.safety
+        for estimator in safety.estimators:
+            deps = policies(estimator, safety.mc_seed)
+            calibration = None
+            if safety.calibrate:
+                calibration = Unit(f"calibrate/{estimator}", "calibrate", {
+                    "env": common["env"], "estimator": estimator, "episodes": safety.calibration_episodes,
+                    "budget": safety.false_activation_budget, "proximity": safety.proximity, "k": safety.k,
+                    "window": safety.window,
+                }, deps=deps)
+                units.append(calibration)
+            for perturbation, strengths in safety.perturbations.items():
+                units.append(Unit(f"safety/{estimator}/{perturbation}", "safety_eval", {
+                    **common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
+                    "repeats": safety.repeats, "thresholds": safety.thresholds.get(estimator, estimator),
+                    "proximity": safety.proximity, "k": safety.k, "window": safety.window,
+                }, deps=deps + ((calibration.id,) if calibration is not None else ())))
+    return units
 
 
 def plan_units(experiment: Experiment) -> list[Unit]:

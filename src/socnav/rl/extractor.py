@@ -38,14 +38,14 @@ class Dropout(nn.Dropout):
 
 
 #: Sequences up to this length run through the explicit LSTM equations below instead of `nn.LSTM`'s kernel.
-SHORT_SEQUENCE = 4
+SHORT_SEQUENCE = 5
 
 
 def _run_lstm(lstm: nn.LSTM, x: th.Tensor) -> th.Tensor:
     """Outputs (B, L, H) of a single-layer, batch-first `lstm` from the zero state, the same values as `lstm(x)[0]`.
 
     For the few humans of most scenes the oneDNN LSTM kernel costs more in per-call overhead than in arithmetic
-    (forward + backward at L = 1, B = 128: ~1.8 ms vs ~1.0 ms written out, one thread), and PPO makes thousands of
+    (forward + backward, B = 128, one thread: L = 1 ~1.8 ms vs ~1.0 ms written out; L = 5 ~7.4 vs ~6.6 ms; L = 10 ~9.6 vs ~15 ms), and PPO makes thousands of
     such small gradient steps. Longer sequences use the kernel. Same parameters either way:
         i, f, g, o = split(W_ih x_t + b_ih + W_hh h_{t-1} + b_hh)
         c_t = sigmoid(f) * c_{t-1} + sigmoid(i) * tanh(g),   h_t = sigmoid(o) * tanh(c_t),   h_0 = c_0 = 0

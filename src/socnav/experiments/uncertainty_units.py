@@ -1,0 +1,161 @@
+"""Units of the `uncertainty` experiment kind: the perturbation study (Table 2), threshold calibration and the safety
+evaluation (Table 3). Each executor reads the trained policies of its dependencies and writes Parquet records.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from socnav.config import load_config
+from socnav.envs.rollout import rollout_episodes
+from socnav.experiments.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbation_override
+from socnav.experiments.runner import ExecutorResult, _json_safe, _single_threaded_torch, file_digest, register_executor, unit_dir
+from socnav.experiments.spec import Unit
+from socnav.io import write_table_atomic, write_text_atomic
+
+#: Seed of the MC-dropout masks: the study is reproducible run to run.
+MC_SEED = 0
+
+
+def _policies(root: Path, unit: Unit) -> tuple[list[Any], dict[str, dict[str, Any]]]:
+    """The trained policies of the unit's training dependencies (the acting one first) and their digests."""
+    from socnav.rl.persistence import load_policy
+
+    trains = [dep for dep in unit.deps if dep.startswith("train/")]
+    paths = [unit_dir(root, dep) / "model.zip" for dep in trains]
+    inputs = {f"{dep}/model.zip": file_digest(path) for dep, path in zip(trains, paths)}
+    return [load_policy(path) for path in paths], inputs
+
+
+def _estimator(kind: str, policies: list[Any], k: int, p_test: float | None = None) -> Any:
+    from socnav.uncertainty import EnsembleEstimator, MCDropoutEstimator
+
+    if kind == "mc":
+        return MCDropoutEstimator(policies[0], k=k, p_test=p_test, seed=MC_SEED)
+    return EnsembleEstimator(policies)
+
+
+def _perturbed(env: dict[str, Any], perturbation: str, strength: float) -> Any:
+    return load_config({**env, "perturbation": {**env.get("perturbation", {}), **perturbation_override(perturbation, strength)}})
+
+
+def _tag(frame: pd.DataFrame, **columns: Any) -> pd.DataFrame:
+    for position, (name, value) in enumerate(columns.items()):
+        frame.insert(position, name, value)
+    return frame
+
+
+@register_executor("uncertainty_study")
+def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    from socnav.uncertainty.recording import record_uncertainty
+
+    p = unit.params
+    _single_threaded_torch()
+    policies, inputs = _policies(root, unit)
+    estimator = _estimator(p["estimator"], policies, p["k"], p["p_test"])
+    steps_parts, episode_parts, summary = [], [], {}
+    for strength in p["strengths"]:
+        config = _perturbed(p["env"], p["perturbation"], strength)
+        steps, episodes = record_uncertainty(policies[0], estimator, config, p["episodes"], seed=p["seed"],
+                                             n_envs=p["n_envs"], window=p["window"])
+        tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength)}
+        steps_parts.append(_tag(steps, **tags))
+        episode_parts.append(_tag(episodes, **tags))
+        summary[str(strength)] = {"collision_pct": 100.0 * float((episodes["outcome"] == "collision").mean()),
+                                  **{name: float(steps[name].mean()) for name in
+                                     ("u_ep_heading", "u_ep_speed", "u_al_heading", "u_al_speed", "u_feat")}}
+    write_table_atomic(pd.concat(steps_parts, ignore_index=True), directory / "steps.parquet")
+    write_table_atomic(pd.concat(episode_parts, ignore_index=True), directory / "episodes.parquet")
+    write_text_atomic(directory / "summary.json", json.dumps(_json_safe(summary), indent=2))
+    return ExecutorResult(["steps.parquet", "episodes.parquet", "summary.json"], inputs=inputs)
+
+
+@register_executor("calibrate")
+def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    """Calibration records on perturbations and seeds disjoint from the evaluation, then `calibrate`."""
+    from socnav.safety import Thresholds, calibrate, collect_records, save_thresholds
+
+    p = unit.params
+    _single_threaded_torch()
+    policies, inputs = _policies(root, unit)
+    estimator = _estimator(p["estimator"], policies, p["k"])
+    configs = [(False, load_config(p["env"]))]
+    configs += [(True, _perturbed(p["env"], kind, strength)) for kind, strengths in CALIBRATION_SET.items()
+                for strength in strengths]
+    records, offset = [], 0
+    for perturbed, config in configs:
+        records.append(collect_records(policies[0], estimator, config, p["episodes"], seed=CALIBRATION_SEED + offset,
+                                       perturbed=perturbed, window=p["window"], n_envs=min(p["episodes"], 40),
+                                       episode_offset=offset))
+        offset += p["episodes"]
+    records = pd.concat(records, ignore_index=True)
+    common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
+              "false_activation_budget": p["budget"]}
+    if not records.loc[records["perturbed"], "collided"].any():
+        # Nothing to learn from: the layer could only cost false activations, so it is switched off.
+        thresholds = Thresholds.never()
+        report = {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
+                  "false_activation_rate": 0.0, "n_collisions": 0, "note": "no collision in the calibration "
+                  "episodes: thresholds that never fire", **common}
+    else:
+        result = calibrate(records, false_activation_budget=p["budget"], proximity=p["proximity"])
+        thresholds = result.thresholds
+        report = {"thresholds": thresholds.model_dump(), "prevented_fraction": result.prevented_fraction,
+                  "false_activation_rate": result.false_activation_rate, "n_collisions": result.n_collisions,
+                  "n_unperturbed_steps": result.n_unperturbed_steps, "lookback": result.lookback, **common}
+    save_thresholds(thresholds, directory / "thresholds.yaml")
+    write_text_atomic(directory / "calibration.json", json.dumps(_json_safe(report), indent=2))
+    return ExecutorResult(["thresholds.yaml", "calibration.json"], inputs=inputs)
+
+
+class _FallbackCounter:
+    """Rollout observer counting, per episode, the steps on which a `SafePolicy` handed over to the fallback."""
+
+    def __init__(self, safe_policy: Any) -> None:
+        self.safe_policy = safe_policy
+        self.counts: dict[int, int] = {}
+
+    def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
+        for env in np.flatnonzero((episodes >= 0) & self.safe_policy.last_fallback):
+            self.counts[int(episodes[env])] = self.counts.get(int(episodes[env]), 0) + 1
+
+
+@register_executor("safety_eval")
+def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    """The same episodes without the safety layer and with each threshold set, at every strength and repeat."""
+    from socnav.safety import SafePolicy, Thresholds, load_thresholds
+
+    p = unit.params
+    _single_threaded_torch()
+    policies, inputs = _policies(root, unit)
+    estimator = _estimator(p["estimator"], policies, p["k"])
+    variants = {"paper": load_thresholds(p["thresholds"])}
+    calibrated = [dep for dep in unit.deps if dep.startswith("calibrate/")]
+    if calibrated:
+        path = unit_dir(root, calibrated[0]) / "thresholds.yaml"
+        variants["calibrated"] = load_thresholds(path)
+        inputs[f"{calibrated[0]}/thresholds.yaml"] = file_digest(path)
+    variants = {name: Thresholds.create(**{**t.model_dump(), "proximity": p["proximity"]}) for name, t in variants.items()}
+    parts = []
+    for strength in p["strengths"]:
+        config = _perturbed(p["env"], p["perturbation"], strength)
+        for repeat in range(p["repeats"]):
+            seed = p["seed"] + repeat * p["episodes"]
+            tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength),
+                    "repeat": repeat}
+            plain = rollout_episodes(policies[0], config, p["episodes"], seed=seed, n_envs=p["n_envs"])
+            plain["fallback_steps"] = 0
+            parts.append(_tag(plain, **tags, variant="none"))
+            for name, thresholds in variants.items():
+                safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
+                counter = _FallbackCounter(safe)
+                records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"], observer=counter)
+                records["fallback_steps"] = [counter.counts.get(int(e), 0) for e in records["episode"]]
+                parts.append(_tag(records, **tags, variant=name))
+    write_table_atomic(pd.concat(parts, ignore_index=True), directory / "episodes.parquet")
+    return ExecutorResult(["episodes.parquet"], inputs=inputs)
