@@ -37,3 +37,32 @@ def test_demo_writes_tables_and_animation(tmp_path):
     assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
     assert len(list(tmp_path.glob("*.csv"))) == 9
     assert "odv-ppo-drop (pretrained)" in result.output
+
+
+def test_calibrate_writes_a_threshold_file_that_animate_uses(tmp_path):
+    out = tmp_path / "mc.yaml"
+    result = runner.invoke(app, ["calibrate", "--model", "pretrained", "--episodes", "2", "--k", "4",
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    from socnav.safety import load_thresholds
+
+    thresholds = load_thresholds(out)
+    assert thresholds.proximity == "abs-relative-speed"
+    gif = tmp_path / "episode.gif"
+    result = runner.invoke(app, ["animate", "--model", "pretrained", "--k", "4", "--perturb", "observation_noise=0.5",
+                                 "--safety", str(out), "--out", str(gif)])
+    assert result.exit_code == 0, result.output
+    assert gif.stat().st_size > 10_000 and "fallback on" in result.output
+
+
+def test_uncertainty_commands_reject_bad_input_clearly(tmp_path):
+    def run(*args):
+        result = runner.invoke(app, list(args))
+        return result.exit_code, " ".join(result.output.split())  # rich wraps long lines
+
+    code, output = run("calibrate", "--model", "pretrained", "--proximity", "telepathy")
+    assert code == 2 and "allowed: abs-relative-speed, closing-speed" in output
+    code, output = run("animate", "--estimator", "ensemble", "--members", str(tmp_path / "*.zip"))
+    assert code == 2 and "at least 2" in output
+    code, output = run("animate", "--model", "pretrained", "--perturb", "wind=3")
+    assert code == 2 and "wind" in output and "Traceback" not in output

@@ -275,6 +275,49 @@ def animate(
 
 
 @app.command()
+def calibrate(
+    model: Optional[str] = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
+    estimator: str = typer.Option("mc", help="mc | ensemble"),
+    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    k: int = typer.Option(20, min=2, help="MC-dropout samples"),
+    scenario: Optional[str] = typer.Option("position_swap", help=f"one of: {', '.join(scenario_names())}"),
+    n_humans: Optional[int] = typer.Option(1, min=0, help="humans per episode"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
+    budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
+    proximity: str = typer.Option("abs-relative-speed", help="abs-relative-speed | closing-speed"),
+    out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
+) -> None:
+    """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
+    import json
+
+    from socnav.experiments.uncertainty_units import calibrate_thresholds
+    from socnav.io import write_text_atomic
+    from socnav.safety import PROXIMITY_VARIANTS, save_thresholds
+
+    if proximity not in PROXIMITY_VARIANTS:
+        _fail(f"--proximity {proximity!r} is not known; allowed: {', '.join(PROXIMITY_VARIANTS)}")
+    env_config = _env_config(scenario, config, n_humans)
+    policy, uncertainty = _estimator(estimator, model, members, k)
+    with console.status("collecting calibration episodes and searching thresholds"):
+        thresholds, report = calibrate_thresholds(policy, uncertainty, env_config.model_dump(mode="json"), episodes,
+                                                  budget, proximity)
+    save_thresholds(thresholds, out)
+    write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
+    table = Table(title=f"calibrated thresholds ({estimator}, false-activation budget {budget:.0%})")
+    for column in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1", "flagged collisions", "false activations"):
+        table.add_column(column, justify="right")
+    values = thresholds.model_dump()
+    table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
+                  f"{report['prevented_fraction']:.0%} of {report['n_collisions']}",
+                  f"{report['false_activation_rate']:.1%}")
+    console.print(table)
+    if "note" in report:
+        console.print(report["note"])
+    console.print(f"thresholds: {out}  (use with --safety {out})")
+
+
+@app.command()
 def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
     episodes: int = typer.Option(100, min=1, help="episodes per scenario and controller"),

@@ -75,39 +75,50 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     return ExecutorResult(["steps.parquet", "episodes.parquet", "summary.json"], inputs=inputs)
 
 
+def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
+                         proximity: str = "abs-relative-speed", window: int = 4) -> tuple[Any, dict[str, Any]]:
+    """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
+    `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
+
+    :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
+    """
+    from socnav.safety import Thresholds, calibrate, collect_records
+
+    configs = [(False, load_config(env))]
+    configs += [(True, _perturbed(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
+                for strength in strengths]
+    parts, offset = [], 0
+    for perturbed, config in configs:
+        parts.append(collect_records(policy, estimator, config, episodes, seed=CALIBRATION_SEED + offset,
+                                     perturbed=perturbed, window=window, n_envs=min(episodes, 40),
+                                     episode_offset=offset))
+        offset += episodes
+    records = pd.concat(parts, ignore_index=True)
+    common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
+              "false_activation_budget": budget, "episodes_per_configuration": episodes}
+    if not records.loc[records["perturbed"], "collided"].any():
+        # Nothing to learn from: the layer could only cost false activations, so it is switched off.
+        thresholds = Thresholds.never()
+        return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
+                            "false_activation_rate": 0.0, "n_collisions": 0,
+                            "note": "no collision in the calibration episodes: thresholds that never fire", **common}
+    result = calibrate(records, false_activation_budget=budget, proximity=proximity)
+    return result.thresholds, {
+        "thresholds": result.thresholds.model_dump(), "prevented_fraction": result.prevented_fraction,
+        "false_activation_rate": result.false_activation_rate, "n_collisions": result.n_collisions,
+        "n_unperturbed_steps": result.n_unperturbed_steps, "lookback": result.lookback, **common}
+
+
 @register_executor("calibrate")
 def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     """Calibration records on perturbations and seeds disjoint from the evaluation, then `calibrate`."""
-    from socnav.safety import Thresholds, calibrate, collect_records, save_thresholds
+    from socnav.safety import save_thresholds
 
     p = unit.params
     _single_threaded_torch()
     policies, inputs = _policies(root, unit)
-    estimator = _estimator(p["estimator"], policies, p["k"])
-    configs = [(False, load_config(p["env"]))]
-    configs += [(True, _perturbed(p["env"], kind, strength)) for kind, strengths in CALIBRATION_SET.items()
-                for strength in strengths]
-    records, offset = [], 0
-    for perturbed, config in configs:
-        records.append(collect_records(policies[0], estimator, config, p["episodes"], seed=CALIBRATION_SEED + offset,
-                                       perturbed=perturbed, window=p["window"], n_envs=min(p["episodes"], 40),
-                                       episode_offset=offset))
-        offset += p["episodes"]
-    records = pd.concat(records, ignore_index=True)
-    common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
-              "false_activation_budget": p["budget"]}
-    if not records.loc[records["perturbed"], "collided"].any():
-        # Nothing to learn from: the layer could only cost false activations, so it is switched off.
-        thresholds = Thresholds.never()
-        report = {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
-                  "false_activation_rate": 0.0, "n_collisions": 0, "note": "no collision in the calibration "
-                  "episodes: thresholds that never fire", **common}
-    else:
-        result = calibrate(records, false_activation_budget=p["budget"], proximity=p["proximity"])
-        thresholds = result.thresholds
-        report = {"thresholds": thresholds.model_dump(), "prevented_fraction": result.prevented_fraction,
-                  "false_activation_rate": result.false_activation_rate, "n_collisions": result.n_collisions,
-                  "n_unperturbed_steps": result.n_unperturbed_steps, "lookback": result.lookback, **common}
+    thresholds, report = calibrate_thresholds(policies[0], _estimator(p["estimator"], policies, p["k"]), p["env"],
+                                              p["episodes"], p["budget"], p["proximity"], p["window"])
     save_thresholds(thresholds, directory / "thresholds.yaml")
     write_text_atomic(directory / "calibration.json", json.dumps(_json_safe(report), indent=2))
     return ExecutorResult(["thresholds.yaml", "calibration.json"], inputs=inputs)
