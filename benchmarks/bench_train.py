@@ -2,8 +2,9 @@
 
     python benchmarks/bench_train.py            # 8 rollouts per run after one warm-up rollout (~2 min)
     python benchmarks/bench_train.py --quick    # 3 rollouts per run
+    python benchmarks/bench_train.py --scenario circle_crossing --humans 5   # a crowd instead of one human
 
-Every run trains on the same env (position swap, one human, 16 environments, n_steps 128 => 2,048 steps per
+Every run trains on the same env (default: position swap, one human, 16 environments, n_steps 128 => 2,048 steps per
 rollout) in this process, one after another. Time is split by wrapping the VecEnv's `step_wait` (simulation) and
 the algorithm's `train` (gradient updates); the rest of `learn` is rollout inference (policy forward passes,
 buffer writes, SB3 bookkeeping). References, measured in the same run:
@@ -114,7 +115,10 @@ _default_threads = th.get_num_threads()
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 rollouts per run instead of 8")
+    parser.add_argument("--scenario", default=ENV["scenario"])
+    parser.add_argument("--humans", type=int, default=ENV["n_humans"])
     args = parser.parse_args()
+    ENV.update(scenario=args.scenario, n_humans=args.humans)
     rollouts = 3 if args.quick else 8
     console = Console(width=150)
     console.print(f"env {ENV}, n_envs={N_ENVS}, {rollouts} rollouts of 2,048 steps per run after a warm-up rollout; "
