@@ -443,3 +443,6 @@ def paper_comparison_section(context: ReportContext) -> str:
                      + " | ".join(cells) + f" | {best} |")
     lines += ["", "Data: [table1_vs_paper.csv](table1_vs_paper.csv)."]
     return "\n".join(lines)
+
+
+from socnav.experiments import uncertainty_report  # noqa: E402,F401

@@ -1,0 +1,327 @@
+"""Report sections of the `uncertainty` experiment kind: Table 2, Figs. 5-6, Table 3 and the safety layer's cost,
+checked on hand-made Parquet records against values computed by hand (see the comments next to each number)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from socnav.experiments.report import SECTIONS, build_report
+from socnav.io import write_table_atomic
+
+# ------------------------------------------------------------------------------------------------ study records
+# (strength, episode, u_feat per step, nearest_gap per step, w_u_feat per step, outcome); episode ids restart at
+# every strength. Other raw uncertainties are derived below per estimator.
+STUDY = {
+    ("mc", "observation_noise"): [
+        (0.0, 0, [1, 3], [1.0, 0.5], [0.1, 0.2], "goal"),         # episode mean 2; closest approach -> 0.2
+        (0.0, 1, [4], [0.8], [0.3], "goal"),                      # mean 4 -> u(0) = 3 (per-step pooled: 2.67)
+        (1.0, 0, [5], [0.4], [0.4], "goal"),
+        (1.0, 1, [5], [0.6], [0.5], "collision"),                 # before collision -> 0.5
+        (2.0, 0, [6, 6, 9], [0.9, 0.2, 0.7], [0.6, 0.7, 0.8], "goal"),  # mean 7; closest -> 0.7
+        (2.0, 1, [11], [0.3], [0.9], "collision"),                # mean 11 -> u(2) = 9; before collision 0.9
+    ],
+    ("ensemble", "observation_noise"): [
+        (0.0, 0, [1, 1], [1.0, 0.9], [0.01, 0.02], "goal"),       # u(0) = 1; closest -> 0.02
+        (0.0, 1, [1], [0.5], [0.03], "collision"),
+        (1.0, 0, [1.5], [0.5], [0.04], "goal"),
+        (2.0, 0, [1, 3, 2], [0.5, 0.4, 0.6], [0.05, 0.06, 0.07], "goal"),  # mean 2; closest -> 0.06
+        (2.0, 1, [2], [0.2], [0.08], "collision"),                # u(2) = 2
+    ],
+    ("mc", "more_humans"): [
+        (2.0, 0, [2], [0.5], [1.0], "goal"),                      # u(2) = 2
+        (7.0, 0, [4, 5], [0.3, 0.1], [1.1, 1.2], "collision"),    # u(7) = 4.5 -> (4.5 - 2) / (2 * 5) = 0.25
+    ],
+}
+
+
+def _derived(estimator: str, strength: float, feat: np.ndarray) -> dict[str, np.ndarray]:
+    if estimator == "mc":
+        return {"u_ep_heading": feat / 10, "u_ep_speed": np.zeros_like(feat), "u_al_heading": np.full_like(feat, 0.5),
+                "u_al_speed": 2 * feat}
+    return {"u_ep_heading": feat / 10, "u_ep_speed": np.ones_like(feat),
+            "u_al_heading": np.full_like(feat, 0.5 if strength == 0 else 1.0), "u_al_speed": 2 * feat}
+
+
+def _steps(estimator: str, perturbation: str) -> pd.DataFrame:
+    frames = []
+    for strength, episode, feat, gaps, windowed, outcome in STUDY[(estimator, perturbation)]:
+        feat = np.asarray(feat, dtype=float)
+        n = len(feat)
+        frame = pd.DataFrame({"estimator": estimator, "perturbation": perturbation, "strength": strength,
+                              "episode": episode, "step": np.arange(n), "u_feat": feat,
+                              **_derived(estimator, strength, feat), "nearest_gap": gaps,
+                              "nearest_relative_speed": 0.5, "outcome": [""] * (n - 1) + [outcome]})
+        for column in ("u_ep_heading", "u_ep_speed", "u_al_heading", "u_al_speed", "u_feat"):
+            frame[f"w_{column}"] = frame[column]
+        frame["w_u_feat"] = windowed
+        frames.append(frame)
+    # stored shuffled: the report must not rely on the row order
+    return pd.concat(frames, ignore_index=True).sample(frac=1.0, random_state=3).reset_index(drop=True)
+
+
+# ------------------------------------------------------------------------------------------------ safety records
+G, C, T = "goal", "collision", "timeout"
+# (estimator, perturbation, repeat, variant) -> {strength: outcomes}; every variant plays the same seeds.
+SAFETY = {
+    # observation noise, sigma(0) = 0: the unperturbed collisions of repeat 0 must not count.
+    ("mc", "observation_noise", 0, "none"): {0.0: [C, G], 1.0: [C, C], 2.0: [C, G]},        # C_none = 3
+    ("mc", "observation_noise", 0, "paper"): {0.0: [C, G], 1.0: [G, G], 2.0: [C, G]},       # 1 -> 66.67 %
+    ("mc", "observation_noise", 0, "calibrated"): {0.0: [G, G], 1.0: [C, G], 2.0: [C, G]},  # 2 -> 33.33 %
+    ("mc", "observation_noise", 1, "none"): {1.0: [C, G], 2.0: [G, G]},                     # C_none = 1
+    ("mc", "observation_noise", 1, "paper"): {1.0: [G, G], 2.0: [G, G]},                    # 0 -> 100 %
+    ("mc", "observation_noise", 1, "calibrated"): {1.0: [C, G], 2.0: [G, G]},               # 1 -> 0 %
+    # faster humans, sigma(0) = 1: no perturbed collision without the layer -> undefined
+    ("mc", "faster_humans", 0, "none"): {1.0: [C], 4.0: [G, G]},
+    ("mc", "faster_humans", 0, "paper"): {1.0: [G], 4.0: [C, G]},
+    ("mc", "faster_humans", 0, "calibrated"): {1.0: [G], 4.0: [C, G]},
+    ("mc", "faster_humans", 1, "none"): {4.0: [G, G]},
+    ("mc", "faster_humans", 1, "paper"): {4.0: [G, G]},
+    ("mc", "faster_humans", 1, "calibrated"): {4.0: [G, G]},
+    # heading / speed noise (paper thresholds only): pooled into "action noise"
+    ("mc", "heading_noise", 0, "none"): {1.0: [C, C]},    # 2
+    ("mc", "heading_noise", 0, "paper"): {1.0: [C, G]},   # 1 -> 50 %
+    ("mc", "heading_noise", 1, "none"): {1.0: [C, G]},    # 1
+    ("mc", "heading_noise", 1, "paper"): {1.0: [C, G]},   # 1 -> 0 %
+    ("mc", "speed_noise", 0, "none"): {1.0: [C, G]},      # 1
+    ("mc", "speed_noise", 0, "paper"): {1.0: [G, G]},     # 0 -> 100 %
+    ("mc", "speed_noise", 1, "none"): {1.0: [G, G]},      # 0 -> undefined
+    ("mc", "speed_noise", 1, "paper"): {1.0: [G, G]},
+    # ensemble, observation noise only
+    ("ensemble", "observation_noise", 0, "none"): {0.0: [G], 1.0: [C, G], 2.0: [C, C]},   # 3
+    ("ensemble", "observation_noise", 0, "paper"): {0.0: [G], 1.0: [G, G], 2.0: [C, G]},  # 1 -> 66.67 %
+    ("ensemble", "observation_noise", 1, "none"): {0.0: [G], 1.0: [G, G], 2.0: [C, G]},   # 1
+    ("ensemble", "observation_noise", 1, "paper"): {0.0: [T], 1.0: [G, G], 2.0: [G, C]},  # 1 -> 0 %
+}
+LENGTH = {G: 10, C: 6, T: 20}
+FALLBACK = {G: 1, C: 3, T: 5}
+
+
+def _safety(estimator: str, perturbation: str) -> pd.DataFrame:
+    rows = []
+    for (est, pert, repeat, variant), strengths in SAFETY.items():
+        if (est, pert) != (estimator, perturbation):
+            continue
+        for index, (strength, outcomes) in enumerate(strengths.items()):
+            for k, outcome in enumerate(outcomes):
+                rows.append({"estimator": est, "perturbation": pert, "strength": strength, "repeat": repeat,
+                             "variant": variant, "episode": k, "seed": 1000 * repeat + 100 * index + k,
+                             "outcome": outcome, "return": 1.0, "length": LENGTH[outcome],
+                             "duration": 0.25 * LENGTH[outcome], "path_length": 3.0,
+                             "time_to_goal": 2.5 + 0.5 * strength if outcome == G else np.nan,
+                             "min_gap": 0.3, "intrusion_steps": 0, "intrusion_events": 0,
+                             "fallback_steps": 0 if variant == "none" else FALLBACK[outcome]})
+    return pd.DataFrame(rows)
+
+
+def _run_dir(root: Path, study: bool = True, safety: bool = True, calibration: bool = True,
+             units: list | None = None) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "resolved.json").write_text(json.dumps({"experiment": {"name": "unc", "kind": "uncertainty",
+                                                                   "budget": "quick"}}))
+    (root / "units.json").write_text(json.dumps(units or []))
+    if study:
+        for estimator, perturbation in STUDY:
+            write_table_atomic(_steps(estimator, perturbation),
+                               root / "study" / estimator / perturbation / "steps.parquet")
+    if safety:
+        for estimator, perturbation in {(e, p) for e, p, _, _ in SAFETY}:
+            write_table_atomic(_safety(estimator, perturbation),
+                               root / "safety" / estimator / perturbation / "episodes.parquet")
+    if calibration:
+        path = root / "calibrate" / "mc" / "calibration.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"thresholds": {"lambda_ep": 0.05, "lambda_feat": 0.25, "lambda_prox": 1.0,
+                                                   "beta1": 0.25}, "prevented_fraction": 0.8,
+                                    "false_activation_rate": 0.01}))
+    return root
+
+
+def _cells(markdown: str) -> list[list[str]]:
+    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in markdown.strip().splitlines()[2:]]
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> tuple[Path, str]:
+    root = _run_dir(tmp_path_factory.mktemp("unc") / "run")
+    page = build_report(root)
+    return page.parent, page.read_text()
+
+
+def test_sections_are_registered_for_the_uncertainty_kind():
+    names = [name for name, _ in SECTIONS["uncertainty"]]
+    assert names[:5] == ["table2", "uncertainty_vs_strength", "feature_uncertainty_collisions", "table3",
+                         "table3_cost"]
+
+
+def test_table2_numbers_bold_and_dashes(report):
+    out, text = report
+    table = pd.read_csv(out / "table2.csv").set_index(["estimator", "perturbation", "uncertainty"])
+    expected = {  # by hand from STUDY: (u(sigma_max) - u(0)) / (u(0) * (sigma_max - sigma_0))
+        ("mc", "observation_noise", "u_feat"): (3.0, 9.0, 1.0),        # episode means (2, 4) -> 3; (7, 11) -> 9
+        ("mc", "observation_noise", "u_ep_heading"): (0.3, 0.9, 1.0),
+        ("mc", "observation_noise", "u_al_heading"): (0.5, 0.5, 0.0),
+        ("mc", "observation_noise", "u_al_speed"): (6.0, 18.0, 1.0),
+        ("ensemble", "observation_noise", "u_feat"): (1.0, 2.0, 0.5),
+        ("ensemble", "observation_noise", "u_ep_heading"): (0.1, 0.2, 0.5),
+        ("ensemble", "observation_noise", "u_al_heading"): (0.5, 1.0, 0.5),
+        ("ensemble", "observation_noise", "u_al_speed"): (2.0, 4.0, 0.5),
+        ("ensemble", "observation_noise", "u_ep_speed"): (1.0, 1.0, 0.0),
+        ("mc", "more_humans", "u_feat"): (2.0, 4.5, 0.25),
+    }
+    for key, (u0, u_max, value) in expected.items():
+        row = table.loc[key]
+        assert row["u_sigma0"] == pytest.approx(u0) and row["u_sigma_max"] == pytest.approx(u_max), key
+        assert row["sensitivity"] == pytest.approx(value, abs=1e-12), key
+    zero = table.loc[("mc", "observation_noise", "u_ep_speed")]
+    assert np.isnan(zero["sensitivity"]) and zero["note"] == "zero baseline"
+    assert table.loc[("mc", "observation_noise", "u_feat"), "paper"] == 1.84
+    assert table.loc[("mc", "observation_noise", "u_feat"), "episodes_sigma0"] == 2
+
+    markdown = (out / "table2.md").read_text()
+    header = markdown.splitlines()[0]
+    assert header.startswith("| Uncertainty | Observation noise: MC | Observation noise: Ens | More humans: MC |")
+    rows = {row[0]: row[1:] for row in _cells(markdown)}
+    # columns: obs MC, obs Ens, more humans MC, more humans Ens (not recorded)
+    assert rows["Predictive feature"] == ["**1.00**", "0.50", "0.25", "n/a"]   # one defined value: no bold
+    assert rows["Aleatoric heading"] == ["0.00", "**0.50**", "0.00", "n/a"]
+    assert rows["Aleatoric speed"] == ["**1.00**", "0.50", "0.25", "n/a"]
+    assert rows["Epistemic heading"] == ["**1.00**", "0.50", "0.25", "n/a"]
+    assert rows["Epistemic speed"] == ["—", "0.00", "—", "n/a"]                 # u(0) = 0: undefined
+    assert "## Table 2" in text and markdown.strip() in text and "u_σ(0) = 0" in text
+
+
+def test_uncertainty_vs_strength_curves_and_figure(report):
+    out, text = report
+    curves = pd.read_csv(out / "uncertainty_vs_strength.csv")
+    mc = curves[(curves["estimator"] == "mc") & (curves["perturbation"] == "observation_noise")
+                & (curves["uncertainty"] == "u_ep_heading")].set_index("strength")
+    assert mc["u_mean"].tolist() == pytest.approx([0.3, 0.5, 0.9])
+    assert mc["u_normalised"].tolist() == pytest.approx([1.0, 5 / 3, 3.0])
+    assert mc["collision_rate"].tolist() == pytest.approx([0.0, 0.5, 0.5])
+    assert mc["episodes"].tolist() == [2, 2, 2]
+    flat = curves[(curves["estimator"] == "mc") & (curves["uncertainty"] == "u_ep_speed")]
+    assert flat["u_normalised"].isna().all()  # u(0) = 0: no normalised curve
+    assert (out / "uncertainty_vs_strength.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<svg" in (out / "uncertainty_vs_strength.svg").read_text()[:2000]
+    assert "![uncertainty vs strength](uncertainty_vs_strength.png)" in text
+
+
+def test_feature_uncertainty_at_critical_steps(report):
+    out, text = report
+    critical = pd.read_csv(out / "feature_uncertainty_collisions.csv")
+    got = {(r.estimator, r.perturbation, r.strength, r.episode): (bool(r.collided), r.value)
+           for r in critical.itertuples()}
+    assert got == {  # by hand: last row of collision episodes, row of the minimum gap otherwise
+        ("mc", "observation_noise", 0.0, 0): (False, 0.2), ("mc", "observation_noise", 0.0, 1): (False, 0.3),
+        ("mc", "observation_noise", 1.0, 0): (False, 0.4), ("mc", "observation_noise", 1.0, 1): (True, 0.5),
+        ("mc", "observation_noise", 2.0, 0): (False, 0.7), ("mc", "observation_noise", 2.0, 1): (True, 0.9),
+        ("ensemble", "observation_noise", 0.0, 0): (False, 0.02),
+        ("ensemble", "observation_noise", 0.0, 1): (True, 0.03),
+        ("ensemble", "observation_noise", 1.0, 0): (False, 0.04),
+        ("ensemble", "observation_noise", 2.0, 0): (False, 0.06),
+        ("ensemble", "observation_noise", 2.0, 1): (True, 0.08),
+        ("mc", "more_humans", 2.0, 0): (False, 1.0), ("mc", "more_humans", 7.0, 0): (True, 1.2),
+    }
+    # summary row: 2 collisions of 6 episodes, medians 0.7 (0.5, 0.9) and 0.35 (0.2, 0.3, 0.4, 0.7)
+    assert "| MC-dropout | Observation noise | 2 / 6 | 0.7 | 0.35 |" in text
+    assert (out / "feature_uncertainty_collisions.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<svg" in (out / "feature_uncertainty_collisions.svg").read_text()[:2000]
+
+
+def test_table3_prevented_collisions(report):
+    out, text = report
+    table = pd.read_csv(out / "table3.csv").set_index(["estimator", "variant", "column"])
+    expected = {  # (mean, std ddof=0, repeats with C_none > 0, repeats) from the comments in SAFETY
+        ("mc", "paper", "observation_noise"): ((200 / 3 + 100) / 2, (100 - 200 / 3) / 2, 2, 2),
+        ("mc", "calibrated", "observation_noise"): ((100 / 3 + 0) / 2, (100 / 3) / 2, 2, 2),
+        ("mc", "paper", "heading_noise"): (25.0, 25.0, 2, 2),
+        ("mc", "paper", "speed_noise"): (100.0, 0.0, 1, 2),
+        ("mc", "paper", "action_noise"): ((200 / 3 + 0) / 2, (200 / 3) / 2, 2, 2),  # pooled: 3 -> 1, 1 -> 1
+        ("ensemble", "paper", "observation_noise"): (100 / 3, 100 / 3, 2, 2),
+    }
+    for key, (mean, std, defined, repeats) in expected.items():
+        row = table.loc[key]
+        assert row["prevented_mean"] == pytest.approx(mean) and row["prevented_std"] == pytest.approx(std), key
+        assert (row["repeats_defined"], row["repeats"]) == (defined, repeats), key
+    assert table.loc[("mc", "paper", "observation_noise"), "collisions_none"] == 4  # 3 + 1, sigma(0) left out
+    undefined = table.loc[("mc", "paper", "faster_humans")]
+    assert undefined["repeats_defined"] == 0 and np.isnan(undefined["prevented_mean"])
+    assert table.loc[("mc", "paper", "observation_noise"), "paper_mean"] == 100
+    assert ("ensemble", "paper", "action_noise") not in table.index  # the ensemble ran no action noise
+
+    markdown = (out / "table3.md").read_text()
+    assert markdown.splitlines()[0] == ("| Approach | Thresholds | Observation noise | Heading noise | Speed noise | "
+                                        "Action noise (heading + speed) | Faster humans |")
+    rows = _cells(markdown)
+    assert rows[0] == ["MC-dropout", "paper thresholds", "83.3 ± 16.7", "25.0 ± 25.0", "100.0 ± 0.0 (1 of 2)",
+                       "33.3 ± 33.3", "—"]
+    assert rows[1] == ["MC-dropout", "calibrated thresholds", "16.7 ± 16.7", "n/a", "n/a", "n/a", "—"]
+    assert rows[2] == ["MC-dropout", "*paper's Table III*", "*100 ± 0*", "*6 ± 5*", "*6 ± 5*", "*6 ± 5*",
+                       "*56 ± 2*"]
+    assert rows[3] == ["Ensemble", "paper thresholds", "33.3 ± 33.3", "n/a", "n/a", "n/a", "n/a"]
+    assert rows[4][:3] == ["Ensemble", "*paper's Table III*", "*79 ± 11*"]
+    assert "## Table 3" in text and "Warning" not in text
+
+
+def test_cost_of_the_safety_layer(report):
+    out, text = report
+    table = pd.read_csv(out / "table3_cost.csv").set_index(["estimator", "variant"])
+    paper = table.loc[("ensemble", "paper")]
+    # perturbed paper episodes: 6 goals (length 10, 1 fallback step) + 2 collisions (length 6, 3 fallback steps)
+    assert paper["episodes_perturbed"] == 8 and paper["episodes_unperturbed"] == 2
+    assert paper["activation_pct"] == pytest.approx(100 * 12 / 72)
+    # unperturbed: a goal (10 steps, 1 fallback) and a time-out (20 steps, 5 fallback)
+    assert paper["false_activation_pct"] == pytest.approx(100 * 6 / 30)
+    assert paper["success_pct_perturbed"] == pytest.approx(75.0)
+    assert paper["collision_pct_perturbed"] == pytest.approx(25.0)
+    assert paper["success_pct_unperturbed"] == pytest.approx(50.0)
+    assert paper["collision_pct_unperturbed"] == pytest.approx(0.0)
+    assert paper["time_to_goal_perturbed"] == pytest.approx((4 * 3.0 + 2 * 3.5) / 6)
+    assert paper["time_to_goal_unperturbed"] == pytest.approx(2.5)
+    none = table.loc[("ensemble", "none")]
+    assert np.isnan(none["activation_pct"]) and np.isnan(none["false_activation_pct"])
+    assert none["collision_pct_perturbed"] == pytest.approx(50.0)
+    assert none["time_to_goal_perturbed"] == pytest.approx((3 * 3.0 + 3.5) / 4)
+    assert list(table.index) == [("mc", "none"), ("mc", "paper"), ("mc", "calibrated"), ("ensemble", "none"),
+                                 ("ensemble", "paper")]
+    assert "| Ensemble | paper thresholds | 8 / 2 | 16.67 | 20.00 | 75.0 / 50.0 | 25.0 / 0.0 | 3.17 / 2.50 |" in text
+    assert "| Ensemble | none (plain policy) | 8 / 2 | – | – | 50.0 / 100.0 | 50.0 / 0.0 | 3.12 / 2.50 |" in text
+    assert "## Calibrated safety thresholds" in text and "| MC-dropout | calibrated | 0.05 | 0.25 | 1 | 0.25 |" in text
+
+
+def test_sections_skip_missing_records_and_unfinished_units(tmp_path):
+    page = build_report(_run_dir(tmp_path / "table2", safety=False, calibration=False))
+    text = page.read_text()
+    assert "## Table 2" in text and "Fig. 6" in text and "Table 3" not in text and "safety layer" not in text
+    assert not (page.parent / "table3.csv").exists()
+
+    page = build_report(_run_dir(tmp_path / "table3", study=False))
+    text = page.read_text()
+    assert "## Table 3" in text and "## Table 2" not in text and "Fig. 5" not in text
+    assert not (page.parent / "table2.csv").exists()
+
+    text = build_report(_run_dir(tmp_path / "empty", study=False, safety=False, calibration=False)).read_text()
+    assert "No study, safety or calibration records yet." in text
+
+    # a planned unit that is not finished: its records are left out (the header lists it as partial)
+    unit = {"id": "study/ensemble/observation_noise", "kind": "study", "params": {}, "deps": []}
+    page = build_report(_run_dir(tmp_path / "partial", safety=False, calibration=False, units=[unit]))
+    text = page.read_text()
+    assert "Partial results" in text and "study/ensemble/observation_noise" in text
+    table = pd.read_csv(page.parent / "table2.csv")
+    assert set(table["estimator"]) == {"mc"}
+
+
+def test_unpaired_seeds_are_flagged(tmp_path):
+    root = _run_dir(tmp_path / "run", study=False, calibration=False)
+    path = root / "safety" / "ensemble" / "observation_noise" / "episodes.parquet"
+    frame = pd.read_parquet(path)
+    frame.loc[frame["variant"] == "paper", "seed"] += 7
+    write_table_atomic(frame, path)
+    text = build_report(root).read_text()
+    assert "**Warning**" in text and "not paired" in text
