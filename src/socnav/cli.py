@@ -102,7 +102,8 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
 def train(
     scenario: Optional[str] = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
     algo: str = typer.Option("odv-ppo-drop", help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
-    seed: int = typer.Option(0, help="seed of the run (network init, dropout, training episodes)"),
+    seed: int = typer.Option(0, min=0, max=2**28 - 1,
+                             help="seed of the run (network init, dropout, training episodes)"),
     timesteps: int = typer.Option(200_000, min=1, help="total environment steps"),
     n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
@@ -117,18 +118,21 @@ def train(
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
     import json
 
-    from socnav.rl.training import TrainingInterrupted
+    from socnav.rl.training import CheckpointError, TrainingInterrupted
     from socnav.rl.training import train as train_run
 
     if resume is not None:
         run_file = resume / "run.json"
         if not run_file.is_file():
             _fail(f"--resume {resume}: no run.json there (not a socnav training run directory)")
-        asked = json.loads(run_file.read_text())
-        env_config = load_config(asked["env_config"])
-        algo, seed, timesteps = asked["algo"], asked["seed"], asked["timesteps"]
-        n_envs, overrides, out = asked["n_envs"], asked["overrides"], resume
-        eval_every, eval_episodes = asked["eval_every"], asked["eval_episodes"]
+        try:
+            asked = json.loads(run_file.read_text())
+            env_config = load_config(asked["env_config"])
+            algo, seed, timesteps = asked["algo"], asked["seed"], asked["timesteps"]
+            n_envs, overrides, out = asked["n_envs"], asked["overrides"], resume
+            eval_every, eval_episodes = asked["eval_every"], asked["eval_episodes"]
+        except (ValueError, KeyError, TypeError, ConfigError) as exc:
+            _fail(f"--resume {resume}: run.json is unreadable ({type(exc).__name__}: {exc})")
     else:
         env_config = _env_config(scenario, config, n_humans)
         overrides = _algo_overrides(algo, algo_config, settings)
@@ -141,9 +145,28 @@ def train(
     except TrainingInterrupted as exc:
         console.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=1)
+    except CheckpointError as exc:
+        _fail(f"--resume {out}: {exc}")
     console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
                                 f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
     console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
+
+
+def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int]) -> EnvConfig:
+    """`_env_config` for animate / calibrate: without --config, position swap with one human unless given."""
+    if config_file is None:
+        scenario = "position_swap" if scenario is None else scenario
+        n_humans = 1 if n_humans is None else n_humans
+    return _env_config(scenario, config_file, n_humans)
+
+
+def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
+    """A clear error (not a reshape traceback) when a policy observes a different max_humans than the env."""
+    for policy in policies:
+        observed = policy.observation_space["humans"].shape[0]
+        if observed != env_config.max_humans:
+            _fail(f"the model observes max_humans={observed} but the env config has "
+                  f"max_humans={env_config.max_humans}; set max_humans in --config to match")
 
 
 def _load_learned_policy(model: str) -> Any:
@@ -167,7 +190,7 @@ def evaluate(
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())}"),
     episodes: int = typer.Option(200, min=1, help="number of evaluation episodes"),
-    seed: int = typer.Option(0, help="episode k uses seed + k"),
+    seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     n_envs: int = typer.Option(32, min=1, help="environments stepped together"),
@@ -184,14 +207,18 @@ def evaluate(
     if model is not None:
         actor = _load_learned_policy(model)
         name = "pretrained" if model == "pretrained" else Path(model).stem
-        if actor.observation_space["humans"].shape[0] != env_config.max_humans:
-            _fail(f"the model observes max_humans={actor.observation_space['humans'].shape[0]} but the env config "
-                  f"has max_humans={env_config.max_humans}; set max_humans in --config to match")
+        _check_observation_size([actor], env_config)
     else:
         actor, name = make_controller(policy, env_config), policy
     out = out or Path("runs") / "evaluate" / f"{name}_{env_config.scenario}_seed{seed}.csv"
     if out.suffix not in TABLE_FORMATS:
         _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
+    if stochastic:
+        import torch
+
+        # Sampled actions come from torch's generator: seeded, a run repeats; they still depend on --n-envs (the
+        # order in which the batch draws them), unlike the deterministic mean action.
+        torch.manual_seed(seed)
     records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
                         deterministic=not stochastic)
     write_table_atomic(records, out)
@@ -200,7 +227,8 @@ def evaluate(
     console.print(f"per-episode records: {out}")
 
 
-def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int) -> tuple[Any, Any]:
+def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
+               env_config: EnvConfig) -> tuple[Any, Any]:
     """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`."""
     import glob
 
@@ -211,8 +239,14 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int) 
     if kind == "mc":
         if model is None:
             _fail("--estimator mc needs --model PATH (or --model pretrained)")
+        from socnav.experiments.uncertainty_units import MC_SEED
+        from socnav.uncertainty import MCDropoutEstimator
+
         policy = _load_learned_policy(model)
-        return policy, make_estimator("mc", policy, k=k)
+        _check_observation_size([policy], env_config)
+        # A private, seeded mask stream (as the experiment units use): the same command gives the same thresholds
+        # and the same animation, instead of drawing from torch's unseeded global RNG.
+        return policy, MCDropoutEstimator(policy, k=k, seed=MC_SEED)
     if members is None:
         _fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
     paths = sorted(glob.glob(members))
@@ -220,6 +254,7 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int) 
         _fail(f"--members {members!r} matches {len(paths)} policy file(s); an ensemble needs at least 2")
     policies = [_load_learned_policy(path) for path in paths]
     policy = _load_learned_policy(model) if model is not None else policies[0]
+    _check_observation_size([policy, *policies], env_config)
     return policy, make_estimator("ensemble", policies)
 
 
@@ -241,12 +276,13 @@ def animate(
     estimator: str = typer.Option("mc", help="mc | ensemble"),
     members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
     k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: Optional[str] = typer.Option("position_swap", help=f"one of: {', '.join(scenario_names())}"),
-    n_humans: Optional[int] = typer.Option(1, min=0, help="humans per episode"),
+    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
+                                                     "(default: position_swap, or the --config file's)"),
+    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. heading_noise=0.8"),
     safety: Optional[str] = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
-    seed: int = typer.Option(0, help="episode seed"),
+    seed: int = typer.Option(0, min=0, help="episode seed"),
     out: Path = typer.Option(Path("runs") / "animate" / "episode.gif", help="output .gif or .mp4"),
 ) -> None:
     """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
@@ -254,13 +290,13 @@ def animate(
 
     if out.suffix not in (".gif", ".mp4"):
         _fail(f"--out must end in .gif or .mp4, got {out.name!r}")
-    env_config = _env_config(scenario, config, n_humans)
+    env_config = _single_agent_env_config(scenario, config, n_humans)
     perturbation = _perturbation_overrides(perturb)
     try:
         env_config = load_config(env_config, perturbation={**env_config.perturbation.model_dump(), **perturbation})
     except ConfigError as exc:
         _fail(str(exc))
-    policy, uncertainty = _estimator(estimator, model, members, k)
+    policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     thresholds = None
     if safety is not None:
         from socnav.safety import ThresholdsError, load_thresholds
@@ -280,8 +316,9 @@ def calibrate(
     estimator: str = typer.Option("mc", help="mc | ensemble"),
     members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
     k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: Optional[str] = typer.Option("position_swap", help=f"one of: {', '.join(scenario_names())}"),
-    n_humans: Optional[int] = typer.Option(1, min=0, help="humans per episode"),
+    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
+                                                     "(default: position_swap, or the --config file's)"),
+    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
     budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
@@ -297,8 +334,10 @@ def calibrate(
 
     if proximity not in PROXIMITY_VARIANTS:
         _fail(f"--proximity {proximity!r} is not known; allowed: {', '.join(PROXIMITY_VARIANTS)}")
-    env_config = _env_config(scenario, config, n_humans)
-    policy, uncertainty = _estimator(estimator, model, members, k)
+    if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
+        _fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
+    env_config = _single_agent_env_config(scenario, config, n_humans)
+    policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     with console.status("collecting calibration episodes and searching thresholds"):
         thresholds, report = calibrate_thresholds(policy, uncertainty, env_config.model_dump(mode="json"), episodes,
                                                   budget, proximity)
@@ -321,7 +360,7 @@ def calibrate(
 def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
     episodes: int = typer.Option(100, min=1, help="episodes per scenario and controller"),
-    seed: int = typer.Option(0, help="first episode seed"),
+    seed: int = typer.Option(0, min=0, help="first episode seed"),
     train_steps: int = typer.Option(0, min=0, help="train a fresh ODV-PPO-Drop policy for this many steps "
                                                     "(0: use the pretrained one shipped with socnav)"),
 ) -> None:
@@ -346,10 +385,15 @@ def demo(
 
     swap = load_config({"scenario": "position_swap", "n_humans": 1})
     if train_steps:
+        from socnav.rl.training import TrainingInterrupted
         from socnav.rl.training import train as train_run
 
         console.print(f"training ODV-PPO-Drop on position swap with one human for {train_steps:,} steps")
-        result = train_run(swap, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
+        try:
+            result = train_run(swap, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
+        except TrainingInterrupted as exc:
+            console.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(code=1)
         model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
     else:
         model_path, label = "pretrained", "odv-ppo-drop (pretrained)"

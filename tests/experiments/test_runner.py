@@ -184,10 +184,10 @@ def test_partial_training_resumes_only_from_a_consistent_checkpoint(local_run, t
     directory = unit_dir(root, unit)
     (directory / "done.json").unlink()  # killed after its last checkpoint, before its marker
     _prepare_unit_dir(root, unit, "partial")
-    assert (directory / "checkpoints" / "latest.zip").is_file()  # kept: train(resume=True) continues from it
-
     state_file = directory / "checkpoints" / "state.json"
     state = json.loads(state_file.read_text())
+    assert (directory / "checkpoints" / state["checkpoint"]).is_file()  # kept: train(resume=True) continues from it
+
     state_file.write_text(json.dumps({**state, "num_timesteps": state["num_timesteps"] - 256}))
     _prepare_unit_dir(root, unit, "partial")  # killed between the model and its state: start afresh
     assert not (directory / "checkpoints").exists() and (directory / "unit.json").is_file()

@@ -175,21 +175,23 @@ def register_executor(kind: str, resumable: Callable[[Path], bool] | None = None
 
 
 def _sound_checkpoint(directory: Path) -> bool:
-    """A training checkpoint that `train(resume=True)` can load: a readable SB3 zip whose step is the one its
-    state.json names."""
+    """A training checkpoint that `train(resume=True)` can load: the readable SB3 zip that state.json names, at the
+    step state.json names (zips without a state are a start that never checkpointed: train starts afresh)."""
     import zipfile
 
-    checkpoint, state_file = directory / "checkpoints" / "latest.zip", directory / "checkpoints" / "state.json"
-    if not checkpoint.exists() and not state_file.exists():
-        return True  # nothing to resume from: train(resume=True) starts fresh, no need to wipe
+    state_file = directory / "checkpoints" / "state.json"
+    if not state_file.exists():
+        return True  # nothing to resume from: train(resume=True) starts fresh (and clears stray zips)
     state = _read_json(state_file)
-    if not isinstance(state, dict) or not isinstance(state.get("num_timesteps"), int) or not checkpoint.is_file():
+    if not isinstance(state, dict) or not isinstance(state.get("num_timesteps"), int):
+        return False
+    checkpoint = directory / "checkpoints" / str(state.get("checkpoint", "latest.zip"))
+    if not checkpoint.is_file():
         return False
     try:
         with zipfile.ZipFile(checkpoint) as archive:
             if archive.testzip() is not None:
                 return False
-            # killed between writing the model and its state: the two name different steps (train would refuse)
             data = json.loads(archive.read("data"))
             return data.get("num_timesteps") == state["num_timesteps"]
     except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError):

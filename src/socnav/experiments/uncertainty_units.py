@@ -57,10 +57,11 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     p = unit.params
     _single_threaded_torch()
     policies, inputs = _policies(root, unit)
-    estimator = _estimator(p["estimator"], policies, p["k"], p["p_test"])
     steps_parts, episode_parts, summary = [], [], {}
     for strength in p["strengths"]:
         config = _perturbed(p["env"], p["perturbation"], strength)
+        # a fresh, seeded estimator per strength: the dropout masks do not depend on which strengths ran before
+        estimator = _estimator(p["estimator"], policies, p["k"], p["p_test"])
         steps, episodes = record_uncertainty(policies[0], estimator, config, p["episodes"], seed=p["seed"],
                                              n_envs=p["n_envs"], window=p["window"])
         tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength)}
@@ -144,7 +145,6 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     p = unit.params
     _single_threaded_torch()
     policies, inputs = _policies(root, unit)
-    estimator = _estimator(p["estimator"], policies, p["k"])
     variants = {"paper": load_thresholds(p["thresholds"])}
     calibrated = [dep for dep in unit.deps if dep.startswith("calibrate/")]
     if calibrated:
@@ -163,6 +163,8 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
             plain["fallback_steps"] = 0
             parts.append(_tag(plain, **tags, variant="none"))
             for name, thresholds in variants.items():
+                # a fresh, seeded estimator per run: every variant sees the same dropout masks
+                estimator = _estimator(p["estimator"], policies, p["k"])
                 safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
                 counter = _FallbackCounter(safe)
                 records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"], observer=counter)

@@ -4,7 +4,8 @@
 Run directory::
 
     run.json                 what was asked (env config, algo, overrides, seed, timesteps) and the status
-    checkpoints/latest.zip   SB3 checkpoint (optimizer state included) + checkpoints/state.json (timesteps, logs)
+    checkpoints/step_N.zip   SB3 checkpoint (optimizer state included); checkpoints/state.json names it (written
+                             last: a kill at any moment leaves a state naming an intact zip and its log rows)
     curve.csv                training curve: timesteps, wall_time_s, ep_rew_mean, ep_len_mean, success_rate
     eval.csv                 periodic evaluation on validation seeds (goal/collision/timeout %, PV, return)
     model.zip                the final policy in socnav's safe format (`socnav.load_policy`)
@@ -25,6 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 from socnav.config import ConfigLike, load_config
@@ -38,15 +40,21 @@ from socnav.rl.presets import make_model, resolve_config
 
 TRAIN_SEED_BASE = 2**40
 VALIDATION_SEED_BASE = 2**41
+RESUME_SEED_BASE = 2**42
+MAX_SEED = 2**28  # run seeds below this keep training environments (2**40 + seed * 4096 + i) under 2**41
 CURVE_COLUMNS = ["timesteps", "wall_time_s", "ep_rew_mean", "ep_len_mean", "success_rate"]
 EVAL_COLUMNS = ["timesteps", "wall_time_s", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
                 "return_mean", "return_std"]
 
-__all__ = ["TrainResult", "TrainingInterrupted", "train", "training_env_seed"]
+__all__ = ["CheckpointError", "TrainResult", "TrainingInterrupted", "train", "training_env_seed"]
 
 
 class TrainingInterrupted(RuntimeError):
     """Training stopped early (non-finite values); the last checkpoint in the run directory is intact."""
+
+
+class CheckpointError(RuntimeError):
+    """`resume=True` found a checkpoint it cannot continue from (unreadable, or not the step state.json names)."""
 
 
 @dataclass
@@ -58,8 +66,14 @@ class TrainResult:
 
 
 def training_env_seed(seed: int) -> int:
-    """Seed of training environment 0 of run `seed` (environment i gets this + i)."""
+    """Seed of training environment 0 of run `seed` (environment i gets this + i), in [2**40, 2**41)."""
     return TRAIN_SEED_BASE + seed * 4096
+
+
+def _resume_seeds(seed: int, step: int) -> tuple[int, int]:
+    """(environment seed, torch seed) of run `seed` resumed at `step`: hashed, environments in [2**42, 2**43)."""
+    env_hash, torch_hash = np.random.SeedSequence([seed, step]).generate_state(2, np.uint64)
+    return RESUME_SEED_BASE + int(env_hash >> np.uint64(22)), int(torch_hash >> np.uint64(33))
 
 
 class _RunMonitor(BaseCallback):
@@ -99,10 +113,11 @@ class _Run:
         self.elapsed_before = 0.0  # wall time of earlier (interrupted) sessions of this run
         self.started = time.perf_counter()
         self.next_eval = eval_every
+        self.checkpoint = self.checkpoint_dir / "step_0.zip"  # the checkpoint state.json names, once there is one
 
     @property
-    def checkpoint(self) -> Path:
-        return self.out_dir / "checkpoints" / "latest.zip"
+    def checkpoint_dir(self) -> Path:
+        return self.out_dir / "checkpoints"
 
     @property
     def checkpoint_state(self) -> Path:
@@ -126,16 +141,22 @@ class _Run:
         if self.progress is not None:
             self.progress(row["timesteps"], row["success_rate"])
 
-    def evaluate(self, model: ODVPPO) -> dict[str, float]:
+    def evaluate(self, model: ODVPPO, log: bool = True) -> dict[str, float]:
+        """Validation episodes at the model's current step; `log=False` skips TensorBoard (no logger before
+        `learn`, e.g. when resuming a run that had already reached its total)."""
         records = rollout_episodes(model.policy, self.env_config, self.eval_episodes, seed=VALIDATION_SEED_BASE,
                                    n_envs=min(self.eval_episodes, 64))
         metrics = summarize(records)
         row = {"timesteps": int(model.num_timesteps), "wall_time_s": self.wall_time(),
                **{key: metrics[key] for key in EVAL_COLUMNS[2:]}}
-        self.evals.append(row)
-        for key in ("goal_pct", "collision_pct", "timeout_pct", "return_mean"):
-            model.logger.record(f"eval/{key}", metrics[key])
-        model.logger.dump(model.num_timesteps)
+        if self.evals and int(self.evals[-1]["timesteps"]) == row["timesteps"]:
+            self.evals[-1] = row  # the same step evaluated again (a finished run resumed): one row, not two
+        else:
+            self.evals.append(row)
+        if log:
+            for key in ("goal_pct", "collision_pct", "timeout_pct", "return_mean"):
+                model.logger.record(f"eval/{key}", metrics[key])
+            model.logger.dump(model.num_timesteps)
         return metrics
 
     def write_logs(self) -> None:
@@ -151,19 +172,42 @@ class _Run:
             self.save_checkpoint(model)
 
     def save_checkpoint(self, model: ODVPPO) -> None:
-        """Model + optimizer, then the logs up to this point, then the state naming both (written last)."""
-        with atomic_path(self.checkpoint) as temporary:
+        """A new step-named zip (model + optimizer), the logs, then the state naming both (written last), then the
+        older zips go: until the state is replaced, the previous state still names an intact zip."""
+        checkpoint = self.checkpoint_dir / f"step_{int(model.num_timesteps)}.zip"
+        with atomic_path(checkpoint) as temporary:
             model.save(temporary)
         self.write_logs()
         state = {"num_timesteps": int(model.num_timesteps), "wall_time_s": self.wall_time(),
-                 "next_eval": self.next_eval, "curve_rows": len(self.curve), "eval_rows": len(self.evals)}
+                 "next_eval": self.next_eval, "curve_rows": len(self.curve), "eval_rows": len(self.evals),
+                 "checkpoint": checkpoint.name}
         write_text_atomic(self.checkpoint_state, json.dumps(state, indent=2))
+        self.checkpoint = checkpoint
+        for old in self.checkpoint_dir.glob("*.zip"):
+            if old.name != checkpoint.name:
+                old.unlink(missing_ok=True)
+
+    def discard_checkpoints(self) -> None:
+        """Forget any checkpoint in the run directory (state first: it is what names a zip)."""
+        self.checkpoint_state.unlink(missing_ok=True)
+        for old in self.checkpoint_dir.glob("*.zip"):
+            old.unlink(missing_ok=True)
 
     def restore(self) -> dict[str, Any] | None:
         """Logs and counters of the last checkpoint (rows logged after it are dropped: they will be redone)."""
-        if not (self.checkpoint.is_file() and self.checkpoint_state.is_file()):
+        if not self.checkpoint_state.is_file():
             return None
-        state = json.loads(self.checkpoint_state.read_text())
+        try:
+            state = json.loads(self.checkpoint_state.read_text())
+            for key in ("num_timesteps", "next_eval", "curve_rows", "eval_rows", "wall_time_s"):
+                float(state[key])
+        except (ValueError, TypeError, KeyError) as exc:
+            raise CheckpointError(f"{self.checkpoint_state} is unreadable ({exc}); delete {self.checkpoint_dir} "
+                                  "to restart the run") from None
+        self.checkpoint = self.checkpoint_dir / str(state.get("checkpoint", "latest.zip"))
+        if not self.checkpoint.is_file():
+            raise CheckpointError(f"{self.checkpoint_state} names {self.checkpoint.name}, which is missing; delete "
+                                  f"{self.checkpoint_dir} to restart the run")
         if (self.out_dir / "curve.csv").is_file():
             self.curve = read_table(self.out_dir / "curve.csv").to_dict("records")[: state["curve_rows"]]
         if (self.out_dir / "eval.csv").is_file():
@@ -206,6 +250,8 @@ def train(
     """
     if timesteps < 1:
         raise ValueError(f"timesteps must be >= 1, got {timesteps}")
+    if not 0 <= seed < MAX_SEED:
+        raise ValueError(f"seed must lie in [0, {MAX_SEED}), got {seed}")
     out_dir = Path(out_dir)
     env_config = load_config(config)
     algo_config = resolve_config(algo, overrides)  # validates before any work starts
@@ -221,16 +267,33 @@ def train(
     env = make_vec_env(env_config, n_envs=n_envs)
     tensorboard_log = str(out_dir / "tb") if tensorboard else None
     state = run.restore() if resume else None
+    if state is None:
+        # A fresh start: drop an earlier run's checkpoint left in out_dir, or a `--resume` after a kill before this
+        # run's first checkpoint would continue *that* run under this run's run.json (state first: it names the zip).
+        run.discard_checkpoints()
     if state is not None:
-        model = ODVPPO.load(run.checkpoint, env=env, device="cpu", tensorboard_log=tensorboard_log)
+        if algo_config.torch_threads is not None:  # as make_model does for a fresh run
+            th.set_num_threads(algo_config.torch_threads)
+        try:
+            model = ODVPPO.load(run.checkpoint, env=env, device=algo_config.device, tensorboard_log=tensorboard_log)
+        except Exception as exc:  # SB3 raises many types for a torn or foreign zip
+            env.close()
+            raise CheckpointError(f"{run.checkpoint} cannot be loaded ({type(exc).__name__}: {exc}); delete "
+                                  f"{run.checkpoint.parent} to restart the run") from exc
         if model.num_timesteps != state["num_timesteps"]:
-            raise RuntimeError(f"{run.checkpoint} does not match {run.checkpoint_state}; delete both to restart")
+            env.close()
+            raise CheckpointError(f"{run.checkpoint} (step {model.num_timesteps}) does not match "
+                                  f"{run.checkpoint_state} (step {state['num_timesteps']}); delete both to restart")
         model.algo_name, model.algo_config = algo, algo_config.model_dump(mode="json")  # type: ignore[attr-defined]
-        # SB3's load does not reseed torch: make a resumed run reproducible from its own checkpoint.
-        model.set_random_seed(seed + int(model.num_timesteps))
+        # SB3's load does not reseed torch, and the environments restart: seed both from (seed, step), so a resumed
+        # run is reproducible from its checkpoint (it is not bit-identical to an uninterrupted run, whose
+        # environments were mid-episode) and never replays another run's training episodes.
+        env_seed, torch_seed = _resume_seeds(seed, int(model.num_timesteps))
+        model.set_random_seed(torch_seed)
+        env.seed(env_seed)  # applied at the next reset
     else:
         model = make_model(algo, env, seed, overrides=overrides, tensorboard_log=tensorboard_log, verbose=verbose)
-    env.seed(training_env_seed(seed) + (0 if state is None else int(model.num_timesteps)))  # applied at the next reset
+        env.seed(training_env_seed(seed))  # after make_model, whose set_random_seed seeded the env with `seed`
     remaining = timesteps - int(model.num_timesteps)
     _write_run_json(out_dir, {**info, "status": "running"})
 
@@ -247,7 +310,7 @@ def train(
     finally:
         env.close()
 
-    final_eval = run.evaluate(model)
+    final_eval = run.evaluate(model, log=remaining > 0)
     run.save_checkpoint(model)
     metadata = {"algo": algo, "algo_config": algo_config.model_dump(mode="json"),
                 "env_config": env_config.model_dump(mode="json"), "seed": seed, "timesteps": int(model.num_timesteps)}
