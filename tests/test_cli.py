@@ -1,3 +1,4 @@
+import json
 """The `socnav` command line, driven through typer's runner: results, files and clear errors."""
 
 import pandas as pd
@@ -47,7 +48,11 @@ def test_calibrate_writes_a_threshold_file_that_animate_uses(tmp_path):
     from socnav.safety import load_thresholds
 
     thresholds = load_thresholds(out)
-    assert thresholds.proximity == "abs-relative-speed"
+    report = json.loads(out.with_suffix(".report.json").read_text())
+    assert report["proximity_searched"] == ["abs-relative-speed", "closing-speed"]
+    if report["n_collisions"]:  # candidates replayed; the chosen one is the file's
+        chosen = [c for c in report["candidates"] if c["chosen"]]
+        assert not chosen or chosen[0]["proximity"] == thresholds.proximity
     gif = tmp_path / "episode.gif"
     result = runner.invoke(app, ["animate", "--model", "pretrained", "--k", "4", "--perturb", "observation_noise=0.5",
                                  "--safety", str(out), "--out", str(gif)])
@@ -61,7 +66,7 @@ def test_uncertainty_commands_reject_bad_input_clearly(tmp_path):
         return result.exit_code, " ".join(result.output.split())  # rich wraps long lines
 
     code, output = run("calibrate", "--model", "pretrained", "--proximity", "telepathy")
-    assert code == 2 and "allowed: abs-relative-speed, closing-speed" in output
+    assert code == 2 and "allowed: both, abs-relative-speed, closing-speed" in output
     code, output = run("animate", "--estimator", "ensemble", "--members", str(tmp_path / "*.zip"))
     assert code == 2 and "at least 2" in output
     code, output = run("animate", "--model", "pretrained", "--perturb", "wind=3")

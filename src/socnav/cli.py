@@ -1,4 +1,4 @@
-"""The `socnav` command line: evaluate controllers, run the demo (and, as the project grows, train and report).
+"""The `socnav` command line: train, evaluate, animate, calibrate, run experiments, report, tune, demo.
 
 Every command validates its options up front and reports bad input as one clear line, never a traceback.
 """
@@ -322,7 +322,7 @@ def calibrate(
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
     budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
-    proximity: str = typer.Option("abs-relative-speed", help="abs-relative-speed | closing-speed"),
+    proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
     out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
@@ -332,22 +332,24 @@ def calibrate(
     from socnav.io import write_text_atomic
     from socnav.safety import PROXIMITY_VARIANTS, save_thresholds
 
-    if proximity not in PROXIMITY_VARIANTS:
-        _fail(f"--proximity {proximity!r} is not known; allowed: {', '.join(PROXIMITY_VARIANTS)}")
+    if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
+        _fail(f"--proximity {proximity!r} is not known; allowed: both, {', '.join(PROXIMITY_VARIANTS)}")
     if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
         _fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
     env_config = _single_agent_env_config(scenario, config, n_humans)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
-    with console.status("collecting calibration episodes and searching thresholds"):
+    with console.status("collecting calibration episodes, searching thresholds, replaying the candidates"):
         thresholds, report = calibrate_thresholds(policy, uncertainty, env_config.model_dump(mode="json"), episodes,
                                                   budget, proximity)
     save_thresholds(thresholds, out)
     write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
     table = Table(title=f"calibrated thresholds ({estimator}, false-activation budget {budget:.0%})")
-    for column in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1", "flagged collisions", "false activations"):
+    for column in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1", "c_prox", "prevented collisions",
+                   "false activations"):
         table.add_column(column, justify="right")
     values = thresholds.model_dump()
     table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
+                  values["proximity"],
                   f"{report['prevented_fraction']:.0%} of {report['n_collisions']}",
                   f"{report['false_activation_rate']:.1%}")
     console.print(table)

@@ -16,7 +16,9 @@ from socnav.envs.controllers import OrcaController, StraightController
 from socnav.envs.rollout import rollout_episodes
 from socnav.safety import (
     THRESHOLD_PRESETS,
+    CalibrationRun,
     CautiousController,
+    FallbackCounter,
     SafePolicy,
     Thresholds,
     ThresholdsError,
@@ -27,6 +29,7 @@ from socnav.safety import (
     load_thresholds,
     nearest_human,
     save_thresholds,
+    select_by_rollouts,
 )
 from socnav.sim.scenarios import InitialState
 from socnav.sim.world import OUTCOME_COLLISION, OUTCOME_GOAL, CrowdWorld
@@ -329,6 +332,56 @@ def test_calibration_respects_the_false_activation_budget():
         calibrate(records, grid={"lambda": [1.0]})
     with pytest.raises(ValueError, match="no collisions"):
         calibrate(records[~records["collided"]])
+
+
+def test_lead_demands_that_the_rule_fire_before_the_last_steps():
+    records = synthetic_records()
+    # u_ep flags collisions 100..104 only through their last 4 steps; move the spike to the collision step alone.
+    last = records["collided"] & (records["step"] == records["collision_step"])
+    early = records["collided"] & (records["step"] < records["collision_step"])
+    records.loc[early & (records["episode"] < 200), "u_ep_heading"] = 0.0
+    records.loc[last & (records["episode"] < 200), "u_ep_heading"] = 0.09
+    rule = Thresholds.create(lambda_ep=0.05, lambda_feat=math.inf, lambda_prox=100.0, beta1=0.0)
+    assert evaluate_thresholds(records, rule, lead=0)["prevented_fraction"] == 0.5   # 5 of 10 at the contact step
+    assert evaluate_thresholds(records, rule, lead=1)["prevented_fraction"] == 0.0   # too late with a lead of 1
+    # with no false activation allowed, only the u_feat collisions (flagged earlier) can be caught
+    assert calibrate(records, false_activation_budget=0.0, lead=1).prevented_fraction == 0.5
+    assert calibrate(records, false_activation_budget=0.0, lead=0).prevented_fraction == 1.0
+    with pytest.raises(ValueError, match=r"lead must be in \[0, lookback - 1\] = \[0, 3\]"):
+        calibrate(records, lead=4)
+
+
+def test_select_by_rollouts_maximises_measured_prevention_within_the_budget():
+    risky = load_config({"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False})
+    runs = [CalibrationRun(risky, True, 6, 11), CalibrationRun(risky, False, 4, 40)]
+    policy, estimator = StraightController(risky), FakeEstimator(1.0, 0.0)
+    candidates = [Thresholds.never(), ALWAYS]
+    chosen, table = select_by_rollouts(candidates, policy, estimator, runs, false_activation_budget=1.0, n_envs=3)
+    # independent truth: the same episodes played directly, plain and with the firing rule
+    plain = rollout_episodes(policy, risky, 6, seed=11, n_envs=3)
+    safe = SafePolicy(policy, estimator, ALWAYS, risky)
+    guarded = rollout_episodes(safe, risky, 6, seed=11, n_envs=3)
+    n_plain, n_safe = (plain["outcome"] == "collision").sum(), (guarded["outcome"] == "collision").sum()
+    assert n_plain > n_safe
+    assert chosen == ALWAYS and table["chosen"].tolist() == [False, True]
+    assert table.loc[1, "prevented_fraction"] == pytest.approx((n_plain - n_safe) / n_plain)
+    assert table.loc[0, "prevented_fraction"] == 0.0 and table.loc[0, "false_activation_rate"] == 0.0
+    assert table.loc[1, "false_activation_rate"] > 0.0
+    # a budget the firing rule exceeds in the unperturbed run: the never-firing candidate is all that is left
+    chosen, table = select_by_rollouts(candidates, policy, estimator, runs, false_activation_budget=0.0, n_envs=3)
+    assert chosen == Thresholds.never() and table["chosen"].tolist() == [True, False]
+    with pytest.raises(ValueError, match="both perturbed"):
+        select_by_rollouts(candidates, policy, estimator, runs[:1])
+
+
+def test_fallback_counter_counts_the_fallback_steps_of_each_episode():
+    cfg = load_config({"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False})
+    safe = SafePolicy(StraightController(cfg), FakeEstimator(1.0, 0.0), ALWAYS, cfg)
+    counter = FallbackCounter(safe)
+    records = rollout_episodes(safe, cfg, 4, seed=3, n_envs=2, observer=counter)
+    counts = counter.per_episode(records["episode"])
+    assert all(0 < c <= n for c, n in zip(counts, records["length"]))
+    assert counter.per_episode([99]) == [0]
 
 
 def test_collect_records_from_rollouts():

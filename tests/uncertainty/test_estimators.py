@@ -236,6 +236,9 @@ def test_seeded_estimator_is_reproducible_and_leaves_global_rng_alone(policy: An
     np.testing.assert_array_equal(a.u_ep, first[0].u_ep)
     assert not np.array_equal(a.u_ep, b.u_ep)  # a stream, not the same masks every call
     np.testing.assert_array_equal(estimator(obs, seed=5).u_feat, estimator(obs, seed=5).u_feat)
+    estimator.restart()  # back to the start of the stream
+    np.testing.assert_array_equal(estimator(obs).u_ep, a.u_ep)
+    np.testing.assert_array_equal(estimator(obs).u_ep, b.u_ep)
 
 
 def test_feature_range_change_is_picked_up(vec_env: Any) -> None:

@@ -207,7 +207,10 @@ class Safety(_Strict):
     calibrate: bool = True
     calibration_episodes: int = Field(40, ge=1, description="episodes per calibration configuration")
     false_activation_budget: float = Field(0.05, ge=0, le=1)
-    proximity: Literal["abs-relative-speed", "closing-speed"] = "abs-relative-speed"
+    proximity: Literal["abs-relative-speed", "closing-speed"] = Field(
+        "abs-relative-speed", description="c_prox reading for the paper's threshold sets")
+    calibration_proximity: Literal["both", "abs-relative-speed", "closing-speed"] = Field(
+        "both", description="c_prox readings the calibration searches")
     k: int = Field(20, ge=2)
     window: int = Field(4, ge=1)
     mc_seed: int = Field(0, ge=0)
@@ -599,8 +602,8 @@ def plan_uncertainty(experiment: Experiment) -> list[Unit]:
             if safety.calibrate:
                 calibration = Unit(f"calibrate/{estimator}", "calibrate", {
                     "env": common["env"], "estimator": estimator, "episodes": safety.calibration_episodes,
-                    "budget": safety.false_activation_budget, "proximity": safety.proximity, "k": safety.k,
-                    "window": safety.window,
+                    "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
+                    "k": safety.k, "window": safety.window,
                 }, deps=deps)
                 units.append(calibration)
             for perturbation, strengths in safety.perturbations.items():

@@ -76,38 +76,67 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     return ExecutorResult(["steps.parquet", "episodes.parquet", "summary.json"], inputs=inputs)
 
 
+#: Leads searched by the calibration proxy: the rule must fire at least this many steps before the collision step.
+CALIBRATION_LEADS = (0, 1, 2)
+
+
 def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
-                         proximity: str = "abs-relative-speed", window: int = 4) -> tuple[Any, dict[str, Any]]:
+                         proximity: str = "both", window: int = 4) -> tuple[Any, dict[str, Any]]:
     """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
     `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
 
+    Two stages. (1) The proxy search (`socnav.safety.calibrate`) on per-step records of the plain policy proposes
+    one candidate per proximity variant (`proximity`: one of `PROXIMITY_VARIANTS`, or `both`) and lead in
+    `CALIBRATION_LEADS`: the proxy alone rewards a rule that fires at the very step of the contact, too late for
+    the fallback when humans close fast, so candidates that must fire 1 or 2 steps earlier compete too.
+    (2) `socnav.safety.select_by_rollouts` replays the same calibration episodes with each candidate's
+    `SafePolicy` and keeps the one that prevents the most collisions within the false-activation budget, both
+    MEASURED in those rollouts.
+
     :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
     """
-    from socnav.safety import Thresholds, calibrate, collect_records
+    from socnav.safety import PROXIMITY_VARIANTS, CalibrationRun, Thresholds, calibrate, collect_records, select_by_rollouts
 
+    if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
+        raise ValueError(f"proximity must be one of: both, {', '.join(PROXIMITY_VARIANTS)}; got {proximity!r}")
+    variants = PROXIMITY_VARIANTS if proximity == "both" else (proximity,)
     configs = [(False, load_config(env))]
     configs += [(True, _perturbed(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
                 for strength in strengths]
-    parts, offset = [], 0
-    for perturbed, config in configs:
-        parts.append(collect_records(policy, estimator, config, episodes, seed=CALIBRATION_SEED + offset,
-                                     perturbed=perturbed, window=window, n_envs=min(episodes, 40),
-                                     episode_offset=offset))
-        offset += episodes
+    n_envs = min(episodes, 40)
+    runs = [CalibrationRun(config, perturbed, episodes, CALIBRATION_SEED + index * episodes)
+            for index, (perturbed, config) in enumerate(configs)]
+    parts = [collect_records(policy, estimator, run.config, episodes, seed=run.seed, perturbed=run.perturbed,
+                             window=window, n_envs=n_envs, episode_offset=index * episodes)
+             for index, run in enumerate(runs)]
     records = pd.concat(parts, ignore_index=True)
     common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
-              "false_activation_budget": budget, "episodes_per_configuration": episodes}
+              "false_activation_budget": budget, "episodes_per_configuration": episodes,
+              "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS)}
     if not records.loc[records["perturbed"], "collided"].any():
         # Nothing to learn from: the layer could only cost false activations, so it is switched off.
         thresholds = Thresholds.never()
         return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
                             "false_activation_rate": 0.0, "n_collisions": 0,
                             "note": "no collision in the calibration episodes: thresholds that never fire", **common}
-    result = calibrate(records, false_activation_budget=budget, proximity=proximity)
-    return result.thresholds, {
-        "thresholds": result.thresholds.model_dump(), "prevented_fraction": result.prevented_fraction,
-        "false_activation_rate": result.false_activation_rate, "n_collisions": result.n_collisions,
-        "n_unperturbed_steps": result.n_unperturbed_steps, "lookback": result.lookback, **common}
+    candidates, proxies = [], []
+    for variant in variants:
+        for lead in CALIBRATION_LEADS:
+            result = calibrate(records, false_activation_budget=budget, proximity=variant, lead=lead)
+            if result.thresholds not in candidates:
+                candidates.append(result.thresholds)
+                proxies.append({"lead": lead, "proxy_prevented_fraction": result.prevented_fraction,
+                                "proxy_false_activation_rate": result.false_activation_rate})
+    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs)
+    table = pd.concat([table, pd.DataFrame(proxies)], axis=1)
+    chosen = table[table["chosen"]]
+    report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
+              "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
+              "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
+              "candidates": table.to_dict(orient="records"), **common}
+    if not len(chosen):
+        report["note"] = "no candidate met the false-activation budget in the calibration rollouts: thresholds that never fire"
+    return thresholds, report
 
 
 @register_executor("calibrate")
@@ -125,22 +154,10 @@ def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResul
     return ExecutorResult(["thresholds.yaml", "calibration.json"], inputs=inputs)
 
 
-class _FallbackCounter:
-    """Rollout observer counting, per episode, the steps on which a `SafePolicy` handed over to the fallback."""
-
-    def __init__(self, safe_policy: Any) -> None:
-        self.safe_policy = safe_policy
-        self.counts: dict[int, int] = {}
-
-    def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
-        for env in np.flatnonzero((episodes >= 0) & self.safe_policy.last_fallback):
-            self.counts[int(episodes[env])] = self.counts.get(int(episodes[env]), 0) + 1
-
-
 @register_executor("safety_eval")
 def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     """The same episodes without the safety layer and with each threshold set, at every strength and repeat."""
-    from socnav.safety import SafePolicy, Thresholds, load_thresholds
+    from socnav.safety import FallbackCounter, SafePolicy, Thresholds, load_thresholds
 
     p = unit.params
     _single_threaded_torch()
@@ -151,7 +168,8 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
         path = unit_dir(root, calibrated[0]) / "thresholds.yaml"
         variants["calibrated"] = load_thresholds(path)
         inputs[f"{calibrated[0]}/thresholds.yaml"] = file_digest(path)
-    variants = {name: Thresholds.create(**{**t.model_dump(), "proximity": p["proximity"]}) for name, t in variants.items()}
+    # The paper's threshold sets take the experiment's proximity reading; calibrated ones keep the variant chosen.
+    variants["paper"] = Thresholds.create(**{**variants["paper"].model_dump(), "proximity": p["proximity"]})
     parts = []
     for strength in p["strengths"]:
         config = _perturbed(p["env"], p["perturbation"], strength)
@@ -166,9 +184,9 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
                 # a fresh, seeded estimator per run: every variant sees the same dropout masks
                 estimator = _estimator(p["estimator"], policies, p["k"])
                 safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
-                counter = _FallbackCounter(safe)
+                counter = FallbackCounter(safe)
                 records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"], observer=counter)
-                records["fallback_steps"] = [counter.counts.get(int(e), 0) for e in records["episode"]]
+                records["fallback_steps"] = counter.per_episode(records["episode"])
                 parts.append(_tag(records, **tags, variant=name))
     write_table_atomic(pd.concat(parts, ignore_index=True), directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)

@@ -14,9 +14,12 @@ Example::
 from socnav.safety.calibration import (
     RECORD_COLUMNS,
     CalibrationResult,
+    CalibrationRun,
     calibrate,
     collect_records,
     evaluate_thresholds,
+    rollout_scores,
+    select_by_rollouts,
 )
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
 from socnav.safety.rule import (
@@ -33,7 +36,7 @@ from socnav.safety.rule import (
     rule_conditions,
     save_thresholds,
 )
-from socnav.safety.safe_policy import SafePolicy
+from socnav.safety.safe_policy import FallbackCounter, SafePolicy
 
 __all__ = [
     "CAUTIOUS_RADIUS_SCALE",
@@ -41,7 +44,9 @@ __all__ = [
     "RECORD_COLUMNS",
     "THRESHOLD_PRESETS",
     "CalibrationResult",
+    "CalibrationRun",
     "CautiousController",
+    "FallbackCounter",
     "NearestHuman",
     "RuleConditions",
     "SafePolicy",
@@ -54,6 +59,8 @@ __all__ = [
     "load_thresholds",
     "nearest_human",
     "proximity_score",
+    "rollout_scores",
     "rule_conditions",
     "save_thresholds",
+    "select_by_rollouts",
 ]

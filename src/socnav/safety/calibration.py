@@ -23,16 +23,18 @@
 **Objective -- a documented proxy.** Whether the fallback would have prevented a collision cannot be known
 without re-running the episode with it. We count a collision of a perturbed episode as *preventable* if the rule
 would have fired at one of the last ``lookback`` steps up to and including ``collision_step`` (default 4 steps =
-1 s at dt = 0.25 s). :func:`calibrate` chooses ``(lambda_ep, lambda_feat, lambda_prox, beta1)`` maximising the
+1 s at dt = 0.25 s), or, with ``lead > 0``, up to ``collision_step - lead`` only (firing at the contact step
+itself is too late when a human closes fast). :func:`calibrate` chooses ``(lambda_ep, lambda_feat, lambda_prox, beta1)`` maximising the
 fraction of perturbed-episode collisions flagged so, subject to the fallback-activation rate -- the fraction of
 steps of UNPERTURBED episodes where the rule fires -- being at most ``false_activation_budget``. Ties go to the
 lowest activation rate, then to the least eager rule (larger ``lambda_ep``, larger ``lambda_feat``, smaller
 ``lambda_prox``, smaller ``beta1``). ``inf`` for an uncertainty threshold means that condition is switched off.
 
 The proxy is optimistic (the cautious controller may still collide, or cause a later collision) and the records
-come from the plain policy's trajectories; the chosen thresholds must therefore be EVALUATED with real rollouts
-of :class:`~socnav.safety.SafePolicy` on held-out seeds (prevented collisions, SPEC section 5), never judged by the
-calibration score.
+come from the plain policy's trajectories. :func:`select_by_rollouts` is therefore the second stage: it replays the
+calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy candidates (e.g. one per proximity
+reading and lead) and keeps the one that prevents the most collisions within the false-activation budget, both
+measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5).
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
 of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the
@@ -56,9 +58,12 @@ __all__ = [
     "DEFAULT_BETA1_GRID",
     "RECORD_COLUMNS",
     "CalibrationResult",
+    "CalibrationRun",
     "calibrate",
     "collect_records",
     "evaluate_thresholds",
+    "rollout_scores",
+    "select_by_rollouts",
 ]
 
 RECORD_COLUMNS = ("episode", "step", "perturbed", "u_ep_heading", "u_feat", "gap", "relative_speed",
@@ -84,6 +89,7 @@ class CalibrationResult:
     lookback: int
     false_activation_budget: float
     frontier: pd.DataFrame = field(repr=False)
+    lead: int = 0
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -107,13 +113,21 @@ def _validate(records: pd.DataFrame) -> pd.DataFrame:
     return records.reset_index(drop=True)
 
 
-def _window_rows(records: pd.DataFrame, lookback: int) -> np.ndarray:
-    """Mask of the rows at the last `lookback` steps up to the collision of perturbed collision episodes."""
+def _window_rows(records: pd.DataFrame, lookback: int, lead: int = 0) -> np.ndarray:
+    """Mask of the rows of perturbed collision episodes at steps ``collision_step - lookback < step <=
+    collision_step - lead``: firing there leaves the fallback at least ``lead + 1`` actions before the contact."""
     collided = records["collided"].to_numpy(bool) & records["perturbed"].to_numpy(bool)
     step = records["step"].to_numpy(np.float64)
     end = records["collision_step"].to_numpy(np.float64)
     with np.errstate(invalid="ignore"):
-        return collided & (step <= end) & (step > end - lookback)
+        return collided & (step <= end - lead) & (step > end - lookback)
+
+
+def _check_lead(lookback: int, lead: int) -> None:
+    if lookback < 1:
+        raise ValueError(f"lookback must be >= 1, got {lookback}")
+    if not 0 <= lead < lookback:
+        raise ValueError(f"lead must be in [0, lookback - 1] = [0, {lookback - 1}], got {lead}")
 
 
 def _candidates(values: np.ndarray, focus: np.ndarray, n_quantiles: int, add_inf: bool) -> np.ndarray:
@@ -156,13 +170,15 @@ def _not_firing(k_ep: np.ndarray, k_feat: np.ndarray, n_ep: int, n_feat: int) ->
 
 # ------------------------------------------------------------------------------------------------ scoring
 
-def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback: int = 4) -> dict[str, float]:
+def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback: int = 4,
+                        lead: int = 0) -> dict[str, float]:
     """The calibration proxy of given thresholds on records (via the rule itself): ``prevented_fraction``,
     ``false_activation_rate``, ``n_collisions``, ``n_unperturbed_steps``."""
+    _check_lead(lookback, lead)
     records = _validate(records)
     fire = rule_conditions(records["u_ep_heading"], records["u_feat"], records["gap"],
                            _speed_column(records, thresholds.proximity), records["previous_gap"], thresholds).p_col
-    window = _window_rows(records, lookback)
+    window = _window_rows(records, lookback, lead)
     perturbed = records["perturbed"].to_numpy(bool)
     collisions = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
     flagged = records.loc[window & fire, "episode"].unique()
@@ -182,6 +198,7 @@ def calibrate(
     lookback: int = 4,
     proximity: Proximity = "abs-relative-speed",
     n_quantiles: int = 41,
+    lead: int = 0,
 ) -> CalibrationResult:
     """Choose the rule's thresholds on calibration records (see the module docstring for the format and proxy).
 
@@ -189,7 +206,8 @@ def calibrate(
     :param false_activation_budget: the most fallback activations allowed, as a fraction of unperturbed steps.
     :param grid: optional explicit candidates per key (``lambda_ep``, ``lambda_feat``, ``lambda_prox``,
         ``beta1``); the others are quantile-based (``beta1``: :data:`DEFAULT_BETA1_GRID`).
-    :param lookback: a collision counts as prevented if the rule fired in its last ``lookback`` steps.
+    :param lookback: a collision counts as prevented if the rule fired in its last ``lookback`` steps ...
+    :param lead: ... but not in its last ``lead`` ones (0: up to and including the step of the collision).
     :param proximity: speed term of ``c_prox`` (kept fixed, not searched).
     :param n_quantiles: quantile levels per candidate grid.
 
@@ -198,8 +216,7 @@ def calibrate(
     """
     if not 0.0 <= false_activation_budget <= 1.0:
         raise ValueError(f"false_activation_budget must be in [0, 1], got {false_activation_budget}")
-    if lookback < 1:
-        raise ValueError(f"lookback must be >= 1, got {lookback}")
+    _check_lead(lookback, lead)
     if grid is not None:
         unknown = set(grid) - set(GRID_KEYS)
         if unknown:
@@ -210,7 +227,7 @@ def calibrate(
     n_unperturbed = int(unperturbed.sum())
     if n_unperturbed == 0:
         raise ValueError("calibration records hold no unperturbed steps: the false-activation rate is undefined")
-    window = _window_rows(records, lookback)
+    window = _window_rows(records, lookback, lead)
     collision_ids = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
     n_collisions = len(collision_ids)
     if n_collisions == 0:
@@ -300,6 +317,7 @@ def calibrate(
         lookback=lookback,
         false_activation_budget=false_activation_budget,
         frontier=frontier,
+        lead=lead,
     )
 
 
@@ -381,3 +399,91 @@ def collect_records(
     frame["collision_step"] = frame["episode"].map(lambda e: outcomes[e][1]).astype(np.float64)
     ordered = [*RECORD_COLUMNS, "closing_speed"]
     return frame[ordered].sort_values(["episode", "step"], ignore_index=True)
+
+
+# ------------------------------------------------------------------------------------------------ validating
+
+@dataclass(frozen=True)
+class CalibrationRun:
+    """One configuration of calibration episodes: ``n_episodes`` episodes, episode k from seed ``seed + k``."""
+
+    config: Any
+    perturbed: bool
+    n_episodes: int
+    seed: int
+
+
+def _restart(estimator: Any) -> None:
+    restart = getattr(estimator, "restart", None)
+    if callable(restart):  # a seeded MC-dropout estimator: every candidate sees the same mask stream
+        restart()
+
+
+def rollout_scores(thresholds: Thresholds | None, policy: Any, estimator: Any, runs: Sequence[CalibrationRun],
+                   window: int = 4, n_envs: int = 40) -> dict[str, float]:
+    """Collisions and fallback activations of real rollouts on ``runs``: the plain ``policy`` if ``thresholds``
+    is None, else :class:`~socnav.safety.SafePolicy` with them.
+
+    :return: ``collisions`` (count over the perturbed runs' episodes), ``perturbed_episodes``,
+        ``false_activation_rate`` (fallback steps / steps over the unperturbed runs; 0 for the plain policy).
+    """
+    from socnav.envs.rollout import rollout_episodes
+    from socnav.safety.safe_policy import FallbackCounter, SafePolicy
+
+    collisions = perturbed_episodes = unperturbed_steps = fallback_steps = 0
+    for run in runs:
+        if thresholds is None:
+            records = rollout_episodes(policy, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs)
+            fallbacks = 0
+        else:
+            _restart(estimator)
+            safe = SafePolicy(policy, estimator, thresholds, run.config, window=window)
+            counter = FallbackCounter(safe)
+            records = rollout_episodes(safe, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs,
+                                       observer=counter)
+            fallbacks = sum(counter.per_episode(records["episode"]))
+        if run.perturbed:
+            collisions += int((records["outcome"] == "collision").sum())
+            perturbed_episodes += len(records)
+        else:
+            unperturbed_steps += int(records["length"].sum())
+            fallback_steps += fallbacks
+    return {"collisions": collisions, "perturbed_episodes": perturbed_episodes,
+            "false_activation_rate": fallback_steps / unperturbed_steps if unperturbed_steps else float("nan")}
+
+
+def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator: Any,
+                       runs: Sequence[CalibrationRun], false_activation_budget: float = 0.05, window: int = 4,
+                       n_envs: int = 40) -> tuple[Thresholds, pd.DataFrame]:
+    """The candidate that prevents the most collisions in REAL rollouts on the calibration ``runs``, among those
+    whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget``.
+
+    Prevented fraction = (plain-policy collisions - safe-policy collisions) / plain-policy collisions over the
+    perturbed runs' episodes (the same seeds), so a rule that causes collisions scores lower. Ties go to the lower
+    false-activation rate, then to the earlier candidate. If no candidate meets the budget, thresholds that never
+    fire are returned (the layer is then off). Deterministic given a deterministic policy and a seeded estimator.
+
+    :return: ``(thresholds, table)``, one table row per candidate with its measured scores and ``chosen``.
+    """
+    if not candidates:
+        raise ValueError("select_by_rollouts needs at least one candidate")
+    if not any(run.perturbed for run in runs) or all(run.perturbed for run in runs):
+        raise ValueError("runs need both perturbed (collisions to prevent) and unperturbed (false activations) runs")
+    plain = rollout_scores(None, policy, estimator, runs, window, n_envs)["collisions"]
+    rows = []
+    for index, thresholds in enumerate(candidates):
+        scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs)
+        prevented = (plain - scores["collisions"]) / plain if plain else float("nan")
+        rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": plain,
+                     "safe_collisions": scores["collisions"], "prevented_fraction": prevented,
+                     "false_activation_rate": scores["false_activation_rate"]})
+    table = pd.DataFrame(rows)
+    feasible = table["false_activation_rate"] <= false_activation_budget + 1e-12
+    table["chosen"] = False
+    if not feasible.any() or not plain:
+        return Thresholds.never(), table
+    ranked = table[feasible].sort_values(["prevented_fraction", "false_activation_rate", "candidate"],
+                                         ascending=[False, True, True])
+    best = int(ranked.index[0])
+    table.loc[best, "chosen"] = True
+    return candidates[best], table

@@ -28,7 +28,7 @@ from socnav.config import ConfigLike, load_config
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
 from socnav.safety.rule import NearestHuman, RuleConditions, Thresholds, load_thresholds, nearest_human, rule_conditions
 
-__all__ = ["SafePolicy"]
+__all__ = ["FallbackCounter", "SafePolicy"]
 
 SPEED, HEADING = 0, 1
 
@@ -171,3 +171,20 @@ class SafePolicy:
     def __repr__(self) -> str:
         return (f"SafePolicy(policy={type(self.policy).__name__}, estimator={type(self.estimator).__name__}, "
                 f"thresholds={self.thresholds!r}, window={self.window})")
+
+
+class FallbackCounter:
+    """Rollout observer (``socnav.envs.rollout.rollout_episodes(..., observer=...)``) counting, per episode id,
+    the steps on which ``safe_policy`` handed over to the fallback."""
+
+    def __init__(self, safe_policy: SafePolicy) -> None:
+        self.safe_policy = safe_policy
+        self.counts: dict[int, int] = {}
+
+    def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
+        for env in np.flatnonzero((episodes >= 0) & self.safe_policy.last_fallback):
+            self.counts[int(episodes[env])] = self.counts.get(int(episodes[env]), 0) + 1
+
+    def per_episode(self, episodes: Any) -> list[int]:
+        """Fallback steps of each of ``episodes`` (ids), 0 where it never acted."""
+        return [self.counts.get(int(e), 0) for e in episodes]

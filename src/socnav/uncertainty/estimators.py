@@ -313,6 +313,12 @@ class MCDropoutEstimator:
         self._map: tuple[np.ndarray, np.ndarray] = (np.zeros(0, bool), np.zeros(0))
 
     # ---- RNG handling ------------------------------------------------------------------------------------
+    def restart(self) -> None:
+        """Restart the seeded mask stream from ``seed`` (no-op without a seed): runs that each start with
+        ``restart()`` see the same sequence of dropout masks."""
+        if self.seed is not None:
+            self._rng_states = self._initial_states(int(self.seed))
+
     def _cuda_device(self) -> th.device | None:
         device = th.device(self.policy.device)
         return device if device.type == "cuda" else None
