@@ -323,6 +323,8 @@ def calibrate(
     episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
     budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
     proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
+    confidence: float = typer.Option(0.95, min=0.5, max=0.999, help="the budget must hold at this one-sided "
+                                                                     "confidence (0.5: the point estimate)"),
     out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
@@ -340,7 +342,7 @@ def calibrate(
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     with console.status("collecting calibration episodes, searching thresholds, replaying the candidates"):
         thresholds, report = calibrate_thresholds(policy, uncertainty, env_config.model_dump(mode="json"), episodes,
-                                                  budget, proximity)
+                                                  budget, proximity, confidence=confidence)
     save_thresholds(thresholds, out)
     write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
     table = Table(title=f"calibrated thresholds ({estimator}, false-activation budget {budget:.0%})")
@@ -351,7 +353,8 @@ def calibrate(
     table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
                   values["proximity"],
                   f"{report['prevented_fraction']:.0%} of {report['n_collisions']}",
-                  f"{report['false_activation_rate']:.1%}")
+                  f"{report['false_activation_rate']:.1%}"
+                  + (f" (≤ {report['false_activation_upper']:.1%})" if "false_activation_upper" in report else ""))
     console.print(table)
     if "note" in report:
         console.print(report["note"])

@@ -325,3 +325,13 @@ def test_unpaired_seeds_are_flagged(tmp_path):
     write_table_atomic(frame, path)
     text = build_report(root).read_text()
     assert "**Warning**" in text and "not paired" in text
+
+
+def test_calibrated_thresholds_switched_off_in_json_show_as_infinity(tmp_path):
+    root = _run_dir(tmp_path / "run", study=False, safety=False)
+    path = root / "calibrate" / "mc" / "calibration.json"
+    data = json.loads(path.read_text())
+    data["thresholds"] = {**data["thresholds"], "lambda_ep": None, "proximity": "closing-speed"}  # how inf is saved
+    path.write_text(json.dumps(data))
+    text = build_report(root).read_text()
+    assert "| MC-dropout | calibrated | ∞ | 0.25 | 1 | 0.25 | closing-speed | 0.8 | 0.01 |" in text

@@ -367,11 +367,45 @@ def test_select_by_rollouts_maximises_measured_prevention_within_the_budget():
     assert table.loc[1, "prevented_fraction"] == pytest.approx((n_plain - n_safe) / n_plain)
     assert table.loc[0, "prevented_fraction"] == 0.0 and table.loc[0, "false_activation_rate"] == 0.0
     assert table.loc[1, "false_activation_rate"] > 0.0
+    # two perturbation types: the score is the mean of the per-type fractions, not the pooled fraction
+    typed = [CalibrationRun(risky, True, 6, 11, "a"), CalibrationRun(risky, True, 3, 70, "b"), runs[1]]
+    _, table = select_by_rollouts(candidates, policy, estimator, typed, false_activation_budget=1.0, n_envs=3)
+    plain_b = rollout_episodes(policy, risky, 3, seed=70, n_envs=3)
+    guarded_b = rollout_episodes(SafePolicy(policy, estimator, ALWAYS, risky), risky, 3, seed=70, n_envs=3)
+    nb_plain, nb_safe = (plain_b["outcome"] == "collision").sum(), (guarded_b["outcome"] == "collision").sum()
+    assert nb_plain > 0
+    expected = ((n_plain - n_safe) / n_plain + (nb_plain - nb_safe) / nb_plain) / 2
+    assert table.loc[1, "prevented_fraction"] == pytest.approx(expected)
+    assert table.loc[1, "prevented_b"] == pytest.approx((nb_plain - nb_safe) / nb_plain)
     # a budget the firing rule exceeds in the unperturbed run: the never-firing candidate is all that is left
     chosen, table = select_by_rollouts(candidates, policy, estimator, runs, false_activation_budget=0.0, n_envs=3)
     assert chosen == Thresholds.never() and table["chosen"].tolist() == [True, False]
     with pytest.raises(ValueError, match="both perturbed"):
         select_by_rollouts(candidates, policy, estimator, runs[:1])
+
+
+def test_false_activation_standard_error_is_the_ratio_estimators():
+    from socnav.safety.calibration import _ratio_and_standard_error
+
+    counts, lengths = np.array([2.0, 0.0, 5.0, 1.0]), np.array([20.0, 10.0, 30.0, 20.0])
+    rate, se = _ratio_and_standard_error(counts, lengths)
+    assert rate == pytest.approx(8 / 80)
+    # hand: residuals c - 0.1 n = 0, -1, 2, -1; sum of squares 6; SE = sqrt(6 / (4 * 3)) / 20
+    assert se == pytest.approx(math.sqrt(6 / 12) / 20)
+    assert _ratio_and_standard_error(np.array([3.0]), np.array([10.0])) == (0.3, math.inf)
+    # the bound matters: a rate just under the budget, but uncertain, is not accepted at 95 %
+    risky = load_config({"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False})
+    runs = [CalibrationRun(risky, True, 3, 11), CalibrationRun(risky, False, 4, 40)]
+    policy, estimator = StraightController(risky), FakeEstimator(1.0, 0.0)
+    _, table = select_by_rollouts([ALWAYS], policy, estimator, runs, false_activation_budget=1.0, n_envs=3)
+    rate, upper = table.loc[0, "false_activation_rate"], table.loc[0, "false_activation_upper"]
+    assert 0 < rate < upper
+    chosen, _ = select_by_rollouts([ALWAYS], policy, estimator, runs, false_activation_budget=(rate + upper) / 2,
+                                   n_envs=3)
+    assert chosen == Thresholds.never()
+    chosen, _ = select_by_rollouts([ALWAYS], policy, estimator, runs, false_activation_budget=(rate + upper) / 2,
+                                   n_envs=3, confidence=0.5)
+    assert chosen == ALWAYS
 
 
 def test_fallback_counter_counts_the_fallback_steps_of_each_episode():

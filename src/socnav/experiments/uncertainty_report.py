@@ -901,7 +901,10 @@ def calibration_section(context: ReportContext) -> str:
     rows = []
     for estimator in _ordered(found, ESTIMATOR_ORDER):
         data = found[estimator]
-        thresholds = data.get("thresholds") if isinstance(data.get("thresholds"), dict) else {}
+        thresholds = dict(data.get("thresholds")) if isinstance(data.get("thresholds"), dict) else {}
+        for key in ("lambda_ep", "lambda_feat"):  # JSON has no infinity: null is an uncertainty condition that is off
+            if key in thresholds and thresholds[key] is None:
+                thresholds[key] = math.inf
         row = {"estimator": estimator, "source": "calibrated", **{k: thresholds.get(k) for k in keys},
                "proximity": thresholds.get("proximity"), "prevented_fraction": data.get("prevented_fraction"),
                "false_activation_rate": data.get("false_activation_rate")}

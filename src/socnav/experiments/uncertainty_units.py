@@ -78,20 +78,24 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 
 #: Leads searched by the calibration proxy: the rule must fire at least this many steps before the collision step.
 CALIBRATION_LEADS = (0, 1, 2)
+#: The proxy search also runs at these fractions of the budget: candidates with a margin below it.
+PROXY_BUDGET_SHARES = (1.0, 0.5)
 
 
 def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
-                         proximity: str = "both", window: int = 4) -> tuple[Any, dict[str, Any]]:
+                         proximity: str = "both", window: int = 4,
+                         confidence: float = 0.95) -> tuple[Any, dict[str, Any]]:
     """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
     `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
 
     Two stages. (1) The proxy search (`socnav.safety.calibrate`) on per-step records of the plain policy proposes
-    one candidate per proximity variant (`proximity`: one of `PROXIMITY_VARIANTS`, or `both`) and lead in
-    `CALIBRATION_LEADS`: the proxy alone rewards a rule that fires at the very step of the contact, too late for
-    the fallback when humans close fast, so candidates that must fire 1 or 2 steps earlier compete too.
-    (2) `socnav.safety.select_by_rollouts` replays the same calibration episodes with each candidate's
-    `SafePolicy` and keeps the one that prevents the most collisions within the false-activation budget, both
-    MEASURED in those rollouts.
+    one candidate per proximity variant (`proximity`: one of `PROXIMITY_VARIANTS`, or `both`), lead in
+    `CALIBRATION_LEADS` and proxy budget (`PROXY_BUDGET_SHARES` of `budget`): the proxy alone rewards a rule that
+    fires at the very step of the contact, too late for the fallback when humans close fast, so candidates that
+    must fire 1 or 2 steps earlier compete too. (2) `socnav.safety.select_by_rollouts` replays the same
+    calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
+    (mean over the perturbation types) among those whose false-activation rate is within `budget` at
+    `confidence` (one-sided upper bound), both MEASURED in those rollouts.
 
     :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
     """
@@ -100,19 +104,20 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
         raise ValueError(f"proximity must be one of: both, {', '.join(PROXIMITY_VARIANTS)}; got {proximity!r}")
     variants = PROXIMITY_VARIANTS if proximity == "both" else (proximity,)
-    configs = [(False, load_config(env))]
-    configs += [(True, _perturbed(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
+    configs = [("unperturbed", load_config(env))]
+    configs += [(kind, _perturbed(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
                 for strength in strengths]
     n_envs = min(episodes, 40)
-    runs = [CalibrationRun(config, perturbed, episodes, CALIBRATION_SEED + index * episodes)
-            for index, (perturbed, config) in enumerate(configs)]
+    runs = [CalibrationRun(config, kind != "unperturbed", episodes, CALIBRATION_SEED + index * episodes, kind)
+            for index, (kind, config) in enumerate(configs)]
     parts = [collect_records(policy, estimator, run.config, episodes, seed=run.seed, perturbed=run.perturbed,
                              window=window, n_envs=n_envs, episode_offset=index * episodes)
              for index, run in enumerate(runs)]
     records = pd.concat(parts, ignore_index=True)
     common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
               "false_activation_budget": budget, "episodes_per_configuration": episodes,
-              "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS)}
+              "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS),
+              "proxy_budgets": [share * budget for share in PROXY_BUDGET_SHARES], "confidence": confidence}
     if not records.loc[records["perturbed"], "collided"].any():
         # Nothing to learn from: the layer could only cost false activations, so it is switched off.
         thresholds = Thresholds.never()
@@ -120,22 +125,26 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                             "false_activation_rate": 0.0, "n_collisions": 0,
                             "note": "no collision in the calibration episodes: thresholds that never fire", **common}
     candidates, proxies = [], []
-    for variant in variants:
-        for lead in CALIBRATION_LEADS:
-            result = calibrate(records, false_activation_budget=budget, proximity=variant, lead=lead)
-            if result.thresholds not in candidates:
-                candidates.append(result.thresholds)
-                proxies.append({"lead": lead, "proxy_prevented_fraction": result.prevented_fraction,
-                                "proxy_false_activation_rate": result.false_activation_rate})
-    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs)
+    for share in PROXY_BUDGET_SHARES:
+        for variant in variants:
+            for lead in CALIBRATION_LEADS:
+                result = calibrate(records, false_activation_budget=share * budget, proximity=variant, lead=lead)
+                if result.thresholds not in candidates:
+                    candidates.append(result.thresholds)
+                    proxies.append({"lead": lead, "proxy_budget": share * budget,
+                                    "proxy_prevented_fraction": result.prevented_fraction,
+                                    "proxy_false_activation_rate": result.false_activation_rate})
+    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence)
     table = pd.concat([table, pd.DataFrame(proxies)], axis=1)
     chosen = table[table["chosen"]]
     report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
               "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
               "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
+              "false_activation_upper": float(chosen["false_activation_upper"].iloc[0]) if len(chosen) else 0.0,
               "candidates": table.to_dict(orient="records"), **common}
     if not len(chosen):
-        report["note"] = "no candidate met the false-activation budget in the calibration rollouts: thresholds that never fire"
+        report["note"] = ("no candidate met the false-activation budget in the calibration rollouts (at the "
+                          f"{confidence:.0%} upper bound): thresholds that never fire")
     return thresholds, report
 
 

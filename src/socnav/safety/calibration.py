@@ -46,6 +46,7 @@ histograms, so large grids are cheap.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from statistics import NormalDist
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -405,12 +406,14 @@ def collect_records(
 
 @dataclass(frozen=True)
 class CalibrationRun:
-    """One configuration of calibration episodes: ``n_episodes`` episodes, episode k from seed ``seed + k``."""
+    """One configuration of calibration episodes: ``n_episodes`` episodes, episode k from seed ``seed + k``;
+    ``group`` names the perturbation type (runs of one type are pooled when scoring)."""
 
     config: Any
     perturbed: bool
     n_episodes: int
     seed: int
+    group: str = "perturbed"
 
 
 def _restart(estimator: Any) -> None:
@@ -420,67 +423,98 @@ def _restart(estimator: Any) -> None:
 
 
 def rollout_scores(thresholds: Thresholds | None, policy: Any, estimator: Any, runs: Sequence[CalibrationRun],
-                   window: int = 4, n_envs: int = 40) -> dict[str, float]:
+                   window: int = 4, n_envs: int = 40) -> dict[str, Any]:
     """Collisions and fallback activations of real rollouts on ``runs``: the plain ``policy`` if ``thresholds``
     is None, else :class:`~socnav.safety.SafePolicy` with them.
 
-    :return: ``collisions`` (count over the perturbed runs' episodes), ``perturbed_episodes``,
+    :return: ``collisions`` (dict group -> count over the perturbed runs' episodes of that group),
         ``false_activation_rate`` (fallback steps / steps over the unperturbed runs; 0 for the plain policy).
     """
     from socnav.envs.rollout import rollout_episodes
     from socnav.safety.safe_policy import FallbackCounter, SafePolicy
 
-    collisions = perturbed_episodes = unperturbed_steps = fallback_steps = 0
+    collisions: dict[str, int] = {}
+    lengths: list[np.ndarray] = []
+    fallbacks_per_episode: list[np.ndarray] = []
     for run in runs:
         if thresholds is None:
             records = rollout_episodes(policy, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs)
-            fallbacks = 0
+            fallbacks = np.zeros(len(records))
         else:
             _restart(estimator)
             safe = SafePolicy(policy, estimator, thresholds, run.config, window=window)
             counter = FallbackCounter(safe)
             records = rollout_episodes(safe, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs,
                                        observer=counter)
-            fallbacks = sum(counter.per_episode(records["episode"]))
+            fallbacks = np.asarray(counter.per_episode(records["episode"]), dtype=np.float64)
         if run.perturbed:
-            collisions += int((records["outcome"] == "collision").sum())
-            perturbed_episodes += len(records)
+            collisions[run.group] = collisions.get(run.group, 0) + int((records["outcome"] == "collision").sum())
         else:
-            unperturbed_steps += int(records["length"].sum())
-            fallback_steps += fallbacks
-    return {"collisions": collisions, "perturbed_episodes": perturbed_episodes,
-            "false_activation_rate": fallback_steps / unperturbed_steps if unperturbed_steps else float("nan")}
+            lengths.append(records["length"].to_numpy(np.float64))
+            fallbacks_per_episode.append(fallbacks)
+    rate, standard_error = _ratio_and_standard_error(
+        np.concatenate(fallbacks_per_episode) if fallbacks_per_episode else np.zeros(0),
+        np.concatenate(lengths) if lengths else np.zeros(0))
+    return {"collisions": collisions, "false_activation_rate": rate, "false_activation_se": standard_error}
+
+
+def _ratio_and_standard_error(counts: np.ndarray, lengths: np.ndarray) -> tuple[float, float]:
+    """Steps-weighted rate ``sum(counts) / sum(lengths)`` over episodes and its standard error, episodes being the
+    independent units (steps of one episode are not): the ratio estimator's linearised variance,
+    ``SE^2 = sum((c_i - r n_i)^2) / (m (m - 1) mean(n)^2)``."""
+    m, total = len(lengths), float(lengths.sum())
+    if m == 0 or total == 0:
+        return float("nan"), float("nan")
+    rate = float(counts.sum()) / total
+    if m < 2:
+        return rate, float("inf")
+    residual = counts - rate * lengths
+    return rate, float(np.sqrt((residual ** 2).sum() / (m * (m - 1))) / lengths.mean())
 
 
 def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator: Any,
                        runs: Sequence[CalibrationRun], false_activation_budget: float = 0.05, window: int = 4,
-                       n_envs: int = 40) -> tuple[Thresholds, pd.DataFrame]:
+                       n_envs: int = 40, confidence: float = 0.95) -> tuple[Thresholds, pd.DataFrame]:
     """The candidate that prevents the most collisions in REAL rollouts on the calibration ``runs``, among those
-    whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget``.
+    whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget`` with
+    ``confidence``: its one-sided upper bound ``rate + z * SE`` (normal approximation, episodes as the independent
+    units; ``confidence = 0.5`` uses the point estimate) must not exceed the budget. A few dozen calibration
+    episodes estimate the rate only roughly; without the margin, a rule chosen at the edge of the budget exceeds
+    it on new episodes about half of the time.
 
-    Prevented fraction = (plain-policy collisions - safe-policy collisions) / plain-policy collisions over the
-    perturbed runs' episodes (the same seeds), so a rule that causes collisions scores lower. Ties go to the lower
+    Per perturbation type (``CalibrationRun.group``) with plain-policy collisions, prevented fraction =
+    (plain collisions - safe collisions) / plain collisions on the same episode seeds (a rule that causes
+    collisions scores lower); the score is the MEAN over those types, so that every type counts equally, as in
+    Table 3 (pooled counts would let the type with the most collisions decide). Ties go to the lower
     false-activation rate, then to the earlier candidate. If no candidate meets the budget, thresholds that never
     fire are returned (the layer is then off). Deterministic given a deterministic policy and a seeded estimator.
 
-    :return: ``(thresholds, table)``, one table row per candidate with its measured scores and ``chosen``.
+    :return: ``(thresholds, table)``: one row per candidate with ``prevented_fraction`` (the score), one
+        ``prevented_<group>`` column per type, ``false_activation_rate``, ``false_activation_upper`` and ``chosen``.
     """
     if not candidates:
         raise ValueError("select_by_rollouts needs at least one candidate")
+    if not 0.5 <= confidence < 1.0:
+        raise ValueError(f"confidence must be in [0.5, 1), got {confidence}")
+    z = NormalDist().inv_cdf(confidence)
     if not any(run.perturbed for run in runs) or all(run.perturbed for run in runs):
         raise ValueError("runs need both perturbed (collisions to prevent) and unperturbed (false activations) runs")
     plain = rollout_scores(None, policy, estimator, runs, window, n_envs)["collisions"]
+    groups = [group for group, count in plain.items() if count > 0]
     rows = []
     for index, thresholds in enumerate(candidates):
         scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs)
-        prevented = (plain - scores["collisions"]) / plain if plain else float("nan")
-        rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": plain,
-                     "safe_collisions": scores["collisions"], "prevented_fraction": prevented,
-                     "false_activation_rate": scores["false_activation_rate"]})
+        per_group = {group: (plain[group] - scores["collisions"][group]) / plain[group] for group in groups}
+        rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": sum(plain.values()),
+                     "safe_collisions": sum(scores["collisions"].values()),
+                     "prevented_fraction": float(np.mean(list(per_group.values()))) if groups else float("nan"),
+                     **{f"prevented_{group}": value for group, value in per_group.items()},
+                     "false_activation_rate": scores["false_activation_rate"],
+                     "false_activation_upper": scores["false_activation_rate"] + z * scores["false_activation_se"]})
     table = pd.DataFrame(rows)
-    feasible = table["false_activation_rate"] <= false_activation_budget + 1e-12
+    feasible = table["false_activation_upper"] <= false_activation_budget + 1e-12
     table["chosen"] = False
-    if not feasible.any() or not plain:
+    if not feasible.any() or not groups:
         return Thresholds.never(), table
     ranked = table[feasible].sort_values(["prevented_fraction", "false_activation_rate", "candidate"],
                                          ascending=[False, True, True])
