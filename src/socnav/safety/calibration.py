@@ -479,8 +479,8 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget`` with
     ``confidence``: its one-sided upper bound ``rate + z * SE`` (normal approximation, episodes as the independent
     units; ``confidence = 0.5`` uses the point estimate) must not exceed the budget. A few dozen calibration
-    episodes estimate the rate only roughly; without the margin, a rule chosen at the edge of the budget exceeds
-    it on new episodes about half of the time.
+    episodes estimate the rate only roughly; without the margin, a rule chosen at the edge of the budget can
+    exceed it on new episodes.
 
     Per perturbation type (``CalibrationRun.group``) with plain-policy collisions, prevented fraction =
     (plain collisions - safe collisions) / plain collisions on the same episode seeds (a rule that causes
