@@ -346,16 +346,19 @@ def calibrate(
     save_thresholds(thresholds, out)
     write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
     table = Table(title=f"calibrated thresholds ({estimator}, false-activation budget {budget:.0%})")
-    for column in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1", "c_prox", "prevented collisions",
-                   "false activations"):
-        table.add_column(column, justify="right")
+    for column in ("λ_ep", "λ_f", "λ_prox", "β1", "c_prox", "prevented", "collisions", "false act."):
+        table.add_column(column, justify="right", overflow="fold")
     values = thresholds.model_dump()
     table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
                   values["proximity"],
-                  f"{report['prevented_fraction']:.0%} of {report['n_collisions']}",
+                  "–" if report["prevented_fraction"] != report["prevented_fraction"] else f"{report['prevented_fraction']:.0%}",
+                  str(report["n_collisions"]),
                   f"{report['false_activation_rate']:.1%}"
                   + (f" (≤ {report['false_activation_upper']:.1%})" if "false_activation_upper" in report else ""))
     console.print(table)
+    console.print("prevented: share of the plain policy's calibration collisions prevented in the replayed episodes "
+                  "(mean over perturbation types); false act.: share of unperturbed steps where the fallback acted "
+                  f"(≤ its {confidence:.0%} upper bound); every candidate in {out.with_suffix('.report.json')}")
     if "note" in report:
         console.print(report["note"])
     console.print(f"thresholds: {out}  (use with --safety {out})")
