@@ -329,6 +329,7 @@ def calibrate(
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
     import json
+    import math
 
     from socnav.experiments.uncertainty_units import calibrate_thresholds
     from socnav.io import write_text_atomic
@@ -351,7 +352,7 @@ def calibrate(
     values = thresholds.model_dump()
     table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
                   values["proximity"],
-                  "–" if report["prevented_fraction"] != report["prevented_fraction"] else f"{report['prevented_fraction']:.0%}",
+                  "–" if math.isnan(report["prevented_fraction"]) else f"{report['prevented_fraction']:.0%}",
                   str(report["n_collisions"]),
                   f"{report['false_activation_rate']:.1%}"
                   + (f" (≤ {report['false_activation_upper']:.1%})" if "false_activation_upper" in report else ""))

@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from socnav.config import load_config
@@ -99,7 +98,8 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
 
     :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
     """
-    from socnav.safety import PROXIMITY_VARIANTS, CalibrationRun, Thresholds, calibrate, collect_records, select_by_rollouts
+    from socnav.safety import (PROXIMITY_VARIANTS, CalibrationRun, Thresholds, calibrate, collect_records,
+                               select_by_rollouts)
 
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
         raise ValueError(f"proximity must be one of: both, {', '.join(PROXIMITY_VARIANTS)}; got {proximity!r}")

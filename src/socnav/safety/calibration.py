@@ -24,8 +24,8 @@
 without re-running the episode with it. We count a collision of a perturbed episode as *preventable* if the rule
 would have fired at one of the last ``lookback`` steps up to and including ``collision_step`` (default 4 steps =
 1 s at dt = 0.25 s), or, with ``lead > 0``, up to ``collision_step - lead`` only (firing at the contact step
-itself is too late when a human closes fast). :func:`calibrate` chooses ``(lambda_ep, lambda_feat, lambda_prox, beta1)`` maximising the
-fraction of perturbed-episode collisions flagged so, subject to the fallback-activation rate -- the fraction of
+itself is too late when a human closes fast). :func:`calibrate` chooses ``(lambda_ep, lambda_feat, lambda_prox,
+beta1)`` maximising the fraction of perturbed-episode collisions flagged so, subject to the fallback-activation rate -- the fraction of
 steps of UNPERTURBED episodes where the rule fires -- being at most ``false_activation_budget``. Ties go to the
 lowest activation rate, then to the least eager rule (larger ``lambda_ep``, larger ``lambda_feat``, smaller
 ``lambda_prox``, smaller ``beta1``). ``inf`` for an uncertainty threshold means that condition is switched off.
@@ -33,8 +33,8 @@ lowest activation rate, then to the least eager rule (larger ``lambda_ep``, larg
 The proxy is optimistic (the cautious controller may still collide, or cause a later collision) and the records
 come from the plain policy's trajectories. :func:`select_by_rollouts` is therefore the second stage: it replays the
 calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy candidates (e.g. one per proximity
-reading and lead) and keeps the one that prevents the most collisions within the false-activation budget, both
-measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5).
+reading and lead) and keeps the one that prevents the most collisions (mean over perturbation types) among those
+whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5).
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
 of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the

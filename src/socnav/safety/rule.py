@@ -125,7 +125,7 @@ def _format_error(error: ValidationError) -> str:
         if item["type"] == "extra_forbidden":
             message = f"unknown field; allowed fields: {allowed}"
         elif item["type"] == "missing":
-            message = f"missing; required fields: lambda_ep, lambda_feat, lambda_prox, beta1 (optional: proximity)"
+            message = "missing; required fields: lambda_ep, lambda_feat, lambda_prox, beta1 (optional: proximity)"
         lines.append(f"  - {field}: {message} (got {item.get('input')!r})")
     return "\n".join(lines)
 
