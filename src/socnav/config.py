@@ -7,18 +7,122 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal, Mapping, Union
+from typing import Any, Literal, Mapping, Sequence, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_validator
 
 
 class ConfigError(ValueError):
     """A configuration value is wrong; the message names the field and what is allowed."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+# ---------------------------------------------------------------------------------------------------- YAML input
+
+#: socnav's config, experiment, preset and threshold files are a few KB: these limits leave ample room while
+#: bounding what a crafted file can make the reader build (a 409-byte "billion laughs" alias bomb expands to
+#: ~10^9 values, whose repr in an error message alone took ~1 GB).
+YAML_MAX_BYTES = 1 << 20
+YAML_MAX_NODES = 100_000
+
+
+class YAMLTooLargeError(yaml.YAMLError):
+    """A YAML input is too large (bytes, or values once its aliases are expanded), recursive or too deeply nested.
+
+    A `yaml.YAMLError`, so every reader's existing YAML error handling reports it.
+    """
+
+
+def _expanded_size(root: yaml.Node) -> int:
+    """Number of nodes of the document with every alias expanded (a DAG walk, memoised: linear in its size)."""
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, finished = stack.pop()
+        key = id(node)
+        if isinstance(node, yaml.MappingNode):
+            children = [item for pair in node.value for item in pair]
+        elif isinstance(node, yaml.SequenceNode):
+            children = list(node.value)
+        else:
+            children = []
+        if finished:
+            on_path.discard(key)
+            sizes[key] = 1 + sum(sizes[id(child)] for child in children)
+            if sizes[key] > YAML_MAX_NODES:
+                raise YAMLTooLargeError(f"its aliases (*name) expand to more than {YAML_MAX_NODES:,} values "
+                                        "(an alias bomb?)")
+            continue
+        if key in sizes:
+            continue
+        if key in on_path:
+            raise YAMLTooLargeError("an alias (*name) refers to a node that contains it (recursive anchors)")
+        on_path.add(key)
+        stack.append((node, True))
+        stack.extend((child, False) for child in children if id(child) not in sizes)
+    return sizes[id(root)]
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` that checks the expanded size of a document before constructing any Python object."""
+
+    def compose_document(self) -> yaml.Node | None:
+        node = super().compose_document()
+        if node is not None:
+            _expanded_size(node)
+        return node
+
+
+def safe_load_yaml(text: str) -> Any:
+    """`yaml.safe_load` for untrusted input: at most `YAML_MAX_BYTES` characters, at most `YAML_MAX_NODES` values
+    with aliases expanded, no recursive anchors, nesting within Python's recursion limit.
+
+    :raises YAMLTooLargeError: (a `yaml.YAMLError`) when a bound is exceeded; other `yaml.YAMLError` for bad YAML.
+    """
+    if len(text) > YAML_MAX_BYTES:
+        raise YAMLTooLargeError(f"{len(text):,} characters; socnav reads YAML of at most {YAML_MAX_BYTES:,}")
+    try:
+        return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 -- a SafeLoader subclass
+    except RecursionError:
+        raise YAMLTooLargeError("nested too deeply") from None
+
+
+def read_yaml_file(path: Path) -> Any:
+    """`safe_load_yaml` of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
+    size = Path(path).stat().st_size
+    if size > YAML_MAX_BYTES:
+        raise YAMLTooLargeError(f"{size:,} bytes; socnav reads YAML files of at most {YAML_MAX_BYTES:,}")
+    return safe_load_yaml(Path(path).read_text())
+
+
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """The end of an error message about a YAML input: 'is refused: ...' or 'is not valid YAML: ...'."""
+    kind = "is refused" if isinstance(error, YAMLTooLargeError) else "is not valid YAML"
+    return f"{kind}: {error}"
+
+
+def short_repr(value: Any, limit: int = 200) -> str:
+    """A repr for error messages of at most `limit` characters; `reprlib` elides the inside of large containers
+    without building their full repr, so a huge input costs nothing to report."""
+    import reprlib
+
+    shortener = reprlib.Repr()
+    shortener.maxstring = shortener.maxother = limit
+    text = shortener.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+class StrictModel(BaseModel):
+    """Base of socnav's validated settings (env, experiments, thresholds, hyperparameters): unknown fields are
+    rejected and every float must be finite (NaN and +-inf are refused by pydantic with the field named). Counts
+    are declared ``StrictInt``, so ``true`` is not read as 1 and ``2.5`` is not truncated."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class _Strict(StrictModel):
+    model_config = ConfigDict(validate_assignment=True, frozen=False)
 
 
 Range = tuple[float, float]
@@ -37,68 +141,94 @@ def _check_range(value: Range, low: float, high: float | None = None) -> Range:
 class OrcaConfig(_Strict):
     """ORCA parameters shared by humans and the ORCA robot controller (RVO2 semantics)."""
 
-    time_horizon: float = Field(5.0, gt=0, description="seconds")
-    neighbor_dist: float = Field(10.0, gt=0, description="metres")
-    max_neighbors: int = Field(10, ge=0)
+    time_horizon: float = Field(5.0, gt=0, le=60, description="seconds")
+    neighbor_dist: float = Field(10.0, gt=0, le=1000, description="metres")
+    max_neighbors: StrictInt = Field(10, ge=0, le=1000)
 
 
 class RewardConfig(_Strict):
     """Weights of the socially integrated reward (SPEC section 2); every term can be switched off with 0."""
 
-    goal: float = Field(5.0, ge=0, description="+goal when the robot reaches its goal")
-    collision: float = Field(5.0, ge=0, description="-collision on contact with a human")
-    time: float = Field(0.5, ge=0, description="-time * dt every step (per second of episode)")
-    progress: float = Field(1.0, ge=0, description="progress * (d_goal(t-1) - d_goal(t)), per metre")
-    personal_space: float = Field(0.5, ge=0, description="-w * (1 - gap / r_prox) per intruded human")
-    disturbance: float = Field(0.25, ge=0, description="-w * |v_i - v_i^without robot| / v_pref_i per human")
-    social_radius: float = Field(3.0, ge=0, description="metres; humans farther than this do not score")
+    goal: float = Field(5.0, ge=0, le=1000, description="+goal when the robot reaches its goal")
+    collision: float = Field(5.0, ge=0, le=1000, description="-collision on contact with a human")
+    time: float = Field(0.5, ge=0, le=1000, description="-time * dt every step (per second of episode)")
+    progress: float = Field(1.0, ge=0, le=1000, description="progress * (d_goal(t-1) - d_goal(t)), per metre")
+    personal_space: float = Field(0.5, ge=0, le=1000, description="-w * (1 - gap / r_prox) per intruded human")
+    disturbance: float = Field(0.25, ge=0, le=1000, description="-w * |v_i - v_i^without robot| / v_pref_i per human")
+    social_radius: float = Field(3.0, ge=0, le=100, description="metres; humans farther than this do not score")
 
 
 class PerturbationConfig(_Strict):
     """Perturbations of SPEC section 2; all zero / one means an unperturbed world."""
 
-    observation_noise: float = Field(0.0, ge=0, description="std of N(0, s^2) added to every real observation element")
-    heading_noise: float = Field(0.0, ge=0, description="std (rad) of N(0, s^2) added to the heading change")
-    speed_noise: float = Field(0.0, ge=0, le=1, description="speed multiplied by U(1 - s, 1); s in [0, 1]")
-    human_speed_factor: float = Field(1.0, gt=0, description="every human's v_pref multiplied by this factor")
-    total_agents: int | None = Field(
-        None, ge=2, description="'more humans': position swap becomes circle crossing with this many agents in total"
+    observation_noise: float = Field(
+        0.0, ge=0, le=10, description="std of N(0, s^2) added to every real observation element"
     )
+    heading_noise: float = Field(
+        0.0, ge=0, le=2 * math.pi,
+        description="std (rad) of N(0, s^2) added to the heading change; beyond 2 pi the heading is random anyway",
+    )
+    speed_noise: float = Field(
+        0.0, ge=0, description="speed multiplied by U(1 - s, 1); values above 1 are clipped to 1 (SPEC section 2)"
+    )
+    human_speed_factor: float = Field(1.0, gt=0, le=20, description="every human's v_pref multiplied by this factor")
+    total_agents: StrictInt | None = Field(
+        None, ge=2, le=65,
+        description="'more humans': position swap becomes circle crossing with this many agents in total",
+    )
+
+    @field_validator("speed_noise")
+    @classmethod
+    def _clip_speed_noise(cls, value: float) -> float:
+        # SPEC section 2: sigma_vel is clipped to [0, 1], so the paper's grid 0 ... 2 is valid (s > 1 acts as s = 1).
+        return min(value, 1.0)
 
 
 class EnvConfig(_Strict):
     """Everything that defines a socnav world and its Gymnasium environment."""
 
     scenario: str = Field("circle_crossing", description="registered scenario name")
-    n_humans: Union[int, tuple[int, int], None] = Field(
+    n_humans: Union[StrictInt, tuple[StrictInt, StrictInt], None] = Field(
         None, description="humans per episode: an int, a [min, max] range drawn per episode, or null for the scenario default"
     )
-    max_humans: int = Field(10, ge=1, le=64, description="rows of the padded 'humans' observation")
-    time_step: float = Field(0.25, gt=0, le=1.0, description="seconds per step")
+    max_humans: StrictInt = Field(10, ge=1, le=64, description="rows of the padded 'humans' observation")
+    time_step: float = Field(0.25, ge=0.01, le=1.0, description="seconds per step (0.01 s ... 1 s)")
 
-    robot_radius: float = Field(0.3, gt=0)
-    human_radius: float = Field(0.3, gt=0)
+    robot_radius: float = Field(0.3, gt=0, le=2, description="metres")
+    human_radius: float = Field(0.3, gt=0, le=2, description="metres")
     preferred_speed: Range = Field((0.5, 1.0), description="v_pref ~ U[min, max] m/s for every agent")
     personal_space: Range = Field((0.3, 0.7), description="r_prox ~ U[min, max] m, from the body boundary")
     cooperation: Range = Field((0.25, 0.5), description="human share of avoidance w.r.t. the robot ~ U[min, max]")
     robot_visible: bool = Field(True, description="False: humans ignore the robot (out-of-distribution variant)")
+    inattentive_share: float = Field(
+        0.3, ge=0, le=1,
+        description="probability that a human, drawn per human and episode, plans as if the robot were not there",
+    )
+    human_fov_deg: float = Field(
+        200.0, gt=0, le=360,
+        description="attentive humans react to the robot once it enters this view cone (degrees; 360 = always)",
+    )
     max_heading_change: float = Field(math.pi / 6, gt=0, le=math.pi, description="rad per step")
     initial_heading: Literal["random", "goal"] = Field(
         "random", description="robot heading at the start: uniform in [-pi, pi) or pointing at its goal"
     )
 
-    circle_radius: float = Field(7.0, gt=0, description="metres, circle scenarios and position swap")
-    circle_jitter: float = Field(0.5, ge=0, description="circle crossing: start/goal jitter (uniform +- m)")
-    swap_jitter: float = Field(0.0, ge=0, description="position swap: std (m) of start/goal jitter")
-    square_size: float = Field(14.0, gt=0, description="random scenario: side of the square (m)")
+    circle_radius: float = Field(7.0, gt=0, le=100, description="metres, circle scenarios and position swap")
+    circle_jitter: float = Field(0.5, ge=0, le=10, description="circle crossing: start/goal jitter (uniform +- m)")
+    swap_jitter: float = Field(0.0, ge=0, le=10, description="position swap: std (m) of start/goal jitter")
+    square_size: float = Field(14.0, gt=0, le=200, description="random scenario: side of the square (m)")
 
-    goal_tolerance: float = Field(0.3, gt=0, description="success when the robot centre is this close to its goal")
-    timeout_factor: float = Field(2.0, gt=0, description="time limit = factor * |start - goal| / v_pref + margin")
-    timeout_margin: float = Field(10.0, ge=0, description="seconds")
+    goal_tolerance: float = Field(
+        0.3, gt=0, le=10, description="success when the robot centre is this close to its goal"
+    )
+    timeout_factor: float = Field(
+        2.0, gt=0, le=100, description="time limit = factor * |start - goal| / v_pref + margin"
+    )
+    timeout_margin: float = Field(10.0, ge=0, le=3600, description="seconds")
     robot_orca_share: float = Field(
         1.0, ge=0, le=1, description="share of avoidance the ORCA robot takes (1: assumes nothing of the humans)"
     )
-    robot_orca_safety_margin: float = Field(0.1, ge=0, description="metres the ORCA robot adds to human radii")
+    robot_orca_safety_margin: float = Field(0.1, ge=0, le=2, description="metres the ORCA robot adds to human radii")
 
     orca: OrcaConfig = Field(default_factory=OrcaConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
@@ -107,7 +237,7 @@ class EnvConfig(_Strict):
     @field_validator("preferred_speed")
     @classmethod
     def _speed_range(cls, value: Range) -> Range:
-        _check_range(value, 0.0)
+        _check_range(value, 0.0, 10.0)  # m/s: a running human is ~3-5 m/s
         if value[0] <= 0:
             raise ValueError("preferred speeds must be > 0")
         return value
@@ -115,7 +245,7 @@ class EnvConfig(_Strict):
     @field_validator("personal_space")
     @classmethod
     def _space_range(cls, value: Range) -> Range:
-        return _check_range(value, 0.0)
+        return _check_range(value, 0.0, 5.0)  # metres beyond the body: proxemics' public zone starts at ~3.7 m
 
     @field_validator("cooperation")
     @classmethod
@@ -165,6 +295,17 @@ class EnvConfig(_Strict):
 ConfigLike = Union[EnvConfig, Mapping[str, Any], str, Path, None]
 
 
+def unknown_field_message(name: str, allowed: Sequence[str]) -> str:
+    """'unknown field; did you mean n_humans?' (difflib's closest allowed names), or the allowed names when none
+    is close (a short list in full; a long one is not what a user with a typo wants to read)."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(allowed), n=3, cutoff=0.6)
+    if close:
+        return f"unknown field; did you mean {' or '.join(close)}?"
+    return f"unknown field; allowed fields here: {', '.join(allowed)}"
+
+
 def _format_validation_error(error: ValidationError, source: str) -> str:
     lines = [f"invalid socnav config ({source}):"]
     for item in error.errors():
@@ -172,9 +313,9 @@ def _format_validation_error(error: ValidationError, source: str) -> str:
         message = item["msg"]
         if item["type"] == "extra_forbidden":
             parent = _model_at(EnvConfig, item["loc"][:-1])
-            allowed = ", ".join(parent.model_fields) if parent is not None else "see the docs"
-            message = f"unknown field; allowed fields here: {allowed}"
-        lines.append(f"  - {field}: {message} (got {item.get('input')!r})")
+            message = (unknown_field_message(str(item["loc"][-1]), list(parent.model_fields))
+                       if parent is not None else "unknown field")
+        lines.append(f"  - {field}: {message} (got {short_repr(item.get('input'))})")
     return "\n".join(lines)
 
 
@@ -203,9 +344,9 @@ def load_config(config: ConfigLike = None, **overrides: Any) -> EnvConfig:
         if not path.is_file():
             raise ConfigError(f"config file not found: {path}")
         try:
-            data = yaml.safe_load(path.read_text()) or {}
+            data = read_yaml_file(path) or {}
         except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+            raise ConfigError(f"config file {path} {yaml_problem(exc)}") from None
         if not isinstance(data, dict):
             raise ConfigError(f"config file {path} must hold a mapping of fields, got {type(data).__name__}")
         data = data.get("env", data) if "env" in data and isinstance(data["env"], dict) else data

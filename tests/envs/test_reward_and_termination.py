@@ -13,7 +13,9 @@ from socnav.sim.world import OUTCOME_COLLISION, OUTCOME_GOAL, OUTCOME_TIMEOUT, C
 
 def staged_world(robot, robot_goal, humans=(), reward=None, **config):
     """One environment: robot at `robot` heading to `robot_goal`; humans as (position, goal, r_prox, cooperation)."""
-    cfg = load_config({"scenario": "circle_crossing", "n_humans": max(len(humans), 0), "reward": reward or {}, **config})
+    # Staged humans are attentive and see all around (attention is tested in tests/sim/test_attention.py).
+    cfg = load_config({"scenario": "circle_crossing", "n_humans": max(len(humans), 0), "reward": reward or {},
+                       "human_fov_deg": 360, **config})
     world = CrowdWorld(cfg, 1)
     state = InitialState.empty(1, world.n_slots)
     state.positions[0, 0], state.goals[0, 0] = robot, robot_goal

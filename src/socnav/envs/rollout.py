@@ -15,7 +15,7 @@ from socnav.sim.world import CrowdWorld
 
 EPISODE_COLUMNS = (
     "episode", "seed", "outcome", "return", "length", "duration", "path_length", "time_to_goal", "min_gap",
-    "intrusion_steps", "intrusion_events",
+    "intrusion_steps", "intrusion_events", "disturbance",
 )
 
 
@@ -49,7 +49,9 @@ def rollout_episodes(
 
     `progress(n)` is called with the number of episodes finished at each step that finishes some. Policies and
     observers with an `on_episode_start(envs)` method are told when environments start new episodes (stateful
-    policies such as `socnav.safety.SafePolicy` keep per-environment windows).
+    policies such as `socnav.safety.SafePolicy` keep per-environment windows). A policy whose
+    `needs_true_observation` is True (a `SafePolicy` with `sensing: true`) is also given each step's noise-free
+    observation through its `sense` method before `predict`; `predict` itself gets the (noisy) observation.
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
@@ -61,12 +63,15 @@ def rollout_episodes(
         world.seed(env, seed + env)
     world.reset()
     listeners = [x.on_episode_start for x in (policy, observer) if hasattr(x, "on_episode_start")]
+    senses_truth = bool(getattr(policy, "needs_true_observation", False))
     for listener in listeners:
         listener(np.arange(n_envs))
     next_episode = n_envs
     records: list[dict[str, Any]] = []
     while len(records) < n_episodes:
         observation = world.observe()
+        if senses_truth:  # a separate safety sensor: only the safety layer reads the true state
+            policy.sense(world.observe(noisy=False))
         actions, _ = policy.predict(observation, deterministic=deterministic)
         actions = np.asarray(actions)
         result = world.step(actions)

@@ -22,7 +22,8 @@ PERTURBATION_FIELDS = {
 PAPER_GRIDS: dict[str, list[float]] = {
     "observation_noise": [round(float(x), 1) for x in np.arange(0.0, 2.01, 0.2)],
     "heading_noise": [round(float(x), 1) for x in np.arange(0.0, 2.01, 0.2)],
-    "speed_noise": [round(float(x), 1) for x in np.arange(0.0, 1.01, 0.2)],
+    # the paper's 0 ... 2 (SPEC section 2): the world clips s to [0, 1], so s > 1 plays as s = 1
+    "speed_noise": [round(float(x), 1) for x in np.arange(0.0, 2.01, 0.2)],
     "faster_humans": [float(x) for x in range(1, 9)],
     "more_humans": [float(x) for x in range(2, 8)],
 }

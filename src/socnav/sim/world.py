@@ -1,7 +1,14 @@
-"""The batched crowd world: a unicycle robot among ORCA humans with personal space and cooperation (SPEC section 1).
+"""The batched crowd world: a unicycle robot among ORCA humans with personal space, cooperation and attention (SPEC 1).
 
 `CrowdWorld` holds the state of E environments as arrays and advances all of them in one call; every environment's
 episode depends only on its own seed, so results are bit-identical whatever the batch size.
+
+Attention (SPEC section 1, "Attention"): each human is, per episode, attentive to the robot or not (probability
+`inattentive_share` of not); an inattentive human plans as if the robot were absent (RVO2 `collabCoeff = 0`), and
+with `human_fov_deg < 360` an attentive human reacts only once the robot has entered its view cone, and keeps
+reacting while the robot stays within the ORCA interaction range (`orca.neighbor_dist`). Attentiveness is drawn from
+the episode's counter-based noise key, not from the episode generator, so switching it on or off leaves starts,
+goals and every other draw of an episode unchanged.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import numba
 import numpy as np
 
 from socnav.config import EnvConfig
-from socnav.sim.noise import HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
+from socnav.sim.noise import ATTENTION_STREAM, HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
 from socnav.sim.orca import orca_velocities
 from socnav.sim.scenarios import InitialState, get_scenario, n_slots
 
@@ -105,14 +112,14 @@ def _advance_and_score(
     positions, velocities, radii, goals, max_speeds, personal_space, active, heading, new_speed, turn,
     human_velocities, unhindered_velocities, near_robot, time, time_limit, time_step, goal_tolerance,
     w_goal, w_collision, w_time, w_progress, w_personal_space, w_disturbance, social_radius,
-    was_intruded, episode_return, path_length, min_gap, intrusion_steps, intrusion_events,
+    was_intruded, episode_return, path_length, min_gap, intrusion_steps, intrusion_events, disturbance_total,
 ):
     """Move every agent one step, detect goal / collision / time-out and score the socially integrated reward.
 
     Reward (SPEC section 2): +w_goal | -w_col | -w_time dt | w_prog (d(t-1) - d(t)) | -w_prox (1 - gap / r_prox) per
     intruded personal space | -w_dist |v_i - v_i^0| / v_pref_i per human within the social radius at the start of the
     step (`near_robot`, the humans whose robot-free velocity v_i^0 was computed).
-    Episode accumulators are updated in place.
+    Episode accumulators are updated in place (`disturbance_total`: the unweighted sum of |v_i - v_i^0| / v_pref_i).
     """
     n_envs, n_agents = active.shape
     reward = np.zeros(n_envs)
@@ -174,6 +181,7 @@ def _advance_and_score(
                     velocities[env, agent, 0] - unhindered_velocities[env, agent, 0],
                     velocities[env, agent, 1] - unhindered_velocities[env, agent, 1],
                 )
+                disturbance_total[env] += push / max_speeds[env, agent]
                 r -= w_disturbance * push / max_speeds[env, agent]
         if intrusions[env] > 0:
             intrusion_steps[env] += 1
@@ -243,6 +251,54 @@ def _observe(positions, velocities, radii, goals, preferred_speed, active, headi
                 humans[env, slot, k] = rows[source, k]
             mask[env, slot] = 1.0
     return robot, humans, mask
+
+
+@numba.njit(cache=True)
+def _draw_attention(key, n_slots, inattentive_share):
+    """Per-episode attentiveness of every slot: a human is inattentive with probability `inattentive_share`.
+
+    Counter-based (episode key, ATTENTION_STREAM, step 0, slot): the same episode gets the same humans whatever the
+    batch, and no draw of the episode generator is consumed.
+    """
+    attentive = np.ones(n_slots, dtype=np.bool_)
+    for agent in range(1, n_slots):
+        attentive[agent] = uniform01(key, ATTENTION_STREAM, 0, agent) >= inattentive_share
+    return attentive
+
+
+@numba.njit(cache=True)
+def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_half_fov, interaction_range):
+    """Field of view: update each human's facing direction and whether it has noticed the robot.
+
+    A human faces where it walks (towards its goal while standing still, its last facing once at the goal). It
+    notices the robot when the robot's centre is within the interaction range and inside the cone of half-angle
+    fov/2 around its facing; once noticed, it keeps reacting while the robot stays within the interaction range.
+    """
+    n_envs, n_agents = active.shape
+    for env in range(n_envs):
+        for agent in range(1, n_agents):
+            if not active[env, agent]:
+                continue
+            vx, vy = velocities[env, agent, 0], velocities[env, agent, 1]
+            if vx * vx + vy * vy > 1e-12:
+                facing[env, agent] = math.atan2(vy, vx)
+            else:
+                gx = goals[env, agent, 0] - positions[env, agent, 0]
+                gy = goals[env, agent, 1] - positions[env, agent, 1]
+                if gx * gx + gy * gy > 1e-18:
+                    facing[env, agent] = math.atan2(gy, gx)
+            dx = positions[env, 0, 0] - positions[env, agent, 0]
+            dy = positions[env, 0, 1] - positions[env, agent, 1]
+            distance = math.sqrt(dx * dx + dy * dy)
+            in_range = distance < interaction_range
+            in_view = False
+            if in_range:
+                if distance < 1e-12:
+                    in_view = True
+                else:
+                    cos_angle = (dx * math.cos(facing[env, agent]) + dy * math.sin(facing[env, agent])) / distance
+                    in_view = cos_angle >= cos_half_fov
+            noticed[env, agent] = (noticed[env, agent] and in_range) or in_view
 
 
 @numba.njit(cache=True)
@@ -323,8 +379,15 @@ class CrowdWorld:
         self.min_gap = np.full(n_envs, np.inf)
         self.intrusion_steps = np.zeros(n_envs, dtype=np.int64)
         self.intrusion_events = np.zeros(n_envs, dtype=np.int64)
+        self.disturbance = np.zeros(n_envs)
         self.humans_slots = np.zeros(shape, dtype=bool)
         self.humans_slots[:, 1:] = True
+        # attention (SPEC section 1): per episode; `noticed` and `facing` change every step with a field of view
+        self.attentive = np.ones(shape, dtype=bool)
+        self.noticed = np.ones(shape, dtype=bool)
+        self.facing = np.zeros(shape)
+        self.has_field_of_view = config.human_fov_deg < 360.0
+        self.cos_half_fov = math.cos(math.radians(config.human_fov_deg) / 2.0)
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -342,6 +405,7 @@ class CrowdWorld:
             initial = self.scenario.sample(rng, 1, self.config)
             self.load(env, initial)
             self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
+            self.set_attention(env, _draw_attention(self.noise_keys[env], self.n_slots, self.config.inattentive_share))
             if self.config.initial_heading == "random":
                 # Drawn last, so starts, goals and noise are the same episode for either setting.
                 self.heading[env] = rng.uniform(-math.pi, math.pi)
@@ -371,13 +435,29 @@ class CrowdWorld:
         self.avoidance_share[env] = 0.5
         self.avoidance_share[env, :, 0] = self.cooperation[env]
         self.sees[env] = True
-        self.sees[env, :, 0] = cfg.robot_visible
+        self.set_attention(env, np.ones(self.n_slots, dtype=bool))
         self.was_intruded[env] = False
         self.episode_return[env] = 0.0
         self.path_length[env] = 0.0
         self.min_gap[env] = np.inf
         self.intrusion_steps[env] = 0
         self.intrusion_events[env] = 0
+        self.disturbance[env] = 0.0
+
+    def set_attention(self, env: int, attentive: np.ndarray) -> None:
+        """Make the humans of environment `env` attentive (True) or not (False) to the robot for this episode.
+
+        `reset` draws this; call it after `load` to stage a scene. With a field of view, no human has noticed the
+        robot yet: the first step's view check decides.
+        """
+        self.attentive[env] = attentive
+        self.attentive[env, 0] = True
+        self.noticed[env] = not self.has_field_of_view
+        self._update_robot_visibility(env)
+
+    def _update_robot_visibility(self, env: int | slice = slice(None)) -> None:
+        """Which humans plan around the robot: visible robot, attentive human, robot noticed (field of view)."""
+        self.sees[env, :, 0] = self.config.robot_visible & self.attentive[env] & self.noticed[env]
 
     # ---------------------------------------------------------------------------------------------------- step
 
@@ -402,6 +482,10 @@ class CrowdWorld:
             actions, self.preferred_speeds[:, 0], cfg.max_heading_change, self.noise_keys, self.steps,
             pert.heading_noise, pert.speed_noise,
         )
+        if self.has_field_of_view:
+            _notice_robot(self.positions, self.velocities, self.goals, self.active, self.facing, self.noticed,
+                          self.cos_half_fov, cfg.orca.neighbor_dist)
+            self._update_robot_visibility()
         humans = self.human_velocities()
         near = self._humans_near_robot(rew.social_radius)
         scored = rew.disturbance > 0.0 and near.any()
@@ -411,7 +495,7 @@ class CrowdWorld:
             self.active, self.heading, speed, turn, humans, unhindered, near, self.time, self.time_limit,
             cfg.time_step, cfg.goal_tolerance, rew.goal, rew.collision, rew.time, rew.progress,
             rew.personal_space, rew.disturbance, rew.social_radius, self.was_intruded, self.episode_return,
-            self.path_length, self.min_gap, self.intrusion_steps, self.intrusion_events,
+            self.path_length, self.min_gap, self.intrusion_steps, self.intrusion_events, self.disturbance,
         )
         self.steps += 1
         if self.scenario.redraw_goals:
@@ -437,9 +521,10 @@ class CrowdWorld:
 
     # ---------------------------------------------------------------------------------------------------- observe
 
-    def observe(self, envs: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def observe(self, envs: np.ndarray | None = None, noisy: bool = True) -> dict[str, np.ndarray]:
         """The policy's observation of every environment (or of `envs` only, in that order; SPEC section 2),
-        perturbed by observation noise if set."""
+        perturbed by observation noise if set; `noisy=False`: the same observation without the noise (the true
+        state, as a separate safety sensor reads it; same row order, since rows are sorted before the noise)."""
         if envs is None:
             positions, velocities, radii, goals = self.positions, self.velocities, self.radii, self.goals
             speeds, active, heading, keys, steps = (self.preferred_speeds[:, 0], self.active, self.heading,
@@ -452,7 +537,7 @@ class CrowdWorld:
                                                     self.heading[envs], self.noise_keys[envs], self.steps[envs])
         robot, humans, mask = _observe(positions, velocities, radii, goals, speeds, active, heading,
                                        self.config.max_humans)
-        if self.config.perturbation.observation_noise > 0.0:
+        if noisy and self.config.perturbation.observation_noise > 0.0:
             _add_observation_noise(robot, humans, mask, keys, steps, self.config.perturbation.observation_noise)
         return {"robot": robot, "humans": humans, "humans_mask": mask}
 
@@ -469,4 +554,5 @@ class CrowdWorld:
             "min_gap": float(self.min_gap[env]),
             "intrusion_steps": int(self.intrusion_steps[env]),
             "intrusion_events": int(self.intrusion_events[env]),
+            "disturbance": float(self.disturbance[env]),
         }
