@@ -36,8 +36,14 @@ def test_demo_writes_tables_and_animation(tmp_path):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "orca_circle_crossing.gif").stat().st_size > 10_000
     assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
-    assert len(list(tmp_path.glob("*.csv"))) == 9
+    assert len(list(tmp_path.glob("*.csv"))) == 11  # 8 baseline runs, the policy, and it perturbed without/with safety
     assert "odv-ppo-drop (pretrained)" in result.output
+    # The safety layer's part: the same perturbed episodes without and with it.
+    plain, safe = (pd.read_csv(p) for p in sorted(tmp_path.glob("perturbed_*.csv")))
+    assert list(plain["seed"]) == list(safe["seed"])
+    prevented = int((plain["outcome"] == "collision").sum() - (safe["outcome"] == "collision").sum())
+    assert f"{prevented} prevented" in " ".join(result.output.split())
+    assert "fallback drove" in result.output
 
 
 def test_calibrate_writes_a_threshold_file_that_animate_uses(tmp_path):

@@ -1,4 +1,4 @@
-"""The `socnav` command line: train, evaluate, animate, calibrate, run experiments, report, tune, demo.
+"""The `socnav` command line: train, evaluate, animate, calibrate, convert, run experiments, report, tune, demo.
 
 Every command validates its options up front and reports bad input as one clear line, never a traceback.
 """
@@ -6,74 +6,145 @@ Every command validates its options up front and reports bad input as one clear 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
-import pandas as pd
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from socnav.config import ConfigError, EnvConfig, load_config
+from socnav.config import ConfigError, EnvConfig, describe_world, load_config
 from socnav.sim.scenarios import scenario_names
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__.splitlines()[0])
-console = Console()
+if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --help` stays fast
+    import pandas as pd
+
+# Plain click help: typer's rich help panels label every flag (and --help itself) with a `<bool>` type.
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__.splitlines()[0], rich_markup_mode=None)
+# Tables keep their words whole when the output is piped (Rich falls back to 80 columns without a terminal).
+console = Console(width=None if Console().is_terminal else 160)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from socnav import __version__
+
+        console.print(f"socnav {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="print the version and exit"),
+) -> None:
+    """Uncertainty-aware social robot navigation: simulate, train, evaluate, calibrate, run experiments."""
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {message}")
+    # Escaped: messages hold brackets (`pip install -e ".[video]"`, `[min, max]`) that Rich would take for markup.
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code=2)
 
 
-def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int]) -> EnvConfig:
+def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
+    """Refuse --n-envs whose environments cannot fit in memory, before anything is built or written."""
+    from socnav.envs.env import check_env_count
+
+    try:
+        check_env_count(n_envs, env_config, "--n-envs")
+    except ConfigError as exc:
+        _fail(str(exc))
+
+
+def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
+                max_humans: Optional[int] = None, base: Any = None) -> EnvConfig:
+    """The env config of a command: `base` (a config file, or e.g. a model's stored config), then the options."""
+    import re
+
     overrides: dict[str, Any] = {}
     if scenario is not None:
         overrides["scenario"] = scenario
     if n_humans is not None:
         overrides["n_humans"] = n_humans
+    if max_humans is not None:
+        overrides["max_humans"] = max_humans
     try:
-        return load_config(config_file, **overrides)
+        return load_config(config_file if base is None else base, **overrides)
     except ConfigError as exc:
-        _fail(str(exc))
+        message = str(exc)
+        needed = re.search(r"raise max_humans to at least (\d+)", message)
+        limit = EnvConfig.model_fields["max_humans"].metadata  # the field's bounds, e.g. Le(le=64)
+        most = min((bound.le for bound in limit if getattr(bound, "le", None) is not None), default=None)
+        if needed and most is not None and int(needed.group(1)) > most:
+            message += f"\n  at most {most} humans are supported (max_humans <= {most})"
+        elif needed and max_humans is None:
+            message += f"\n  from the command line: --max-humans {needed.group(1)}"
+        _fail(message)
         raise  # unreachable, keeps type checkers happy
 
 
 def _progress() -> Progress:
     return Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("ETA"), TimeRemainingColumn(), console=console,
     )
 
 
+#: Episodes PV is scaled to (the paper's tables: intrusion events per 200 episodes, whatever was run).
+PV_PER = 200
+
+
 def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table:
-    """The paper's metrics as a rich table: Goal %, Collision %, Time-out %, PV (per 200 episodes), Return mean ± std."""
-    table = Table(title=title)
-    for column in ("run", "episodes", "Goal %", "Col. %", "TO %", "PV", "Return"):
-        table.add_column(column, justify="right" if column != "run" else "left")
+    """The paper's metrics as a rich table: Goal %, Collision %, Time-out %, PV per 200 episodes, navigation time
+    (mean time to the goal of the successful episodes, CrowdNav's "nav time"), Return mean ± std, and the share of
+    steps where the safety fallback acted when the rows have ``fallback_pct``."""
+    import math
+
+    table = Table(title=title, caption=f"PV per {PV_PER} episodes; nav time of the episodes reaching the goal")
+    fallback = any("fallback_pct" in m for _, m in rows)
+    columns = ["run", "episodes", "Goal %", "Col. %", "TO %", f"PV/{PV_PER} ep.", "nav time (s)", "Return"]
+    for column in columns + (["fallback % steps"] if fallback else []):
+        table.add_column(column, justify="right" if column != "run" else "left", no_wrap=column != "run")
     for name, m in rows:
-        table.add_row(
-            name, str(m["episodes"]), f"{m['goal_pct']:.1f}", f"{m['collision_pct']:.1f}", f"{m['timeout_pct']:.1f}",
-            f"{m['pv']:.0f}", f"{m['return_mean']:.2f} ± {m['return_std']:.2f}",
-        )
+        nav_time = m.get("time_to_goal_mean", float("nan"))
+        cells = [escape(name), str(m["episodes"]), f"{m['goal_pct']:.1f}", f"{m['collision_pct']:.1f}",
+                 f"{m['timeout_pct']:.1f}", f"{m['pv']:.0f}", "–" if math.isnan(nav_time) else f"{nav_time:.1f}",
+                 f"{m['return_mean']:.2f} ± {m['return_std']:.2f}"]
+        if fallback:
+            cells.append(f"{m['fallback_pct']:.1f}" if "fallback_pct" in m else "–")
+        table.add_row(*cells)
     return table
 
 
 def _evaluate(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int, label: str,
-              deterministic: bool = True) -> pd.DataFrame:
+              deterministic: bool = True, observer: Any = None) -> pd.DataFrame:
     from socnav.envs.rollout import rollout_episodes
 
     with _progress() as progress:
-        task = progress.add_task(label, total=episodes)
+        task = progress.add_task(escape(label), total=episodes)
         return rollout_episodes(
             policy, config, episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
-            progress=lambda n: progress.advance(task, n),
+            progress=lambda n: progress.advance(task, n), observer=observer,
         )
+
+
+def _yaml(option: str, text: Optional[str] = None, path: Optional[Path] = None) -> Any:
+    """A YAML value given on the command line (`text`) or a YAML file (`path`), read with socnav's bounded loader;
+    bad or oversized YAML is a one-line error naming the option."""
+    import yaml
+
+    from socnav.config import read_yaml_file, safe_load_yaml, yaml_problem
+
+    try:
+        return read_yaml_file(path) if path is not None else safe_load_yaml(text or "")
+    except yaml.YAMLError as exc:
+        _fail(f"{option} {path if path is not None else repr(text)} {' '.join(yaml_problem(exc).split())}")
 
 
 def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str]) -> dict[str, Any]:
     """Hyperparameter overrides from a YAML file, then `--set key=value` pairs (values parsed as YAML)."""
-    import yaml
-
     from socnav.rl.presets import ALGOS, resolve_config
 
     if algo not in ALGOS:
@@ -82,7 +153,7 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
     if algo_config is not None:
         if not algo_config.is_file():
             _fail(f"--algo-config: no such file {algo_config}")
-        loaded = yaml.safe_load(algo_config.read_text()) or {}
+        loaded = _yaml("--algo-config", path=algo_config) or {}
         if not isinstance(loaded, dict):
             _fail(f"--algo-config {algo_config} must hold a mapping of hyperparameters")
         overrides.update(loaded)
@@ -90,7 +161,7 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
         key, sep, value = setting.partition("=")
         if not sep or not key:
             _fail(f"--set expects key=value, got {setting!r}")
-        overrides[key.strip()] = yaml.safe_load(value)
+        overrides[key.strip()] = _yaml("--set", value)
     try:
         resolve_config(algo, overrides)
     except ValueError as exc:
@@ -107,36 +178,52 @@ def train(
     timesteps: int = typer.Option(200_000, min=1, help="total environment steps"),
     n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; at least the "
+                                                               "most humans per episode)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     algo_config: Optional[Path] = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
     settings: list[str] = typer.Option([], "--set", help="hyperparameter override key=value (repeatable)"),
     eval_every: Optional[int] = typer.Option(None, min=1, help="timesteps between evaluations/checkpoints"),
     eval_episodes: int = typer.Option(50, min=1, help="validation episodes per evaluation"),
-    out: Optional[Path] = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>)"),
+    out: Optional[Path] = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>); "
+                                                  "must be new or empty unless --force"),
     resume: Optional[Path] = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
+    force: bool = typer.Option(False, "--force", help="move an existing --out directory aside to "
+                                                      "OUT.old-<timestamp> (never deleted) and start afresh"),
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
-    import json
-
-    from socnav.rl.training import CheckpointError, TrainingInterrupted
+    from socnav.rl.training import (
+        CheckpointError, RunDirectoryBusy, TrainingInterrupted, move_run_aside, read_run_info,
+    )
     from socnav.rl.training import train as train_run
 
     if resume is not None:
-        run_file = resume / "run.json"
-        if not run_file.is_file():
-            _fail(f"--resume {resume}: no run.json there (not a socnav training run directory)")
+        if not resume.is_dir():
+            _fail(f"--resume {resume}: no such run directory")
         try:
-            asked = json.loads(run_file.read_text())
-            env_config = load_config(asked["env_config"])
-            algo, seed, timesteps = asked["algo"], asked["seed"], asked["timesteps"]
-            n_envs, overrides, out = asked["n_envs"], asked["overrides"], resume
-            eval_every, eval_episodes = asked["eval_every"], asked["eval_episodes"]
-        except (ValueError, KeyError, TypeError, ConfigError) as exc:
-            _fail(f"--resume {resume}: run.json is unreadable ({type(exc).__name__}: {exc})")
+            asked = read_run_info(resume)
+            env_config = load_config(asked.env_config)
+        except ConfigError as exc:
+            _fail(f"--resume {resume}: {exc}")
+        algo, seed, timesteps, n_envs, overrides = asked.algo, asked.seed, asked.timesteps, asked.n_envs, asked.overrides
+        eval_every, eval_episodes, out = asked.eval_every, asked.eval_episodes, resume
+        if _report_if_complete(resume):
+            return
     else:
-        env_config = _env_config(scenario, config, n_humans)
+        env_config = _env_config(scenario, config, n_humans, max_humans)
         overrides = _algo_overrides(algo, algo_config, settings)
         out = out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}"
+        if out.exists() and not out.is_dir():
+            _fail(f"--out {out} is an existing file; name a run directory")
+        if out.is_dir() and any(out.iterdir()):
+            if not force:
+                _fail(f"--out {out} already holds files (an earlier run?); continue it with --resume {out}, or pass "
+                      f"--force to move it aside to {out}.old-<timestamp> and start afresh")
+            try:
+                console.print(f"moved the existing {out} aside to {move_run_aside(out)}")
+            except (RunDirectoryBusy, OSError) as exc:
+                _fail(f"--force: {exc}")
+    _check_n_envs(n_envs, env_config)
     console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}")
     try:
         result = train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
@@ -147,17 +234,53 @@ def train(
         raise typer.Exit(code=1)
     except CheckpointError as exc:
         _fail(f"--resume {out}: {exc}")
+    except (RunDirectoryBusy, OSError) as exc:
+        _fail(str(exc))
     console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
                                 f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
+    _explain_rounding(timesteps, result.timesteps, algo, overrides, n_envs)
     console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
 
 
-def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int]) -> EnvConfig:
+def _report_if_complete(run_dir: Path) -> bool:
+    """`train --resume` of a run that already finished: say so and show its result instead of training again."""
+    import json
+
+    try:
+        info = json.loads((run_dir / "run.json").read_text())
+    except (OSError, ValueError):
+        return False
+    if info.get("status") != "complete" or not (run_dir / "model.zip").is_file():
+        return False
+    console.print(f"the run in {escape(str(run_dir))} is already complete ({info.get('num_timesteps', 0):,} steps "
+                  f"trained for the {info.get('timesteps', 0):,} asked): nothing to resume. Its final validation:",
+                  highlight=False)
+    if isinstance(info.get("final_eval"), dict) and "goal_pct" in info["final_eval"]:
+        console.print(metrics_table([(f"{info.get('algo', '?')} (validation)", info["final_eval"])],
+                                    f"{info.get('num_timesteps', 0):,} steps"))
+    console.print(f"model: {escape(str(run_dir / 'model.zip'))}  (train longer: a new run with more --timesteps)",
+                  highlight=False)
+    return True
+
+
+def _explain_rounding(asked: int, trained: int, algo: str, overrides: dict[str, Any], n_envs: int) -> None:
+    """SB3 collects whole rollouts (n_steps per environment x n_envs), so a run can end past the steps asked."""
+    if trained <= asked:
+        return
+    from socnav.rl.presets import resolve_config
+
+    rollout = resolve_config(algo, overrides).n_steps * n_envs
+    console.print(f"note: {trained:,} steps trained for the {asked:,} asked: SB3 collects whole rollouts "
+                  f"({rollout:,} steps each = n_steps x n_envs) and rounds up to the next one", highlight=False)
+
+
+def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
+                             max_humans: Optional[int] = None) -> EnvConfig:
     """`_env_config` for animate / calibrate: without --config, position swap with one human unless given."""
     if config_file is None:
         scenario = "position_swap" if scenario is None else scenario
         n_humans = 1 if n_humans is None else n_humans
-    return _env_config(scenario, config_file, n_humans)
+    return _env_config(scenario, config_file, n_humans, max_humans)
 
 
 def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
@@ -183,48 +306,143 @@ def _load_learned_policy(model: str) -> Any:
         _fail(str(exc))
 
 
+def _model_label(model: str) -> str:
+    """How a model file is named in tables and default output names: its path as given (`runs/swap/model.zip`),
+    so that two runs' `model.zip` files stay apart; 'pretrained' for the shipped policy."""
+    return "pretrained" if model == "pretrained" else str(Path(model))
+
+
+def _default_records_path(label: str, config: EnvConfig, seed: int, episodes: int, extra: dict[str, Any]) -> Path:
+    """runs/evaluate/<label>_<scenario>_<hash>_seed<k>_<n>ep.csv: unique per (policy or model file, env config,
+    seed, episodes, and the other options that change the records), so two evaluations never share a file."""
+    import hashlib
+    import json
+    import re
+
+    identity = json.dumps({"label": label, "env": config.model_dump(mode="json"), **extra}, sort_keys=True)
+    digest = hashlib.sha1(identity.encode()).hexdigest()[:8]
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", label.removesuffix(".zip")).strip("-")
+    return Path("runs") / "evaluate" / f"{slug}_{config.scenario}_{digest}_seed{seed}_{episodes}ep.csv"
+
+
 @app.command()
 def evaluate(
     policy: str = typer.Option("orca", help="baseline controller: orca | straight (ignored with --model)"),
     model: Optional[str] = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
-    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())}"),
+    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
+                                                     "model's training world with --model, else circle_crossing)"),
     episodes: int = typer.Option(200, min=1, help="number of evaluation episodes"),
     seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; a model needs "
+                                                               "the value it was trained with)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. "
+                                                            "heading_noise=0.8"),
+    safety: Optional[str] = typer.Option(None, help="wrap the model in the safety layer with these thresholds: "
+                                                    "mc | ensemble | FILE (from socnav calibrate)"),
+    estimator: Optional[str] = typer.Option(None, help="uncertainty estimator of --safety: mc | ensemble "
+                                                       "(default: ensemble for --safety ensemble, else mc)"),
+    sensing: Optional[str] = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
+                                                     "perceived (the noisy observation) | true (the simulator's "
+                                                     "state); default: the thresholds' own (perceived for mc, "
+                                                     "ensemble)"),
+    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    k: int = typer.Option(20, min=2, help="MC-dropout samples, for --estimator mc"),
     n_envs: int = typer.Option(32, min=1, help="environments stepped together"),
-    out: Optional[Path] = typer.Option(None, help="per-episode records (.csv or .parquet)"),
+    out: Optional[Path] = typer.Option(None, help="per-episode records (.csv or .parquet; default a name unique "
+                                                  "to the policy, world, seed and episodes under runs/evaluate)"),
 ) -> None:
-    """Evaluate a controller: Goal %, Collision %, Time-out %, PV, Return; per-episode records to a file."""
+    """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return; records to a file."""
     from socnav.envs.controllers import CONTROLLERS, make_controller
     from socnav.envs.rollout import summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
 
     if model is None and policy not in CONTROLLERS:
         _fail(f"--policy {policy!r} is not known; allowed: {', '.join(CONTROLLERS)}")
-    env_config = _env_config(scenario, config, n_humans)
+    if out is not None and out.suffix not in TABLE_FORMATS:
+        _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
+    if safety is not None and model is None and members is None:
+        _fail("--safety needs a learned policy: --model PATH (or --model pretrained), or --estimator ensemble "
+              "--members GLOB")
+    actor: Any = None
     if model is not None:
         actor = _load_learned_policy(model)
-        name = "pretrained" if model == "pretrained" else Path(model).stem
+    base, origin = config, f"--config {config}" if config is not None else "defaults"
+    if actor is not None and config is None:
+        # A model is evaluated in the world it was trained in unless told otherwise; a different scenario starts
+        # from that scenario's own number of humans.
+        stored = dict(actor.socnav_metadata["env_config"])
+        if scenario is not None and scenario != stored.get("scenario"):
+            stored["n_humans"] = None
+        changed = scenario is not None or n_humans is not None or max_humans is not None
+        base, origin = stored, "the model's training world" + (", changed by the options" if changed else "")
+    env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base), perturb)
+    console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
+    name = _model_label(model) if model is not None else policy
+    observer = None
+    if safety is not None:
+        from socnav.safety import FallbackCounter, SafePolicy
+
+        thresholds = _load_thresholds_option(safety, sensing)
+        acting, uncertainty = _estimator(estimator or ("ensemble" if safety == "ensemble" else "mc"), model,
+                                         members, k, env_config)
+        actor = SafePolicy(acting, uncertainty, thresholds, env_config)
+        observer = FallbackCounter(actor)
+        name = (name if model is not None else "ensemble") + f" + safety ({safety})"
+    elif actor is not None:
         _check_observation_size([actor], env_config)
     else:
-        actor, name = make_controller(policy, env_config), policy
-    out = out or Path("runs") / "evaluate" / f"{name}_{env_config.scenario}_seed{seed}.csv"
-    if out.suffix not in TABLE_FORMATS:
-        _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
+        actor = make_controller(policy, env_config)
+    out = out or _default_records_path(name, env_config, seed, episodes,
+                                       {"stochastic": stochastic, "k": k, "estimator": estimator,
+                                        "members": members, "sensing": sensing})
     if stochastic:
         import torch
 
         # Sampled actions come from torch's generator: seeded, a run repeats; they still depend on --n-envs (the
         # order in which the batch draws them), unlike the deterministic mean action.
         torch.manual_seed(seed)
+    _check_n_envs(min(n_envs, episodes), env_config)  # a rollout never steps more environments than episodes
     records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
-                        deterministic=not stochastic)
+                        deterministic=not stochastic, observer=observer)
+    metrics = summarize(records, pv_per=PV_PER)
+    if observer is not None:
+        records["fallback_steps"] = observer.per_episode(records["episode"])
+        metrics["fallback_pct"] = 100.0 * float(records["fallback_steps"].sum() / records["length"].sum())
     write_table_atomic(records, out)
-    world = env_config.scenario + ("" if env_config.robot_visible else " (humans ignore the robot)")
-    console.print(metrics_table([(name, summarize(records))], f"{world}, seeds {seed}..{seed + episodes - 1}"))
-    console.print(f"per-episode records: {out}")
+    console.print(metrics_table([(name, metrics)],
+                                f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"))
+    console.print(f"per-episode records: {escape(str(out))}", highlight=False)
+
+
+def _load_thresholds_option(safety: str, sensing: Optional[str] = None) -> Any:
+    """`--safety mc | ensemble | FILE` (with `--sensing perceived | true` if given) as `Thresholds`, or a clear
+    error."""
+    from socnav.safety import SENSING_CHOICES, Thresholds, ThresholdsError, load_thresholds
+
+    try:
+        thresholds = load_thresholds(safety)
+    except (ThresholdsError, OSError) as exc:
+        _fail(f"--safety: {exc}")
+    if sensing is None:
+        return thresholds
+    if sensing not in SENSING_CHOICES:
+        _fail(f"--sensing {sensing!r} is not known; allowed: {', '.join(SENSING_CHOICES)}")
+    return Thresholds.create(thresholds.model_dump(), sensing=sensing)
+
+
+def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
+    """`env_config` with the `--perturb key=value` settings on top of its own perturbation."""
+    if not settings:
+        return env_config
+    perturbation = _perturbation_overrides(settings)
+    try:
+        return load_config(env_config, perturbation={**env_config.perturbation.model_dump(), **perturbation})
+    except ConfigError as exc:
+        _fail(str(exc))
+        raise
 
 
 def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
@@ -259,14 +477,12 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
 
 
 def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
-    import yaml
-
     perturbation: dict[str, Any] = {}
     for setting in settings:
         key, sep, value = setting.partition("=")
         if not sep or not key:
             _fail(f"--perturb expects key=value (e.g. observation_noise=0.6), got {setting!r}")
-        perturbation[key.strip()] = yaml.safe_load(value)
+        perturbation[key.strip()] = _yaml("--perturb", value)
     return perturbation
 
 
@@ -279,9 +495,14 @@ def animate(
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
                                                      "(default: position_swap, or the --config file's)"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
+    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. heading_noise=0.8"),
     safety: Optional[str] = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
+    sensing: Optional[str] = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
+                                                     "perceived (the noisy observation) | true (the simulator's "
+                                                     "state); default: the thresholds' own (perceived for mc, "
+                                                     "ensemble)"),
     seed: int = typer.Option(0, min=0, help="episode seed"),
     out: Path = typer.Option(Path("runs") / "animate" / "episode.gif", help="output .gif or .mp4"),
 ) -> None:
@@ -290,24 +511,36 @@ def animate(
 
     if out.suffix not in (".gif", ".mp4"):
         _fail(f"--out must end in .gif or .mp4, got {out.name!r}")
-    env_config = _single_agent_env_config(scenario, config, n_humans)
-    perturbation = _perturbation_overrides(perturb)
-    try:
-        env_config = load_config(env_config, perturbation={**env_config.perturbation.model_dump(), **perturbation})
-    except ConfigError as exc:
-        _fail(str(exc))
+    env_config = _perturbed_config(_single_agent_env_config(scenario, config, n_humans, max_humans), perturb)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
-    thresholds = None
-    if safety is not None:
-        from socnav.safety import ThresholdsError, load_thresholds
+    thresholds = None if safety is None else _load_thresholds_option(safety, sensing)
+    label = _model_label(model) if model is not None else f"ensemble of {members}"
+    path, summary = animate_episode(policy, uncertainty, env_config, out, seed=seed, thresholds=thresholds,
+                                    policy_label=label, safety_label=safety)
+    fallback = "" if safety is None else f", safety fallback on {summary['fallback_steps']} steps"
+    console.print(f"{summary.get('outcome', 'running')} after {summary.get('length', '?')} steps{fallback}: "
+                  f"{escape(str(path))}", highlight=False)
 
-        try:
-            thresholds = load_thresholds(safety)
-        except (ThresholdsError, OSError) as exc:
-            _fail(f"--safety: {exc}")
-    path, summary = animate_episode(policy, uncertainty, env_config, out, seed=seed, thresholds=thresholds)
-    console.print(f"{summary.get('outcome', 'running')} after {summary.get('length', '?')} steps, "
-                  f"fallback on {summary['fallback_steps']} steps: {path}")
+
+#: Fewer calibration collisions than this and `socnav calibrate` warns that the prevented share is rough.
+FEW_COLLISIONS = 10
+
+
+def calibration_table(thresholds: Any, report: dict[str, Any], title: str) -> Table:
+    """The chosen thresholds and their measured scores (`calibrate_thresholds` report) as one table row."""
+    import math
+
+    table = Table(title=title)
+    for column in ("λ_ep", "λ_f", "λ_prox", "β1", "c_prox", "prevented", "collisions", "false act."):
+        table.add_column(column, justify="right", no_wrap=True)
+    values = thresholds.model_dump()
+    table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
+                  values["proximity"],
+                  "–" if math.isnan(report["prevented_fraction"]) else f"{report['prevented_fraction']:.0%}",
+                  str(report["n_collisions"]),
+                  f"{report['false_activation_rate']:.1%}"
+                  + (f" (≤ {report['false_activation_upper']:.1%})" if "false_activation_upper" in report else ""))
+    return table
 
 
 @app.command()
@@ -319,17 +552,19 @@ def calibrate(
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
                                                      "(default: position_swap, or the --config file's)"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
+    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
     budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
     proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
+    sensing: str = typer.Option("perceived", help="what the proximity terms and fallback read: perceived (the "
+                                                  "noisy observation) | true (the simulator's state)"),
     confidence: float = typer.Option(0.95, min=0.5, max=0.999, help="the budget must hold at this one-sided "
                                                                      "confidence (0.5: the point estimate)"),
     out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
     import json
-    import math
 
     from socnav.experiments.uncertainty_units import calibrate_thresholds
     from socnav.io import write_text_atomic
@@ -337,32 +572,56 @@ def calibrate(
 
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
         _fail(f"--proximity {proximity!r} is not known; allowed: both, {', '.join(PROXIMITY_VARIANTS)}")
+    if sensing not in ("perceived", "true"):
+        _fail(f"--sensing {sensing!r} is not known; allowed: perceived, true")
     if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
         _fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
-    env_config = _single_agent_env_config(scenario, config, n_humans)
+    env_config = _single_agent_env_config(scenario, config, n_humans, max_humans)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
-    with console.status("collecting calibration episodes, searching thresholds, replaying the candidates"):
-        thresholds, report = calibrate_thresholds(policy, uncertainty, env_config.model_dump(mode="json"), episodes,
-                                                  budget, proximity, confidence=confidence)
+    with _progress() as progress:
+        task = progress.add_task("calibration episodes (collect, then replay each candidate)", total=None)
+        thresholds, report = calibrate_thresholds(
+            policy, uncertainty, env_config.model_dump(mode="json"), episodes, budget, proximity,
+            confidence=confidence, progress=lambda done, total: progress.update(task, completed=done, total=total),
+            sensing=sensing)
     save_thresholds(thresholds, out)
     write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
-    table = Table(title=f"calibrated thresholds ({estimator}, false-activation budget {budget:.0%})")
-    for column in ("λ_ep", "λ_f", "λ_prox", "β1", "c_prox", "prevented", "collisions", "false act."):
-        table.add_column(column, justify="right", overflow="fold")
-    values = thresholds.model_dump()
-    table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
-                  values["proximity"],
-                  "–" if math.isnan(report["prevented_fraction"]) else f"{report['prevented_fraction']:.0%}",
-                  str(report["n_collisions"]),
-                  f"{report['false_activation_rate']:.1%}"
-                  + (f" (≤ {report['false_activation_upper']:.1%})" if "false_activation_upper" in report else ""))
-    console.print(table)
+    console.print(calibration_table(thresholds, report, f"calibrated thresholds ({estimator}, false-activation "
+                                                        f"budget {budget:.0%})"))
     console.print("prevented: share of the plain policy's calibration collisions prevented in the replayed episodes "
                   "(mean over perturbation types); false act.: share of unperturbed steps where the fallback acted "
-                  f"(≤ its {confidence:.0%} upper bound); every candidate in {out.with_suffix('.report.json')}")
+                  f"(≤ its one-sided {confidence:.0%} upper bound); every candidate in "
+                  f"{escape(str(out.with_suffix('.report.json')))}", highlight=False)
+    if report["n_collisions"] and report["n_collisions"] < FEW_COLLISIONS:
+        console.print(f"[yellow]warning:[/] the prevented share rests on only {report['n_collisions']} calibration "
+                      f"collision(s) (< {FEW_COLLISIONS}); it is a rough estimate: use more --episodes",
+                      highlight=False)
     if "note" in report:
-        console.print(report["note"])
+        console.print(escape(report["note"]), highlight=False)
     console.print(f"thresholds: {out}  (use with --safety {out})")
+
+
+@app.command()
+def convert(
+    model: str = typer.Argument(..., help="socnav policy file (from socnav train), or 'pretrained'"),
+    to_sb3: Path = typer.Option(..., "--to-sb3", help="write a Stable-Baselines3 model zip here "
+                                                       "(ODVPPO.load reads it)"),
+) -> None:
+    """Turn a socnav policy file into a full Stable-Baselines3 model (for fine-tuning with model.learn)."""
+    from socnav.rl.convert import to_sb3 as convert_to_sb3
+    from socnav.rl.persistence import PolicyLoadError
+
+    if to_sb3.suffix != ".zip":
+        _fail(f"--to-sb3 must be a .zip path, got {to_sb3.name!r}")
+    try:
+        sb3_model = convert_to_sb3(model, n_envs=1)
+    except PolicyLoadError as exc:
+        _fail(str(exc))
+        return
+    to_sb3.parent.mkdir(parents=True, exist_ok=True)
+    sb3_model.save(to_sb3)
+    console.print(f"SB3 model: {escape(str(to_sb3))}  (from socnav.rl import ODVPPO; ODVPPO.load({str(to_sb3)!r}, "
+                  "env=...); SB3's format is pickled: load only files you trust)", highlight=False)
 
 
 @app.command()
@@ -373,11 +632,13 @@ def demo(
     train_steps: int = typer.Option(0, min=0, help="train a fresh ODV-PPO-Drop policy for this many steps "
                                                     "(0: use the pretrained one shipped with socnav)"),
 ) -> None:
-    """Baselines in every scenario, then an ODV-PPO-Drop policy on position swap: metrics and animations (GIF)."""
+    """Baselines in every scenario, an ODV-PPO-Drop policy, then that policy under heading noise with and without
+    the safety layer: metrics and animations (GIF)."""
     from socnav.envs.controllers import make_controller
-    from socnav.envs.rollout import record_episode, summarize
+    from socnav.envs.rollout import summarize
+    from socnav.experiments import demo as safety
+    from socnav.experiments.animate import animate_episode
     from socnav.io import write_table_atomic
-    from socnav.viz import save_animation
 
     rows = []
     for scenario in scenario_names():
@@ -388,31 +649,80 @@ def demo(
             rows.append((f"{name} / {scenario}", summarize(records)))
     console.print(metrics_table(rows, f"Baseline controllers, {episodes} episodes each (seeds {seed}..)"))
     env_config = load_config({"scenario": "circle_crossing"})
-    frames, summary = record_episode(make_controller("orca", env_config), env_config, seed=seed)
-    gif = save_animation(frames, out / "orca_circle_crossing.gif", fps=round(1 / env_config.time_step))
-    console.print(f"animation of one ORCA episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
+    gif, summary = animate_episode(make_controller("orca", env_config), None, env_config,
+                                   out / "orca_circle_crossing.gif", seed=seed, policy_label="ORCA robot")
+    console.print(f"animation of one ORCA episode ({summary.get('outcome')}): {escape(str(gif))}", highlight=False)
 
-    swap = load_config({"scenario": "position_swap", "n_humans": 1})
     if train_steps:
         from socnav.rl.training import TrainingInterrupted
         from socnav.rl.training import train as train_run
 
+        world = load_config({"scenario": "position_swap", "n_humans": 1})
         console.print(f"training ODV-PPO-Drop on position swap with one human for {train_steps:,} steps")
         try:
-            result = train_run(swap, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
+            result = train_run(world, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
         except TrainingInterrupted as exc:
-            console.print(f"[bold red]error:[/] {exc}")
+            console.print(f"[bold red]error:[/] {escape(str(exc))}")
             raise typer.Exit(code=1)
         model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
     else:
         model_path, label = "pretrained", "odv-ppo-drop (pretrained)"
     policy = _load_learned_policy(model_path)
-    records = _evaluate(policy, swap, episodes, seed, 32, f"{label} / position_swap")
-    write_table_atomic(records, out / "odv_ppo_drop_position_swap.csv")
-    console.print(metrics_table([(label, summarize(records))], f"position swap, one human, {episodes} episodes"))
-    frames, summary = record_episode(policy, swap, seed=seed)
-    gif = save_animation(frames, out / "odv_ppo_drop_position_swap.gif", fps=round(1 / swap.time_step))
-    console.print(f"animation of one learned-policy episode ({summary.get('outcome')}, {len(frames)} frames): {gif}")
+    world = load_config(policy.socnav_metadata["env_config"])  # the world the policy was trained in
+    records = _evaluate(policy, world, episodes, seed, 32, f"{label} / {world.scenario}")
+    write_table_atomic(records, out / f"odv_ppo_drop_{world.scenario}.csv")
+    console.print(metrics_table([(label, summarize(records))], f"{describe_world(world)}, {episodes} episodes"))
+    gif, summary = animate_episode(policy, None, world, out / f"odv_ppo_drop_{world.scenario}.gif", seed=seed,
+                                   policy_label=label)
+    console.print(f"animation of one learned-policy episode ({summary.get('outcome')}): {escape(str(gif))}",
+                  highlight=False)
+
+    # The point of the project: under a perturbation, the safety layer hands over to a cautious controller when
+    # the policy is uncertain and a human is close.
+    console.print(f"[bold]safety layer[/]: {label} under {safety.PERTURBATION}, the same episodes without and with "
+                  "the layer (MC-dropout, the paper's thresholds)")
+    with _progress() as progress:
+        def tick(what: str, total: int) -> Any:
+            task = progress.add_task(f"{what} / {world.scenario}", total=total)
+            return lambda n: progress.advance(task, n)
+
+        result = safety.safety_demo(policy, world, episodes, seed, progress=tick)
+    write_table_atomic(result.plain, out / f"perturbed_{world.scenario}.csv")
+    write_table_atomic(result.safe, out / f"perturbed_{world.scenario}_safety.csv")
+    console.print(metrics_table(safety.summary_rows(result, label), f"{describe_world(result.config)}, "
+                                                                    f"{episodes} episodes"))
+    for line in safety.describe(result):
+        console.print(line, highlight=False)
+    saved_seed = safety.find_saved_episode(policy, result.config, result.saved) if result.saved else None
+    if saved_seed is not None:
+        without, with_layer = safety.animate_saved_episode(policy, result.config, saved_seed, out, label)
+        console.print(f"an episode the safety layer saves (seed {saved_seed}): without it {escape(str(without))}, "
+                      f"with it {escape(str(with_layer))}", highlight=False)
+    elif result.saved:
+        console.print("no animation: the saved episodes are not saved when replayed alone (the MC-dropout masks "
+                      "differ for a batch of one)", highlight=False)
+
+
+@app.command()
+def export(
+    model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained'"),
+    out: Path = typer.Option(Path("navigator.onnx"), help="the ONNX navigator file to write"),
+    thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE"),
+    k: int = typer.Option(20, min=2, help="MC-dropout samples per decision"),
+    p_test: Optional[float] = typer.Option(None, min=0.0, max=0.99, help="MC-dropout p (default: the policy's)"),
+    window: int = typer.Option(4, min=1, help="uncertainty window in steps"),
+    value: bool = typer.Option(False, "--value", help="also export the critic (output 'value')"),
+) -> None:
+    """Export a policy, its MC-dropout settings and safety thresholds as ONNX for the torch-free socnav.runtime."""
+    from socnav.export import ExportError, export_onnx
+    from socnav.safety import ThresholdsError
+
+    policy = _load_learned_policy(model)
+    try:
+        path = export_onnx(policy, out, thresholds=thresholds, k=k, p_test=p_test, window=window, with_value=value)
+    except (ExportError, ThresholdsError, OSError) as exc:
+        _fail(str(exc))
+    console.print(f"navigator: {path}  (run it with socnav.runtime.SafeNavigator.load({str(path)!r}))")
 
 
 from socnav.experiments.cli import register as _register_experiments  # noqa: E402
@@ -420,7 +730,8 @@ _register_experiments(app)  # socnav run / report / tune
 
 
 def main() -> None:
-    app()
+    """Entry point of `python -m socnav` (the usage line names `socnav`, not `__main__.py`)."""
+    app(prog_name="socnav")
 
 
 if __name__ == "__main__":

@@ -258,7 +258,7 @@ class EnvConfig(_Strict):
         from socnav.sim.scenarios import scenario_names
 
         if value not in scenario_names():
-            raise ValueError(f"unknown scenario {value!r}; allowed: {', '.join(scenario_names())}")
+            raise ValueError(f"unknown scenario {short_repr(value)}; allowed: {', '.join(scenario_names())}")
         return value
 
     @field_validator("n_humans")
@@ -361,6 +361,26 @@ def load_config(config: ConfigLike = None, **overrides: Any) -> EnvConfig:
         return EnvConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def perturbation_text(config: EnvConfig) -> str:
+    """The perturbations switched on, as 'heading_noise=0.4, human_speed_factor=1.5' ('' for none)."""
+    defaults = PerturbationConfig()
+    return ", ".join(f"{key}={value}" for key, value in config.perturbation.model_dump().items()
+                     if value != getattr(defaults, key))
+
+
+def describe_world(config: EnvConfig, with_perturbation: bool = True) -> str:
+    """A world in words, as tables and animation titles name it: 'position_swap, 1 human, humans ignore the robot,
+    perturbed: heading_noise=0.4'."""
+    low, high = config.humans_range()
+    parts = [config.scenario, f"{low} human{'s' if low != 1 else ''}" if low == high else f"{low}-{high} humans"]
+    if not config.robot_visible:
+        parts.append("humans ignore the robot")
+    perturbed = perturbation_text(config)
+    if with_perturbation and perturbed:
+        parts.append(f"perturbed: {perturbed}")
+    return ", ".join(parts)
 
 
 def _deep_merge(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,17 +1,23 @@
-"""Atomic file writing: results, records and checkpoints never exist half-written.
+"""Atomic file writing (results, records and checkpoints never exist half-written) and the directory lock.
 
-Write to a temporary file in the destination's directory, flush it to disk, then `os.replace` it into place.
+Write to a temporary file in the destination's directory, flush it to disk, then `os.replace` it into place. A
+process killed in between leaves its temporary file (``.<name>.<8 random characters>.tmp<suffix>``) behind;
+`remove_stale_temporaries`, called by the next run holding the directory's lock, deletes them.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
 import pandas as pd
+
+# The names `atomic_path` gives its temporary files: mkstemp's 8 random characters between prefix and suffix.
+_TEMPORARY_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[^.]*)?$")
 
 
 @contextmanager
@@ -61,3 +67,43 @@ def read_table(path: str | Path) -> pd.DataFrame:
     if path.suffix not in TABLE_FORMATS:
         raise ValueError(f"unsupported table format {path.suffix!r} for {path}; allowed: {', '.join(TABLE_FORMATS)}")
     return pd.read_csv(path) if path.suffix == ".csv" else pd.read_parquet(path)
+
+
+def remove_stale_temporaries(directory: str | Path, recursive: bool = True) -> list[Path]:
+    """Delete the temporary files `atomic_path` left in `directory` when its writer was killed; returns them.
+
+    Call it only while holding the directory's `file_lock`: a live writer's temporary file looks the same.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    candidates = directory.rglob(".*") if recursive else directory.glob(".*")
+    removed = [path for path in candidates if _TEMPORARY_NAME.match(path.name) and path.is_file()]
+    for path in removed:
+        path.unlink(missing_ok=True)
+    return removed
+
+
+@contextmanager
+def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
+    """An exclusive flock on `path` (released when the holder dies); yields False if not blocking and busy."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no locking
+        yield True
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        except OSError:  # a filesystem without flock (some network mounts): go on unlocked
+            yield True
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -246,3 +246,68 @@ def test_report_command(handmade_run, tmp_path):
     (tmp_path / "empty").mkdir()
     result = runner.invoke(app, ["report", str(tmp_path / "empty")])
     assert result.exit_code == 2 and "not a socnav run directory" in result.output
+
+
+def _controlled_run(root: Path, goal_share: dict[str, list[float]]) -> pd.DataFrame:
+    """A finished run where seed s of algorithm a reaches the goal in goal_share[a][s] of its episodes in every
+    cell (the rest collide); returns the records."""
+    units = prepare_run_dir(root, parse_experiment({
+        "name": "controlled", "grid": {"algorithms": list(goal_share), "train_scenarios": TRAIN, "seeds": [0, 1],
+                                       "timesteps": 1000},
+        "evaluation": {"scenarios": EVAL, "episodes": 10},
+    }, "test"))
+    frames = []
+    for unit in units:
+        directory = unit_dir(root, unit)
+        directory.mkdir(parents=True, exist_ok=True)
+        p = unit.params
+        if unit.kind == "train":
+            (directory / "model.zip").write_bytes(b"model")
+            write_table_atomic(_curve(np.random.default_rng(0), p["seed"]), directory / "curve.csv")
+            mark_done(root, unit, ["model.zip", "curve.csv"])
+            continue
+        goals = round(10 * goal_share[p["algo"]][p["train_seed"]])
+        records = pd.DataFrame({
+            "train_scenario": p["train_scenario"], "algo": p["algo"], "train_seed": p["train_seed"],
+            "eval_scenario": p["eval_scenario"], "episode": np.arange(10), "seed": np.arange(10),
+            "outcome": ["goal"] * goals + ["collision"] * (10 - goals), "return": np.linspace(0, 1, 10),
+            "length": 50, "intrusion_events": 1, "min_gap": 0.5,
+        })
+        write_table_atomic(records, directory / "episodes.parquet")
+        frames.append(records)
+        mark_done(root, unit, ["episodes.parquet"], inputs={f"{unit.deps[0]}/model.zip":
+                                                            file_digest(root / unit.deps[0] / "model.zip")})
+    return pd.concat(frames, ignore_index=True)
+
+
+def test_table1_intervals_aggregate_and_verdicts(tmp_path):
+    # ODV-PPO-Drop's seeds reach the goal in 90 / 100 % of episodes, PPO's in 30 / 50 %: a clear improvement.
+    root = tmp_path / "clear"
+    _controlled_run(root, {"ppo": [0.3, 0.5], "odv-ppo-drop": [0.9, 1.0]})
+    text = build_report(root).read_text()
+    report = root / "report"
+    ci = pd.read_csv(report / "table1_ci.csv")
+    goal = ci[(ci["metric"] == "goal_pct") & (ci["algo"] == "ppo")]
+    # two seeds: the mean and the 95 % percentile interval [min, max] of the seeds' goal rates
+    assert (goal["mean"] == 40.0).all() and (goal["ci_low"] == 30.0).all() and (goal["ci_high"] == 50.0).all()
+    assert (goal["n_seeds"] == 2).all() and len(ci) == 2 * 2 * 2 * 5
+    comparisons = pd.read_csv(report / "comparisons.csv")
+    row = comparisons.iloc[0]
+    assert (row["algo"], row["baseline"], row["n_tasks"]) == ("odv-ppo-drop", "ppo", 4)
+    assert row["difference"] == pytest.approx(55.0) and row["difference_low"] > 0
+    assert row["improvement"] == 1.0 and row["verdict"] == "holds"
+    aggregate = pd.read_csv(report / "aggregate.csv").set_index("algo")
+    assert aggregate.loc["ppo", "iqm_high"] < aggregate.loc["odv-ppo-drop", "iqm_low"]
+    assert aggregate.loc["ppo", "n_runs"] == 8 and aggregate.loc["ppo", "iqm"] == pytest.approx(40.0)
+    assert "## Table 1 with 95 % confidence intervals" in text and "| ODV-PPO-Drop > PPO |" in text
+    assert "40.0 [30.0, 50.0]" in (report / "table1_ci.md").read_text()
+    assert (report / "aggregate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<svg" in (report / "aggregate.svg").read_text()[:2000]
+
+    # the same policies for both algorithms: nothing can be told apart
+    root = tmp_path / "same"
+    _controlled_run(root, {"ppo": [0.6, 0.8], "odv-ppo-drop": [0.6, 0.8]})
+    build_report(root)
+    row = pd.read_csv(root / "report" / "comparisons.csv").iloc[0]
+    assert row["improvement"] == 0.5 and row["difference"] == 0.0
+    assert row["difference_low"] < 0 < row["difference_high"] and row["verdict"] == "cannot tell at this budget"

@@ -89,7 +89,7 @@ def test_ray_backend_end_to_end(tmp_path):
 
 def test_ray_missing_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
-    with pytest.raises(RunnerError, match=r"pip install 'socnav\[ray\]'"):
+    with pytest.raises(RunnerError, match=r'pip install (-e "\.|"socnav)\[ray\]"'):  # checkout or installed
         run_experiment(load_experiment(SMOKE, "quick"), tmp_path / "run", backend="ray")
 
 
@@ -167,8 +167,10 @@ def test_corrupt_and_half_written_units_are_redone(local_run, tmp_path):
 
     summary = run_experiment(experiment, root, workers=0)
     redone = {uid for uid, outcome in summary.outcomes.items() if outcome.status == "done"}
-    assert redone == {truncated, torn, half, "eval/circle_crossing/odv-ppo-drop/seed0/circle_crossing",
-                      "eval/circle_crossing/odv-ppo-drop/seed0/random"}
+    # The torn training, redone from scratch with the same seed, writes a byte-identical model.zip (policy files
+    # have fixed timestamps), so the evaluations of that model stay valid and are not redone.
+    assert (unit_dir(root, torn) / "model.zip").read_bytes() == (unit_dir(local_run, torn) / "model.zip").read_bytes()
+    assert redone == {truncated, torn, half}
     assert summary.outcomes["train/circle_crossing/ppo/seed0"].status == "skipped"
     markers = _check_complete(root, experiment)
     assert markers[torn]["resumed"] is False  # a corrupt unit is wiped and redone from scratch

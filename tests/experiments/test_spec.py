@@ -208,6 +208,7 @@ def _with(path: str, value: object) -> dict:
         ("grid.timesteps", 1e300, "valid integer"),
         ("grid.timesteps", 10**15, "less than or equal to"),
         ("grid.seeds", [0, True], "valid integer"),
+        ("grid.seeds", [2**28], "seeds must lie in [0, 268435455]"),  # socnav.rl.training.MAX_SEED
         ("grid.n_envs", 4.0, "valid integer"),
         ("evaluation.episodes", float("inf"), "valid integer"),
         ("evaluation.seed", 2**62, "less than or equal to"),
@@ -221,11 +222,14 @@ def test_non_finite_and_non_integer_values_are_named(path, value, hint):
     assert path in message and hint in message
 
 
-def test_non_finite_values_in_an_experiment_file_are_named(tmp_path):
+def test_non_finite_and_boolean_values_in_an_experiment_file_are_named(tmp_path):
     path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(_minimal()).replace("episodes: 5", "episodes: .inf"))
-    with pytest.raises(ExperimentError, match=r"evaluation\.episodes"):
+    path.write_text(yaml.safe_dump(_minimal()).replace("episodes: 5", "episodes: 5\n  seed: true")
+                    .replace("timesteps: 1000", "timesteps: 1000\n  n_envs: .inf"))
+    with pytest.raises(ExperimentError) as error:
         load_experiment(path)
+    assert "evaluation.seed: Input should be a valid integer" in str(error.value)
+    assert "grid.n_envs: Input should be a valid integer" in str(error.value)
 
 
 def test_perturbation_strengths_out_of_the_env_range_are_refused_at_load():
@@ -252,3 +256,10 @@ def test_alias_bomb_preset_file_is_refused(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ExperimentError, match=r"grid\.algo_overrides\.ppo: preset file .* is refused: .*alias"):
         load_experiment(path)
+
+
+def test_training_seed_limit_is_the_trainers():
+    from socnav.experiments.spec import TRAIN_SEED_LIMIT
+    from socnav.rl.training import MAX_SEED
+
+    assert TRAIN_SEED_LIMIT == MAX_SEED - 1

@@ -335,3 +335,33 @@ def test_calibrated_thresholds_switched_off_in_json_show_as_infinity(tmp_path):
     path.write_text(json.dumps(data))
     text = build_report(root).read_text()
     assert "| MC-dropout | calibrated | ∞ | 0.25 | 1 | 0.25 | closing-speed | 0.8 | 0.01 |" in text
+
+
+def test_table3_reports_each_sensing_against_the_same_plain_runs():
+    from socnav.experiments.uncertainty_report import cost_frame, cost_markdown, prevented_frame, prevented_markdown
+
+    frame = _safety("mc", "observation_noise")
+    frame["sensing"] = np.where(frame["variant"] == "none", "", "perceived")
+    # the layer reading the true state prevents every perturbed collision of the same episodes
+    true = frame[frame["variant"] == "paper"].assign(sensing="true")
+    true.loc[true["strength"] > 0, "outcome"] = G
+    both = pd.concat([frame, true], ignore_index=True)
+    table = prevented_frame(both).set_index(["estimator", "variant", "sensing", "column"])
+    perceived = table.loc[("mc", "paper", "perceived", "observation_noise")]
+    assert perceived["prevented_mean"] == pytest.approx((200 / 3 + 100) / 2)  # as without the sensing column
+    row = table.loc[("mc", "paper", "true", "observation_noise")]
+    assert (row["prevented_mean"], row["prevented_std"], row["collisions_none"]) == (100.0, 0.0, 4)
+    assert ("mc", "calibrated", "true", "observation_noise") not in table.index
+    rows = _cells(prevented_markdown(prevented_frame(both)))
+    assert [r[1] for r in rows] == ["paper thresholds, perceived", "paper thresholds, true state",
+                                    "calibrated thresholds, perceived", "*paper's Table III*"]
+    assert rows[1][2] == "100.0 ± 0.0"
+    cost = cost_frame(both)
+    assert cost[["variant", "sensing"]].values.tolist() == [["none", ""], ["paper", "perceived"], ["paper", "true"],
+                                                            ["calibrated", "perceived"]]
+    assert cost.loc[2, "collision_pct_perturbed"] == 0.0
+    assert "| MC-dropout | paper thresholds, true state |" in cost_markdown(cost)
+    # records written before the choice existed read as perceived, and are labelled as before
+    old = prevented_frame(frame.drop(columns="sensing"))
+    assert set(old["sensing"]) == {"perceived"}
+    assert _cells(prevented_markdown(old))[0][1] == "paper thresholds"

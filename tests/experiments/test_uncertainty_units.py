@@ -46,3 +46,38 @@ def test_tiny_uncertainty_experiment_runs_end_to_end(tmp_path):
         assert len(set(block)) == 1  # every variant played the same episode seeds
     assert (safety.loc[safety["variant"] == "none", "fallback_steps"] == 0).all()
     assert (tmp_path / "calibrate" / "mc" / "thresholds.yaml").is_file()
+
+
+def test_both_sensings_are_calibrated_and_evaluated(tmp_path):
+    from socnav.experiments.report import build_report
+
+    safety = {"estimators": ["mc"], "perturbations": {"observation_noise": [0.0, 1.5]}, "repeats": 1, "k": 4,
+              "sensing": ["perceived", True]}  # an unquoted YAML `true` is a boolean
+    spec = {**TINY, "name": "tiny-sensing", "grid": {**TINY["grid"], "seeds": 1}, "study": None, "safety": safety}
+    units = {unit.id: unit for unit in plan_units(parse_experiment(spec))}
+    assert (units["calibrate/mc"].params["sensing"], units["calibrate-true/mc"].params["sensing"]) == \
+        ("perceived", "true")
+    assert units["safety/mc/observation_noise"].deps[-2:] == ("calibrate/mc", "calibrate-true/mc")
+    # the run itself without the (slow) calibration: the paper thresholds with each sensing
+    spec["safety"] = {**safety, "calibrate": False}
+    summary = run_experiment(parse_experiment(spec), tmp_path, workers=0)
+    assert summary.ok, [outcome.error for outcome in summary.failed]
+    records = pd.read_parquet(tmp_path / "safety" / "mc" / "observation_noise" / "episodes.parquet")
+    pairs = set(records[["variant", "sensing"]].itertuples(index=False, name=None))
+    assert pairs == {("none", ""), ("paper", "perceived"), ("paper", "true")}
+    # without noise (strength 0) the true state is the observation: both sensings play the same episodes
+    calm = records[(records["strength"] == 0.0) & (records["variant"] == "paper")]
+    by_sensing = [g.sort_values("seed")[["seed", "outcome", "length", "fallback_steps"]].reset_index(drop=True)
+                  for _, g in calm.groupby("sensing")]
+    assert by_sensing[0].equals(by_sensing[1])
+    assert "paper thresholds, true state" in build_report(tmp_path).read_text()
+
+
+def test_sensing_choices_are_validated():
+    for bad, message in (([], "at least one of: perceived, true"), (["true", "true"], "lists a sensing twice"),
+                         (["lidar"], "'perceived' or 'true'")):
+        with pytest.raises(ExperimentError, match=message):
+            parse_experiment({**TINY, "safety": {**TINY["safety"], "sensing": bad}})
+    single = parse_experiment({**TINY, "safety": {**TINY["safety"], "sensing": "true"}})
+    assert single.safety.sensing == ["true"]
+    assert parse_experiment(TINY).safety.sensing == ["perceived"]  # the default: as before the choice existed

@@ -178,6 +178,15 @@ def test_killed_training_resumes_to_the_same_total(tmp_path):
     evals = pd.read_csv(out / "eval.csv")
     assert list(evals["timesteps"]) == list(range(512, 6144 + 1, 512))
     assert load_policy(out / "model.zip").socnav_metadata["timesteps"] == 6144
+    # the resumed run's checkpoint is the safe format (no SB3 pickles) and reloads to the same bytes
+    from socnav.rl.persistence import load_checkpoint, save_checkpoint
+
+    checkpoint = out / "checkpoints" / json.loads(state.read_text())["checkpoint"]
+    assert set(zipfile.ZipFile(checkpoint).namelist()) == {"checkpoint.json", "state.pt"}
+    model, header = load_checkpoint(checkpoint, socnav.make_vec_env(ENV, n_envs=4))
+    assert header.num_timesteps == 6144 and header.run["curve_rows"] == len(curve)
+    again = save_checkpoint(model, tmp_path / "again.zip", header.env_config, header.seed, header.run)
+    assert again.read_bytes() == checkpoint.read_bytes()
 
 
 def test_same_seed_gives_the_same_training_run(tmp_path):

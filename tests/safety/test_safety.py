@@ -479,3 +479,21 @@ def test_bad_thresholds_are_rejected_with_a_clear_message(tmp_path):
         load_thresholds(bad)
     with pytest.raises(ValueError, match="extra"):  # the plain constructor validates too (pydantic error)
         Thresholds(**good, extra=1)
+
+
+@pytest.mark.parametrize("field", ["lambda_prox", "beta1"])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, 1e300])
+def test_threshold_distances_and_times_must_be_finite_and_physical(field, bad):
+    good = {"lambda_ep": 0.1, "lambda_feat": 0.1, "lambda_prox": 1.0, "beta1": 0.5}
+    with pytest.raises(ThresholdsError, match=rf"{field}: Input should be (a finite number|less than or equal)"):
+        Thresholds.create({**good, field: bad})
+    # inf stays meaningful for the uncertainty thresholds: that condition is off (Thresholds.never)
+    assert Thresholds.create({**good, "lambda_ep": math.inf}).lambda_ep == math.inf
+
+
+def test_threshold_yaml_files_with_non_finite_values_are_refused(tmp_path):
+    path = tmp_path / "t.yaml"
+    path.write_text("lambda_ep: 0.1\nlambda_feat: 0.1\nlambda_prox: .inf\nbeta1: .nan\n")
+    with pytest.raises(ThresholdsError) as error:
+        load_thresholds(path)
+    assert "lambda_prox" in str(error.value) and "beta1" in str(error.value)

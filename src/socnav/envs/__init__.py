@@ -1,6 +1,14 @@
 """Gymnasium and Stable-Baselines3 environments over the crowd simulator (SPEC section 2)."""
 
 from socnav.envs.env import SocialNavEnv, make_env
-from socnav.envs.vec_env import SocialNavVecEnv, make_vec_env
 
 __all__ = ["SocialNavEnv", "SocialNavVecEnv", "make_env", "make_vec_env"]
+
+
+def __getattr__(name: str):
+    # The SB3 VecEnv imports SB3 (and torch): load it on first use so that the simulator stays torch-free.
+    if name in ("SocialNavVecEnv", "make_vec_env"):
+        from socnav.envs import vec_env
+
+        return getattr(vec_env, name)
+    raise AttributeError(f"module 'socnav.envs' has no attribute {name!r}")

@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from socnav.config import ConfigLike, EnvConfig, load_config
+from socnav.envs.env import check_actions, check_env_count
 from socnav.sim.world import CrowdWorld
 
 EPISODE_COLUMNS = (
@@ -56,7 +57,7 @@ def rollout_episodes(
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     config: EnvConfig = load_config(config)
-    n_envs = max(1, min(n_envs, n_episodes))
+    n_envs = check_env_count(max(1, min(n_envs, n_episodes)), config)
     world = CrowdWorld(config, n_envs)
     running = np.arange(n_envs)  # episode index each environment is playing; -1 once there is none left
     for env in range(n_envs):
@@ -74,7 +75,7 @@ def rollout_episodes(
             policy.sense(world.observe(noisy=False))
         actions, _ = policy.predict(observation, deterministic=deterministic)
         actions = np.asarray(actions)
-        result = world.step(actions)
+        result = world.step(check_actions(actions, n_envs))  # a NaN action: ActionError naming the environment
         if observer is not None:
             observer.on_step(observation, actions, result, running.copy())
         done = np.flatnonzero(result.terminated | result.truncated)

@@ -13,7 +13,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from socnav.config import ConfigLike, EnvConfig, load_config
-from socnav.envs.env import scene_frame, step_infos
+from socnav.envs.env import check_actions, check_env_count, scene_frame, step_infos
 from socnav.envs.spaces import action_space, observation_space
 from socnav.sim.world import CrowdWorld
 
@@ -22,11 +22,10 @@ class SocialNavVecEnv(VecEnv):
     """`n_envs` social-navigation environments stepped together (no Python loop over environments when stepping)."""
 
     def __init__(self, config: ConfigLike = None, n_envs: int = 1, render_mode: str | None = None, **overrides: Any):
-        if not isinstance(n_envs, int) or n_envs < 1:
-            raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode={render_mode!r} is not supported by the VecEnv; allowed: rgb_array, None")
         self.config: EnvConfig = load_config(config, **overrides)
+        n_envs = check_env_count(n_envs, self.config)
         self.render_mode = render_mode
         self.world = CrowdWorld(self.config, n_envs)
         self._actions: np.ndarray | None = None
@@ -48,7 +47,8 @@ class SocialNavVecEnv(VecEnv):
         return self.world.observe()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, -1)
+        """Take one action per environment; a NaN action raises `socnav.envs.env.ActionError` naming its index."""
+        self._actions = check_actions(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         if self._actions is None:

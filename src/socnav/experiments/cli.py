@@ -11,6 +11,9 @@ from typing import Any, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
+
+from socnav.extras import install_hint
 
 console = Console(soft_wrap=True)
 
@@ -18,7 +21,8 @@ __all__ = ["register"]
 
 
 def _fail(message: str, code: int = 2) -> None:
-    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    # Escaped: messages hold brackets (`pip install -e ".[tune]"`, `[min, max]`) that Rich would take for markup.
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code=code)
 
 
@@ -113,7 +117,7 @@ def run(
         try:
             import ray  # noqa: F401
         except ImportError:
-            _fail("--backend ray needs Ray: pip install 'socnav[ray]'")
+            _fail(f"--backend ray needs Ray: {install_hint('ray')}")
     reporter = _ProgressReporter()
     started = time.perf_counter()
     try:
@@ -202,7 +206,7 @@ def tune(
     try:
         import optuna
     except ImportError:
-        _fail("socnav tune needs Optuna: pip install 'socnav[tune]'")
+        _fail(f"socnav tune needs Optuna: {install_hint('tune')}")
         return
     optuna.logging.set_verbosity(optuna.logging.WARNING)
 

@@ -52,6 +52,17 @@ def perturbation_override(kind: str, strength: float) -> dict[str, Any]:
     return {field: float(strength)}
 
 
+def perturbed_config(env: dict[str, Any], kind: str, strength: float) -> Any:
+    """The validated `EnvConfig` of the (partial) env config `env` with one perturbation at one strength.
+
+    :raises socnav.config.ConfigError: the strength puts a field out of its range (the message names it).
+    """
+    from socnav.config import load_config
+
+    perturbation = {**env.get("perturbation", {}), **perturbation_override(kind, strength)}
+    return load_config({**env, "perturbation": perturbation})
+
+
 def strength_zero(kind: str) -> float:
     """The unperturbed strength of a perturbation type (the sigma(0) of the sensitivity ratio)."""
     return PAPER_GRIDS[kind][0]

@@ -13,6 +13,12 @@ PV                    -- proxemic-violation events (entering a human's personal 
 Return                -- mean over seeds of the per-seed mean episode return, +- the standard deviation over all
                          test episodes of all seeds (population std, ddof=0: the spread a user sees per episode).
 The CSV adds ``return_seed_std`` (std over seeds of the per-seed mean return) and the seed / episode counts.
+
+Table 1 with confidence intervals (``table1_ci.md/csv``) and the aggregate (``aggregate.png/svg/csv``,
+``comparisons.csv``): per cell the mean over seeds with a 95 % bootstrap interval over seeds; per algorithm the IQM
+of the goal rate over seeds x (training, evaluation) scenario cells; ODV-PPO-Drop against each other algorithm:
+difference of mean goal rates and probability of improvement with stratified bootstrap intervals, and the verdict
+(holds / does not hold / cannot tell at this budget). See :mod:`socnav.experiments.statistics`.
 """
 
 from __future__ import annotations
@@ -30,8 +36,9 @@ from socnav.experiments.spec import Unit
 from socnav.io import atomic_path, read_table, write_table_atomic, write_text_atomic
 
 __all__ = [
-    "ReportContext", "SECTIONS", "build_report", "register_section", "table1_frame", "table1_markdown",
-    "training_curve_frame", "plot_training_curves",
+    "ReportContext", "SECTIONS", "aggregate_frame", "build_report", "comparison_frame", "plot_aggregate",
+    "register_section", "table1_ci_frame", "table1_ci_markdown", "table1_frame", "table1_markdown",
+    "table1_seed_frame", "training_curve_frame", "plot_training_curves",
 ]
 
 ALGO_LABELS = {"ppo": "PPO", "ppo-drop": "PPO-Drop", "odv-ppo-noloss": "ODV-PPO no Loss", "odv-ppo": "ODV-PPO",
@@ -150,20 +157,29 @@ def _header(context: ReportContext) -> str:
 # Table 1
 # --------------------------------------------------------------------------------------------------------------
 
+def table1_seed_frame(records: pd.DataFrame, pv_per: int = PV_PER) -> pd.DataFrame:
+    """Table 1's metrics per training seed: one row per (training scenario, algorithm, evaluation scenario,
+    train_seed) with episodes, goal_pct, collision_pct, timeout_pct, pv and return_mean of that seed's episodes."""
+    columns = ID_COLUMNS + ["train_seed", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
+    if records.empty:
+        return pd.DataFrame(columns=columns)
+    outcome = records["outcome"]
+    per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
+                                 timeout=(outcome == "timeout") * 100.0)
+    per_seed = per_episode.groupby(ID_COLUMNS + ["train_seed"], sort=False).agg(
+        episodes=("return", "size"), goal_pct=("goal", "mean"), collision_pct=("collision", "mean"),
+        timeout_pct=("timeout", "mean"), events=("intrusion_events", "sum"), return_mean=("return", "mean"),
+    ).reset_index()
+    per_seed["pv"] = per_seed["events"] * pv_per / per_seed["episodes"]
+    return per_seed[columns]
+
+
 def table1_frame(records: pd.DataFrame, pv_per: int = PV_PER) -> pd.DataFrame:
     """Table 1 in long form from per-episode records (columns train_scenario, algo, train_seed, eval_scenario,
     outcome, return, intrusion_events): one row per (training scenario, algorithm, evaluation scenario)."""
     if records.empty:
         return pd.DataFrame(columns=TABLE1_COLUMNS)
-    keys = ID_COLUMNS + ["train_seed"]
-    outcome = records["outcome"]
-    per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
-                                 timeout=(outcome == "timeout") * 100.0)
-    per_seed = per_episode.groupby(keys, sort=False).agg(
-        episodes=("return", "size"), goal_pct=("goal", "mean"), collision_pct=("collision", "mean"),
-        timeout_pct=("timeout", "mean"), events=("intrusion_events", "sum"), return_mean=("return", "mean"),
-    ).reset_index()
-    per_seed["pv"] = per_seed["events"] * pv_per / per_seed["episodes"]
+    per_seed = table1_seed_frame(records, pv_per)
     table = per_seed.groupby(ID_COLUMNS, sort=False).agg(
         n_seeds=("train_seed", "nunique"), episodes=("episodes", "sum"), goal_pct=("goal_pct", "mean"),
         collision_pct=("collision_pct", "mean"), timeout_pct=("timeout_pct", "mean"), pv=("pv", "mean"),
@@ -256,6 +272,237 @@ def table1_section(context: ReportContext) -> str:
         "",
         "Data: [table1.csv](table1.csv) (also `return_seed_std`, the spread of the mean return over seeds).",
     ])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Table 1 with confidence intervals over seeds, aggregate scores and claims
+# --------------------------------------------------------------------------------------------------------------
+
+#: Metrics shown with intervals in table1_ci.md (table1_ci.csv has every Table 1 metric) -> decimals.
+CI_MARKDOWN_METRICS = {"goal_pct": 1, "collision_pct": 1, "return_mean": 2}
+#: The aggregate score: a policy's goal (success) rate in %, per training seed and (training, evaluation) scenario
+#: cell. It is what the paper ranks its algorithms by, and unlike the return its scale is the same in every scenario.
+AGGREGATE_SCORE = "goal_pct"
+#: The paper's method, compared with every other algorithm of the run (PPO first).
+REFERENCE_ALGO = "odv-ppo-drop"
+CI_COLUMNS = ID_COLUMNS + ["metric", "n_seeds", "mean", "ci_low", "ci_high"]
+COMPARISON_COLUMNS = ["algo", "baseline", "n_tasks", "difference", "difference_low", "difference_high",
+                      "improvement", "improvement_low", "improvement_high", "verdict"]
+
+
+def table1_ci_frame(per_seed: pd.DataFrame, confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
+    """Per (training scenario, algorithm, evaluation scenario) and Table 1 metric: the mean over seeds and its
+    bootstrap confidence interval over seeds (NaN bounds with a single seed); ``per_seed`` from
+    :func:`table1_seed_frame`."""
+    from socnav.experiments.statistics import mean_interval
+
+    rows = []
+    for key, group in per_seed.groupby(ID_COLUMNS, sort=False):
+        for metric in TABLE1_METRICS:
+            interval = mean_interval(group[metric].to_numpy(float), confidence, seed=seed)
+            rows.append({**dict(zip(ID_COLUMNS, key)), "metric": metric, "n_seeds": len(group),
+                         "mean": interval.estimate, "ci_low": interval.low, "ci_high": interval.high})
+    return pd.DataFrame(rows, columns=CI_COLUMNS)
+
+
+def table1_ci_markdown(ci: pd.DataFrame, algorithms: list[str] | None = None,
+                       train_scenarios: list[str] | None = None, eval_scenarios: list[str] | None = None) -> str:
+    """Table 1's layout with ``mean [low, high]`` cells for :data:`CI_MARKDOWN_METRICS` (nothing bold: which
+    algorithm is best is the question the intervals answer, see the comparisons)."""
+    algorithms = _ordered(ci["algo"], algorithms or [])
+    train_scenarios = _ordered(ci["train_scenario"], train_scenarios or [])
+    eval_scenarios = _ordered(ci["eval_scenario"], eval_scenarios or [])
+    header = ["Training scenario", "Approach"]
+    for scenario in eval_scenarios:
+        header += [f"{scenario_label(scenario)}: {TABLE1_METRICS[m][0].replace(' (μ ± σ)', '')}"
+                   for m in CI_MARKDOWN_METRICS]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * (len(header) - 2)) + "|"]
+    indexed = ci.set_index(ID_COLUMNS + ["metric"])
+    for train_scenario in train_scenarios:
+        for index, algo in enumerate(algorithms):
+            row = [scenario_label(train_scenario) if index == 0 else "", algo_label(algo)]
+            for scenario in eval_scenarios:
+                for metric, decimals in CI_MARKDOWN_METRICS.items():
+                    key = (train_scenario, algo, scenario, metric)
+                    if key not in indexed.index:
+                        row.append("–")
+                        continue
+                    cell = indexed.loc[key]
+                    row.append(_interval_text(cell["mean"], cell["ci_low"], cell["ci_high"], decimals))
+            lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def _interval_text(mean: float, low: float, high: float, decimals: int) -> str:
+    from socnav.experiments.statistics import Interval
+
+    return Interval(float(mean), float(low), float(high)).text(decimals)
+
+
+def _task_scores(per_seed: pd.DataFrame, algo: str, tasks: list[tuple[str, str]],
+                 score: str = AGGREGATE_SCORE) -> list[np.ndarray]:
+    mine = per_seed[per_seed["algo"] == algo].groupby(["train_scenario", "eval_scenario"])[score]
+    return [mine.get_group(task).to_numpy(float) for task in tasks]
+
+
+def _tasks(per_seed: pd.DataFrame, *algos: str) -> list[tuple[str, str]]:
+    """(training scenario, evaluation scenario) cells where every one of `algos` has at least one seed."""
+    cells = [set(map(tuple, per_seed.loc[per_seed["algo"] == algo, ["train_scenario", "eval_scenario"]]
+                     .drop_duplicates().to_numpy().tolist())) for algo in algos]
+    common = set.intersection(*cells) if cells else set()
+    order = per_seed[["train_scenario", "eval_scenario"]].drop_duplicates().itertuples(index=False, name=None)
+    return [task for task in order if task in common]
+
+
+def aggregate_frame(per_seed: pd.DataFrame, algorithms: list[str] | None = None, score: str = AGGREGATE_SCORE,
+                    confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
+    """Per algorithm: the interquartile mean of ``score`` over all seeds x (training, evaluation) scenario cells
+    and its stratified bootstrap interval (seeds resampled within each cell)."""
+    from socnav.experiments.statistics import iqm_interval
+
+    rows = []
+    for algo in _ordered(per_seed["algo"], algorithms or []):
+        tasks = _tasks(per_seed, algo)
+        if not tasks:
+            continue
+        scores = _task_scores(per_seed, algo, tasks, score)
+        interval = iqm_interval(scores, confidence, seed=seed)
+        rows.append({"algo": algo, "score": score, "n_tasks": len(tasks), "n_runs": sum(map(len, scores)),
+                     "iqm": interval.estimate, "iqm_low": interval.low, "iqm_high": interval.high,
+                     "mean": float(np.mean([s.mean() for s in scores]))})
+    return pd.DataFrame(rows, columns=["algo", "score", "n_tasks", "n_runs", "iqm", "iqm_low", "iqm_high", "mean"])
+
+
+def comparison_frame(per_seed: pd.DataFrame, reference: str = REFERENCE_ALGO, algorithms: list[str] | None = None,
+                     score: str = AGGREGATE_SCORE, confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
+    """The claim "``reference`` scores higher than B" for every other algorithm B (PPO first), over the cells both
+    were evaluated in: the mean difference of ``score`` (points) and the probability of improvement, each with
+    its stratified bootstrap interval, and the verdict from the difference's interval."""
+    from socnav.experiments.statistics import compare
+
+    rows = []
+    if reference not in set(per_seed["algo"]):
+        return pd.DataFrame(columns=COMPARISON_COLUMNS)
+    others = [a for a in _ordered(per_seed["algo"], ["ppo", *(algorithms or [])]) if a != reference]
+    for baseline in others:
+        tasks = _tasks(per_seed, reference, baseline)
+        if not tasks:
+            continue
+        result = compare(_task_scores(per_seed, reference, tasks, score), _task_scores(per_seed, baseline, tasks, score),
+                         confidence, seed=seed)
+        rows.append({"algo": reference, "baseline": baseline, "n_tasks": len(tasks),
+                     "difference": result.difference.estimate, "difference_low": result.difference.low,
+                     "difference_high": result.difference.high, "improvement": result.improvement.estimate,
+                     "improvement_low": result.improvement.low, "improvement_high": result.improvement.high,
+                     "verdict": result.verdict})
+    return pd.DataFrame(rows, columns=COMPARISON_COLUMNS)
+
+
+def plot_aggregate(aggregate: pd.DataFrame, comparisons: pd.DataFrame, out_base: Path) -> list[Path]:
+    """Left: IQM goal rate per algorithm with its 95 % interval; right: probability that the reference algorithm
+    improves on each other one, with its interval (0.5: no difference). PNG and SVG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (left, right) = plt.subplots(1, 2, figsize=(10, 0.5 * max(len(aggregate), len(comparisons), 2) + 1.6))
+    labels = [algo_label(a) for a in aggregate["algo"]]
+    y = np.arange(len(aggregate))[::-1]
+    iqm = aggregate["iqm"].to_numpy(float)
+    error = np.nan_to_num(np.abs(np.vstack([iqm - aggregate["iqm_low"].to_numpy(float),
+                                            aggregate["iqm_high"].to_numpy(float) - iqm])))
+    left.errorbar(iqm, y, xerr=error, fmt="o", color="tab:blue", capsize=4)
+    left.set_yticks(y, labels)
+    left.set_ylim(-0.6, len(aggregate) - 0.4)
+    left.set_xlabel("IQM goal rate (%), 95 % CI")
+    left.set_title("Aggregate over seeds × scenario cells")
+    left.grid(alpha=0.3, axis="x")
+    if len(comparisons):
+        y = np.arange(len(comparisons))[::-1]
+        poi = comparisons["improvement"].to_numpy(float)
+        error = np.nan_to_num(np.abs(np.vstack([poi - comparisons["improvement_low"].to_numpy(float),
+                                                comparisons["improvement_high"].to_numpy(float) - poi])))
+        right.errorbar(poi, y, xerr=error, fmt="o", color="tab:green", capsize=4)
+        right.set_yticks(y, [algo_label(b) for b in comparisons["baseline"]])
+        right.axvline(0.5, color="grey", linestyle="--", linewidth=1)
+        right.set_xlim(-0.03, 1.03)  # room for points at 0 and 1
+        right.set_ylim(-0.6, len(comparisons) - 0.4)
+        right.set_title(f"P({algo_label(comparisons['algo'].iloc[0])} > Y)")
+    else:
+        right.set_title(f"P({algo_label(REFERENCE_ALGO)} > Y): not in this run")
+    right.set_xlabel("probability of improvement, 95 % CI")
+    right.grid(alpha=0.3, axis="x")
+    figure.tight_layout()
+    paths = []
+    for suffix in (".png", ".svg"):
+        path = out_base.with_suffix(suffix)
+        with atomic_path(path) as temporary:
+            figure.savefig(temporary, format=suffix[1:], dpi=150)
+        paths.append(path)
+    plt.close(figure)
+    return paths
+
+
+@register_section("table1", "table1_ci")
+def table1_ci_section(context: ReportContext) -> str:
+    experiment = context.experiment
+    algorithms = experiment["grid"]["algorithms"]
+    per_seed = table1_seed_frame(context.episode_records())
+    ci = table1_ci_frame(per_seed)
+    write_table_atomic(ci, context.out_dir / "table1_ci.csv")
+    markdown = table1_ci_markdown(ci, algorithms, experiment["grid"]["train_scenarios"],
+                                  experiment["evaluation"]["scenarios"])
+    write_text_atomic(context.out_dir / "table1_ci.md", markdown + "\n")
+    aggregate = aggregate_frame(per_seed, algorithms)
+    comparisons = comparison_frame(per_seed, REFERENCE_ALGO, algorithms)
+    write_table_atomic(aggregate, context.out_dir / "aggregate.csv")
+    write_table_atomic(comparisons, context.out_dir / "comparisons.csv")
+    plot_aggregate(aggregate, comparisons, context.out_dir / "aggregate")
+    seeds = per_seed["train_seed"].nunique() if len(per_seed) else 0
+    lines = [
+        "## Table 1 with 95 % confidence intervals over seeds",
+        "",
+        f"Mean over the training seeds ({seeds} here) [95 % percentile bootstrap interval over seeds] of the "
+        "goal rate (%), collision rate (%) and mean return; every Table 1 metric in the CSV. With 2–3 seeds an "
+        "interval cannot be wider than the seeds' range and understates the uncertainty; one seed gives none "
+        "(`n/a`).",
+        "",
+        markdown,
+        "",
+        "### Aggregate goal rate and claims",
+        "",
+        "Score: the goal (success) rate (%) of each training seed in each (training scenario, evaluation scenario) "
+        "cell — the paper ranks algorithms by it, and its scale is the same in every scenario. IQM: interquartile "
+        "mean over all seeds × cells; intervals: stratified bootstrap (seeds resampled within each cell), "
+        "as `rliable`. Claim *ODV-PPO-Drop reaches the goal more often than Y*: difference of the mean goal rates "
+        "(points, averaged over cells) and probability of improvement P(a seed of ODV-PPO-Drop beats a seed of Y in "
+        "the same cell); **holds** if the difference's interval is above 0, **does not hold** if below, **cannot "
+        "tell at this budget** if it contains 0.",
+        "",
+        "![aggregate](aggregate.png)",
+        "",
+        "| Approach | IQM goal (%) [95 % CI] | Mean goal (%) | Seeds × cells |",
+        "|:--|--:|--:|--:|",
+    ]
+    for row in aggregate.to_dict("records"):
+        lines.append(f"| {algo_label(row['algo'])} | {_interval_text(row['iqm'], row['iqm_low'], row['iqm_high'], 1)}"
+                     f" | {row['mean']:.1f} | {row['n_runs']} |")
+    lines.append("")
+    if comparisons.empty:
+        lines.append(f"No comparison: {algo_label(REFERENCE_ALGO)} and another algorithm are not both in this run.")
+    else:
+        lines += ["| Claim | Goal difference (points) [95 % CI] | P(improvement) [95 % CI] | Verdict |",
+                  "|:--|--:|--:|:--|"]
+        for row in comparisons.to_dict("records"):
+            lines.append(
+                f"| {algo_label(row['algo'])} > {algo_label(row['baseline'])} "
+                f"| {_interval_text(row['difference'], row['difference_low'], row['difference_high'], 1)} "
+                f"| {_interval_text(row['improvement'], row['improvement_low'], row['improvement_high'], 2)} "
+                f"| {row['verdict']} |")
+    lines += ["", "Vector version: [aggregate.svg](aggregate.svg); data: [table1_ci.csv](table1_ci.csv), "
+              "[aggregate.csv](aggregate.csv), [comparisons.csv](comparisons.csv)."]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -385,6 +632,24 @@ random odv-ppo-drop               99.53 0.30 0.17 8 4.33 0.74 | 97.53 2.43 0.03 
 """
 
 
+#: The budget of the paper's Table I (configs/experiments/table1.yaml, budget `paper`).
+PAPER_BUDGET = {"timesteps": 1_000_000, "seeds": 15, "episodes": 200}
+
+
+def budget_note(experiment: dict[str, Any]) -> str:
+    """A sentence saying how this run's budget differs from the paper's Table I ('' when it is the same)."""
+    seeds = experiment["grid"]["seeds"]
+    ours = {"timesteps": int(experiment["grid"]["timesteps"]),
+            "seeds": len(seeds) if isinstance(seeds, (list, tuple)) else int(seeds),
+            "episodes": int(experiment["evaluation"]["episodes"])}
+    if ours == PAPER_BUDGET:
+        return ""
+    return (f"**The budgets differ:** this run trained {ours['timesteps']:,} steps per policy with {ours['seeds']} "
+            f"seed(s) and tested {ours['episodes']} episodes per cell; the paper's Table I: "
+            f"{PAPER_BUDGET['timesteps']:,} steps, {PAPER_BUDGET['seeds']} seeds, {PAPER_BUDGET['episodes']} episodes. "
+            "Rates from another budget are not expected to match the paper's: compare orderings at most.")
+
+
 def paper_table1() -> pd.DataFrame:
     """The paper's Table I (15 seeds x 200 episodes), in the long form of `table1_frame` (returns are the paper's
     reward instantiation: compare orderings, not absolute values)."""
@@ -418,6 +683,9 @@ def paper_comparison_section(context: ReportContext) -> str:
                                             "timeout_pct", "timeout_pct_paper", "pv", "pv_paper"]],
                        context.out_dir / "table1_vs_paper.csv")
     lines = ["## Comparison with the paper (Table I)", ""]
+    note = budget_note(context.experiment)
+    if note:
+        lines += [note, ""]
     if merged.empty:
         return "\n".join(lines + ["No finished cell of this experiment is in the paper's Table I."])
     lines += ["Goal and collision rates (%) of ours / the paper's; *best* = the algorithm with the highest goal rate "

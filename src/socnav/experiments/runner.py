@@ -36,10 +36,12 @@ import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal
+from typing import Any, Callable, Literal
 
 from socnav.experiments.spec import Experiment, Unit, plan_units
-from socnav.io import write_text_atomic
+from socnav.extras import install_hint
+from socnav.io import file_lock as _file_lock
+from socnav.io import remove_stale_temporaries, write_text_atomic
 
 __all__ = [
     "EXECUTORS", "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir",
@@ -175,27 +177,11 @@ def register_executor(kind: str, resumable: Callable[[Path], bool] | None = None
 
 
 def _sound_checkpoint(directory: Path) -> bool:
-    """A training checkpoint that `train(resume=True)` can load: the readable SB3 zip that state.json names, at the
-    step state.json names (zips without a state are a start that never checkpointed: train starts afresh)."""
-    import zipfile
+    """Whether `train(resume=True)` can continue the training unit in `directory` (or start it: no checkpoint yet):
+    its state.json and the checkpoint it names validate and agree (read safely, nothing unpickled)."""
+    from socnav.rl.training import can_resume
 
-    state_file = directory / "checkpoints" / "state.json"
-    if not state_file.exists():
-        return True  # nothing to resume from: train(resume=True) starts fresh (and clears stray zips)
-    state = _read_json(state_file)
-    if not isinstance(state, dict) or not isinstance(state.get("num_timesteps"), int):
-        return False
-    checkpoint = directory / "checkpoints" / str(state.get("checkpoint", "latest.zip"))
-    if not checkpoint.is_file():
-        return False
-    try:
-        with zipfile.ZipFile(checkpoint) as archive:
-            if archive.testzip() is not None:
-                return False
-            data = json.loads(archive.read("data"))
-            return data.get("num_timesteps") == state["num_timesteps"]
-    except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError):
-        return False
+    return can_resume(directory)
 
 
 def _single_threaded_torch() -> None:
@@ -210,13 +196,14 @@ def _execute_train(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 
     p = unit.params
     _single_threaded_torch()
-    resume = (directory / "checkpoints" / "state.json").is_file()
+    # resume=True: a kept partial unit passed _sound_checkpoint, so train continues from its checkpoint (or starts
+    # afresh when there is none) and never discards one.
     result = train(p["env"], p["algo"], p["seed"], p["timesteps"], directory, n_envs=p["n_envs"],
                    overrides=p["overrides"], eval_every=p["eval_every"], eval_episodes=p["validation_episodes"],
-                   resume=resume, progress=False, tensorboard=True)
+                   resume=True, progress=False, tensorboard=True)
     return ExecutorResult(["model.zip", "curve.csv", "eval.csv", "run.json"],
                           extra={"timesteps": result.timesteps, "train_wall_time_s": result.wall_time_s,
-                                 "resumed": resume, "final_validation": result.final_eval})
+                                 "resumed": result.resumed_from > 0, "final_validation": result.final_eval})
 
 
 @register_executor("eval")
@@ -246,30 +233,6 @@ def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 # One unit, in whatever process runs it
 # --------------------------------------------------------------------------------------------------------------
 
-@contextlib.contextmanager
-def _file_lock(path: Path, blocking: bool = True) -> Iterator[bool]:
-    """An exclusive flock on `path` (released when the holder dies); yields False if not blocking and busy."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: no locking
-        yield True
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
-        except BlockingIOError:
-            yield False
-            return
-        except OSError:  # a filesystem without flock (some network mounts): go on unlocked
-            yield True
-            return
-        try:
-            yield True
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 def _unit_lock_path(root: Path, unit: Unit) -> Path:
     return Path(root) / ".locks" / (unit.id.replace("/", "__") + ".lock")
 
@@ -279,13 +242,16 @@ def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
 
     Returns ``{"id", "status": "done" | "skipped" | "failed", "wall_time_s", "error"?}``; a failure leaves the
     traceback in the unit's ``error.txt``. Holds a per-unit lock, so a stray copy of the same unit (a worker of a
-    killed runner, a retried Ray task) never writes the unit at the same time.
+    killed runner, a retried Ray task) never writes the unit at the same time. ``done.json`` records the state the
+    unit was found in (``previous_state``: ``pending``, or ``partial`` / ``corrupt`` / ``stale`` when an earlier
+    attempt -- e.g. on a worker or Ray node that died -- was continued or redone).
     """
     unit, run_root = Unit.from_json(unit_json), Path(root)
     started = time.perf_counter()
     directory = unit_dir(run_root, unit)
     with _file_lock(_unit_lock_path(run_root, unit)):
         try:
+            remove_stale_temporaries(directory)  # a killed writer's half-written files; the unit lock is ours
             state = unit_state(run_root, unit)
             if state == "done":
                 return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
@@ -294,7 +260,8 @@ def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
             _prepare_unit_dir(run_root, unit, state)
             result = EXECUTORS[unit.kind](run_root, unit, directory)
             elapsed = time.perf_counter() - started
-            mark_done(run_root, unit, result.outputs, result.inputs, {"wall_time_s": elapsed, **result.extra})
+            mark_done(run_root, unit, result.outputs, result.inputs,
+                      {"wall_time_s": elapsed, "previous_state": state, **result.extra})
             return {"id": unit.id, "status": "done", "wall_time_s": elapsed}
         except Exception as exc:  # the unit's own failure: recorded, reported, the sweep goes on
             text = traceback.format_exc()
@@ -441,14 +408,17 @@ class _RayBackend:
         try:
             import ray
         except ImportError:
-            raise RunnerError("the ray backend needs Ray: pip install 'socnav[ray]'") from None
+            raise RunnerError(f"the ray backend needs Ray: {install_hint('ray')}") from None
         self.ray = ray
         self.started_here = False
         if not ray.is_initialized():
             if address is None:  # a Ray of our own on this machine, quiet
                 ray.init(log_to_driver=False, configure_logging=False, include_dashboard=False)
             else:  # an existing cluster ("auto", "host:6379") or a Ray Client address ("ray://host:10001")
-                ray.init(address=address, log_to_driver=False)
+                try:
+                    ray.init(address=address, log_to_driver=False)
+                except (ConnectionError, RuntimeError, ValueError) as exc:
+                    raise RunnerError(f"cannot connect to the Ray cluster at {address!r}: {exc}") from None
             self.started_here = True
         self.workers = workers
         self.task = ray.remote(num_cpus=1, max_retries=retries, retry_exceptions=False)(execute_unit)
@@ -538,6 +508,7 @@ def run_experiment(
     with _file_lock(root / ".lock", blocking=False) as locked:
         if not locked:
             raise RunnerError(f"another socnav run is working in {root} (its .lock is held)")
+        remove_stale_temporaries(root, recursive=False)  # the units' own are removed under their unit locks
         units = prepare_run_dir(root, experiment, source)
         return _sweep(units, root, backend, workers, address, retries, reporter)
 

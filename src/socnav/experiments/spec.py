@@ -40,9 +40,10 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, StrictInt, ValidationError, field_validator
 
-from socnav.config import ConfigError, load_config
+from socnav.config import (ConfigError, StrictModel, load_config, read_yaml_file, short_repr, unknown_field_message,
+                           yaml_problem)
 
 __all__ = [
     "Budget", "Evaluation", "Experiment", "ExperimentError", "Grid", "PLANNERS", "Unit", "load_experiment",
@@ -56,11 +57,19 @@ class ExperimentError(ConfigError):
     """An experiment file is wrong; the message names the file, the field and what is allowed."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Strict(StrictModel):
+    """Unknown fields rejected, floats finite, counts strict integers (socnav.config.StrictModel)."""
 
 
-Seeds = Union[int, list[int]]
+#: Training seeds stay below socnav.rl.training.MAX_SEED (2**28: their environments' seeds stay in [2**40, 2**41));
+#: evaluation episode seeds (seed + k) stay far below the training environments' 2**40.
+TRAIN_SEED_LIMIT = 2**28 - 1
+EPISODE_SEED_LIMIT = 2**31 - 1
+#: Upper bounds of counts: far beyond the paper's budgets (1e6 steps, 200 episodes), below what cannot finish.
+MAX_TIMESTEPS = 10**10
+MAX_EPISODES = 10**7
+MAX_SAMPLES = 10_000  # MC-dropout samples, window steps, repeats
+Seeds = Union[StrictInt, list[StrictInt]]
 
 
 def _algorithms() -> tuple[str, ...]:
@@ -81,7 +90,7 @@ def _check_names(values: list[str], allowed: Any, what: str) -> list[str]:
         raise ValueError(f"needs at least one {what}; allowed: {', '.join(allowed)}")
     for value in values:
         if value not in allowed:
-            raise ValueError(f"unknown {what} {value!r}; allowed: {', '.join(allowed)}")
+            raise ValueError(f"unknown {what} {short_repr(value)}; allowed: {', '.join(allowed)}")
     duplicates = sorted({value for value in values if values.count(value) > 1})
     if duplicates:
         raise ValueError(f"{what} listed twice: {', '.join(duplicates)}")
@@ -94,8 +103,8 @@ def _seed_list(value: Seeds) -> list[int]:
         raise ValueError("an integer seed count must be >= 1 (n means seeds 0..n-1)")
     if not seeds:
         raise ValueError("needs at least one seed")
-    if any(seed < 0 for seed in seeds):
-        raise ValueError("seeds must be >= 0")
+    if any(seed < 0 or seed > TRAIN_SEED_LIMIT for seed in seeds):
+        raise ValueError(f"seeds must lie in [0, {TRAIN_SEED_LIMIT}]")
     if len(set(seeds)) != len(seeds):
         raise ValueError("a seed is listed twice")
     return seeds
@@ -107,10 +116,12 @@ class Grid(_Strict):
     algorithms: list[str] = Field(description="preset names (socnav.rl.ALGOS)")
     train_scenarios: list[str] = Field(description="registered scenario names")
     seeds: Seeds = Field(description="an int n (seeds 0..n-1) or a list of seeds")
-    timesteps: int = Field(gt=0, description="environment steps per training run")
-    n_envs: int = Field(16, gt=0, description="training environments per run")
-    eval_every: Optional[int] = Field(None, gt=0, description="timesteps between validations (null: a tenth)")
-    validation_episodes: int = Field(50, gt=0, description="episodes per periodic validation during training")
+    timesteps: StrictInt = Field(gt=0, le=MAX_TIMESTEPS, description="environment steps per training run")
+    n_envs: StrictInt = Field(16, gt=0, description="training environments per run (must fit in memory)")
+    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS,
+                                            description="timesteps between validations (null: a tenth)")
+    validation_episodes: StrictInt = Field(50, gt=0, le=MAX_EPISODES,
+                                           description="episodes per periodic validation during training")
     overrides: dict[str, Any] = Field(default_factory=dict, description="AlgoConfig fields for every algorithm")
     algo_overrides: dict[str, Union[dict[str, Any], str]] = Field(
         default_factory=dict, description="per algorithm: AlgoConfig fields, or a preset YAML path"
@@ -136,7 +147,7 @@ class Grid(_Strict):
     def _override_keys(cls, value: dict[str, Any]) -> dict[str, Any]:
         for name in value:
             if name not in _algorithms():
-                raise ValueError(f"unknown algorithm {name!r}; allowed: {', '.join(_algorithms())}")
+                raise ValueError(f"unknown algorithm {short_repr(name)}; allowed: {', '.join(_algorithms())}")
         return value
 
 
@@ -144,9 +155,10 @@ class Evaluation(_Strict):
     """How every trained policy is tested: `episodes` episodes (seeds `seed`, `seed`+1, ...) in each scenario."""
 
     scenarios: list[str] = Field(description="registered scenario names")
-    episodes: int = Field(200, gt=0, description="test episodes per policy and scenario")
-    seed: int = Field(0, ge=0, description="episode k uses seed + k (disjoint from training seeds >= 2**40)")
-    n_envs: int = Field(32, gt=0, description="environments stepped together during evaluation")
+    episodes: StrictInt = Field(200, gt=0, le=MAX_EPISODES, description="test episodes per policy and scenario")
+    seed: StrictInt = Field(0, ge=0, le=EPISODE_SEED_LIMIT,
+                            description="episode k uses seed + k (disjoint from training seeds >= 2**40)")
+    n_envs: StrictInt = Field(32, gt=0, description="environments stepped together during evaluation (must fit)")
     deterministic: bool = Field(True, description="mean action (True) or sampled actions")
 
     @field_validator("scenarios")
@@ -160,7 +172,7 @@ def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
 
     for name, strengths in value.items():
         if name not in PERTURBATION_FIELDS:
-            raise ValueError(f"unknown perturbation {name!r}; allowed: {', '.join(PERTURBATION_FIELDS)}")
+            raise ValueError(f"unknown perturbation {short_repr(name)}; allowed: {', '.join(PERTURBATION_FIELDS)}")
         if len(strengths) < 2 or sorted(strengths) != list(strengths):
             raise ValueError(f"{name}: strengths must be increasing, the first being the unperturbed one (sigma(0))")
     return value
@@ -183,10 +195,11 @@ class Study(_Strict):
     estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
                                                   description="perturbation -> strengths, sigma(0) first")
-    k: int = Field(20, ge=2, description="MC-dropout samples")
+    k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
     p_test: Optional[float] = Field(None, ge=0, lt=1, description="MC-dropout probability (null: the policy's)")
-    window: int = Field(4, ge=1, description="steps of the windowed uncertainty")
-    mc_seed: int = Field(0, ge=0, description="training seed of the acting / MC-dropout policy")
+    window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES, description="steps of the windowed uncertainty")
+    mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT,
+                               description="training seed of the acting / MC-dropout policy")
 
     @field_validator("perturbations")
     @classmethod
@@ -197,28 +210,47 @@ class Study(_Strict):
 class Safety(_Strict):
     """The safety evaluation (paper Table 3): per estimator and perturbation, the same episodes without the safety
     layer, with the paper's thresholds and (if `calibrate`) with thresholds calibrated on disjoint perturbations
-    and seeds; `repeats` independent blocks of `evaluation.episodes` episodes give mean +- std."""
+    and seeds, each with every `sensing` (one calibration per estimator and sensing); `repeats` independent blocks
+    of `evaluation.episodes` episodes give mean +- std."""
 
     estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids)
-    repeats: int = Field(3, ge=1)
+    repeats: StrictInt = Field(3, ge=1, le=MAX_SAMPLES)
     thresholds: dict[str, str] = Field(default_factory=lambda: {"mc": "mc", "ensemble": "ensemble"},
                                        description="estimator -> paper preset name or threshold file")
     calibrate: bool = True
-    calibration_episodes: int = Field(40, ge=1, description="episodes per calibration configuration")
+    calibration_episodes: StrictInt = Field(40, ge=1, le=MAX_EPISODES,
+                                            description="episodes per calibration configuration")
     false_activation_budget: float = Field(0.05, ge=0, le=1)
     proximity: Literal["abs-relative-speed", "closing-speed"] = Field(
         "abs-relative-speed", description="c_prox reading for the paper's threshold sets")
     calibration_proximity: Literal["both", "abs-relative-speed", "closing-speed"] = Field(
         "both", description="c_prox readings the calibration searches")
-    k: int = Field(20, ge=2)
-    window: int = Field(4, ge=1)
-    mc_seed: int = Field(0, ge=0)
+    sensing: list[Literal["perceived", "true"]] = Field(
+        default_factory=lambda: ["perceived"],
+        description="what c_prox, c_ap and the fallback read: perceived (the noisy observation) and/or true (the "
+                    "simulator's state); each one is calibrated and evaluated (a single value is a list of one)")
+    k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES)
+    window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES)
+    mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT)
 
     @field_validator("perturbations")
     @classmethod
     def _grid(cls, value: dict[str, list[float]]) -> dict[str, list[float]]:
         return _perturbation_grid(value)
+
+    @field_validator("sensing", mode="before")
+    @classmethod
+    def _sensing_list(cls, value: Any) -> Any:
+        values = [value] if isinstance(value, (str, bool)) else value
+        if isinstance(values, list):
+            # YAML reads an unquoted `true` as a boolean: it can only mean the `true` sensing here.
+            values = ["true" if v is True else v for v in values]
+            if not values:
+                raise ValueError("must name at least one of: perceived, true")
+            if len(set(map(str, values))) != len(values):
+                raise ValueError(f"lists a sensing twice: {values}; allowed: perceived, true (each at most once)")
+        return values
 
 
 class Budget(_Strict):
@@ -226,20 +258,21 @@ class Budget(_Strict):
 
     description: str = ""
     seeds: Optional[Seeds] = None
-    timesteps: Optional[int] = Field(None, gt=0)
-    n_envs: Optional[int] = Field(None, gt=0)
-    eval_every: Optional[int] = Field(None, gt=0)
-    validation_episodes: Optional[int] = Field(None, gt=0)
-    episodes: Optional[int] = Field(None, gt=0, description="evaluation episodes per policy and scenario")
-    eval_n_envs: Optional[int] = Field(None, gt=0)
+    timesteps: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS)
+    n_envs: Optional[StrictInt] = Field(None, gt=0)
+    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS)
+    validation_episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES)
+    episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES,
+                                          description="evaluation episodes per policy and scenario")
+    eval_n_envs: Optional[StrictInt] = Field(None, gt=0)
     algorithms: Optional[list[str]] = None
     train_scenarios: Optional[list[str]] = None
     eval_scenarios: Optional[list[str]] = None
     overrides: Optional[dict[str, Any]] = None
     study_perturbations: Optional[dict[str, list[float]]] = None
     safety_perturbations: Optional[dict[str, list[float]]] = None
-    repeats: Optional[int] = Field(None, ge=1)
-    calibration_episodes: Optional[int] = Field(None, ge=1)
+    repeats: Optional[StrictInt] = Field(None, ge=1, le=MAX_SAMPLES)
+    calibration_episodes: Optional[StrictInt] = Field(None, ge=1, le=MAX_EPISODES)
 
     @field_validator("study_perturbations", "safety_perturbations")
     @classmethod
@@ -288,7 +321,7 @@ class Experiment(_Strict):
     @classmethod
     def _known_kind(cls, value: str) -> str:
         if value not in PLANNERS:
-            raise ValueError(f"unknown experiment kind {value!r}; allowed: {', '.join(PLANNERS)}")
+            raise ValueError(f"unknown experiment kind {short_repr(value)}; allowed: {', '.join(PLANNERS)}")
         return value
 
     @field_validator("scenario_env")
@@ -296,7 +329,7 @@ class Experiment(_Strict):
     def _scenario_keys(cls, value: dict[str, Any]) -> dict[str, Any]:
         for name in value:
             if name not in _scenarios():
-                raise ValueError(f"unknown scenario {name!r}; allowed: {', '.join(_scenarios())}")
+                raise ValueError(f"unknown scenario {short_repr(name)}; allowed: {', '.join(_scenarios())}")
         return value
 
     # ---- derived values ----
@@ -337,11 +370,11 @@ def _format_error(error: ValidationError, source: str) -> str:
         message = item["msg"].removeprefix("Value error, ")
         if item["type"] == "extra_forbidden":
             model = _model_at(loc[:-1])
-            allowed = ", ".join(model.model_fields) if model is not None else "see the docs"
-            message = f"unknown field; allowed fields here: {allowed}"
+            message = (unknown_field_message(str(loc[-1]), list(model.model_fields)) if model is not None
+                       else "unknown field")
         elif item["type"] == "missing":
             message = "required field is missing"
-        got = "" if item["type"] == "missing" else f" (got {item.get('input')!r})"
+        got = "" if item["type"] == "missing" else f" (got {short_repr(item.get('input'))})"
         lines.append(f"  - {where}: {message}{got}")
     return "\n".join(lines)
 
@@ -362,9 +395,9 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ExperimentError(f"experiment file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = read_yaml_file(path)
     except yaml.YAMLError as exc:
-        raise ExperimentError(f"experiment file {path} is not valid YAML: {exc}") from None
+        raise ExperimentError(f"experiment file {path} {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise ExperimentError(f"experiment file {path} must hold a mapping of fields, got {type(data).__name__}")
     return data
@@ -406,7 +439,11 @@ def _inline_presets(experiment: Experiment, source: str, base_dir: Path | None) 
             if not preset.is_file():
                 raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
                                       f"preset file not found: {preset}")
-            loaded = yaml.safe_load(preset.read_text()) or {}
+            try:
+                loaded = read_yaml_file(preset) or {}
+            except yaml.YAMLError as exc:
+                raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
+                                      f"preset file {preset} {yaml_problem(exc)}") from None
             if not isinstance(loaded, dict):
                 raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
                                       f"{preset} must hold a mapping of hyperparameters")
@@ -417,7 +454,10 @@ def _inline_presets(experiment: Experiment, source: str, base_dir: Path | None) 
 
 
 def _check_consistency(experiment: Experiment, source: str) -> None:
-    """Env configs and hyperparameters of every unit are valid, and every policy fits every evaluation env."""
+    """Env configs, environment counts and hyperparameters of every unit are valid, and every policy fits every
+    evaluation env."""
+    from socnav.envs.env import check_env_count
+    from socnav.experiments.perturbations import perturbed_config
     from socnav.rl.presets import resolve_config
 
     max_humans: dict[str, int] = {}
@@ -429,6 +469,21 @@ def _check_consistency(experiment: Experiment, source: str) -> None:
             raise ExperimentError(f"invalid experiment ({source}): env of scenario {scenario!r} "
                                   f"(env + scenario_env.{scenario}):\n{detail}") from None
         max_humans[scenario] = config.max_humans
+        try:  # before any unit starts: a count that cannot fit would otherwise fail in every unit
+            check_env_count(experiment.grid.n_envs, config, "grid.n_envs")
+            check_env_count(min(experiment.evaluation.n_envs, experiment.evaluation.episodes), config,
+                            "evaluation.n_envs")
+        except ConfigError as exc:
+            raise ExperimentError(f"invalid experiment ({source}): scenario {scenario!r}: {exc}") from None
+    for name, block in (("study", experiment.study), ("safety", experiment.safety)):
+        for kind, strengths in (block.perturbations if block is not None else {}).items():
+            for strength in strengths:
+                try:
+                    perturbed_config(experiment.env_config(experiment.grid.train_scenarios[0]), kind, strength)
+                except ConfigError as exc:
+                    detail = str(exc).split("\n", 1)[-1]
+                    raise ExperimentError(f"invalid experiment ({source}): {name}.perturbations.{kind}: strength "
+                                          f"{strength} gives an invalid env:\n{detail}") from None
     if len(set(max_humans.values())) > 1:
         raise ExperimentError(
             f"invalid experiment ({source}): env.max_humans differs between scenarios ({max_humans}); every policy "
@@ -525,6 +580,11 @@ def register_planner(kind: str) -> Callable[[Planner], Planner]:
     return decorate
 
 
+def calibration_unit_id(estimator: str, sensing: str) -> str:
+    """The calibration unit of an estimator and sensing (``perceived`` keeps the id it had before sensing)."""
+    return f"calibrate/{estimator}" if sensing == "perceived" else f"calibrate-{sensing}/{estimator}"
+
+
 def train_unit_id(scenario: str, algo: str, seed: int) -> str:
     return f"train/{scenario}/{algo}/seed{seed}"
 
@@ -598,20 +658,23 @@ def plan_uncertainty(experiment: Experiment) -> list[Unit]:
         safety = experiment.safety
         for estimator in safety.estimators:
             deps = policies(estimator, safety.mc_seed)
-            calibration = None
+            calibrations: tuple[str, ...] = ()
             if safety.calibrate:
-                calibration = Unit(f"calibrate/{estimator}", "calibrate", {
-                    "env": common["env"], "estimator": estimator, "episodes": safety.calibration_episodes,
-                    "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
-                    "k": safety.k, "window": safety.window,
-                }, deps=deps)
-                units.append(calibration)
+                for sensing in safety.sensing:
+                    calibration = Unit(calibration_unit_id(estimator, sensing), "calibrate", {
+                        "env": common["env"], "estimator": estimator, "episodes": safety.calibration_episodes,
+                        "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
+                        "k": safety.k, "window": safety.window, "sensing": sensing,
+                    }, deps=deps)
+                    units.append(calibration)
+                    calibrations += (calibration.id,)
             for perturbation, strengths in safety.perturbations.items():
                 units.append(Unit(f"safety/{estimator}/{perturbation}", "safety_eval", {
                     **common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
                     "repeats": safety.repeats, "thresholds": safety.thresholds.get(estimator, estimator),
                     "proximity": safety.proximity, "k": safety.k, "window": safety.window,
-                }, deps=deps + ((calibration.id,) if calibration is not None else ())))
+                    "sensing": list(safety.sensing),
+                }, deps=deps + calibrations))
     return units
 
 

@@ -24,9 +24,10 @@ from typing import Any, Callable
 import yaml
 
 from socnav.config import ConfigLike, load_config
+from socnav.extras import install_hint
 from socnav.io import read_table, write_text_atomic
 
-__all__ = ["SEARCHED", "TuneResult", "sample_params", "tune", "write_preset"]
+__all__ = ["SEARCHED", "StudyMismatchError", "TuneResult", "sample_params", "tune", "write_preset"]
 
 DEFAULT_STORAGE = "sqlite:///runs/tune.db"
 SEARCHED = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef")
@@ -37,7 +38,7 @@ def _optuna() -> Any:
     try:
         import optuna
     except ImportError:
-        raise RuntimeError("socnav tune needs Optuna: pip install 'socnav[tune]'") from None
+        raise RuntimeError(f"socnav tune needs Optuna: {install_hint('tune')}") from None
     return optuna
 
 
@@ -55,6 +56,32 @@ def sample_params(trial: Any, n_envs: int) -> dict[str, Any]:
     }
     params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
     return params
+
+
+class StudyMismatchError(ValueError):
+    """An existing study was created with other settings (algo, env, timesteps, ...): its trials are not
+    comparable with new ones."""
+
+
+def _check_settings(study: Any, settings: dict[str, Any]) -> None:
+    """Refuse to extend a study whose recorded settings differ from `settings`; record them on a new study.
+
+    Only the settings a study recorded are compared (studies of older socnav versions recorded fewer)."""
+    recorded = study.user_attrs
+    differing = [key for key, value in settings.items() if key in recorded and recorded[key] != value]
+    if differing:
+        def show(value: Any) -> str:
+            if isinstance(value, dict):  # an env config: its scenario, the rest is too long for one line
+                return f"{value.get('scenario', '?')} env (other fields may differ)"
+            return repr(value)
+
+        details = "; ".join(f"{key}: study {show(recorded[key])}, now {show(settings[key])}" for key in differing)
+        raise StudyMismatchError(
+            f"study {study.study_name!r} was created with other settings ({details}); its trials would not be "
+            "comparable: pass a new --study-name (study_name=...) or repeat the study's settings")
+    for key, value in settings.items():
+        if key not in recorded:
+            study.set_user_attr(key, value)
 
 
 def _ensure_sqlite_dir(storage: str) -> None:
@@ -93,6 +120,8 @@ def tune(
 ) -> TuneResult:
     """Run `trials` more trials of the study (created or continued) and return its best so far.
 
+    A study is continued only with the settings it was created with (else `StudyMismatchError`); new trials
+    draw new parameters (the sampler is seeded with `seed` plus the number of trials already in the study).
     Every trial trains `algo` for `timesteps` steps on env `config` (seed `seed`, so trials differ only in their
     hyperparameters) in ``out_dir/trial_<n>``, evaluating every `eval_every` steps on `eval_episodes` validation
     episodes; each evaluation's `metric` is reported to Optuna and a MedianPruner stops trials below the median.
@@ -114,13 +143,15 @@ def tune(
     _ensure_sqlite_dir(storage)
     study = optuna.create_study(
         study_name=study_name, storage=storage, load_if_exists=True, direction=METRICS[metric],
-        sampler=optuna.samplers.TPESampler(seed=seed),
         pruner=optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0),
     )
-    study.set_user_attr("algo", algo)
-    study.set_user_attr("env_config", env_config.model_dump(mode="json"))
-    study.set_user_attr("timesteps", timesteps)
-    study.set_user_attr("metric", metric)
+    _check_settings(study, {"algo": algo, "env_config": env_config.model_dump(mode="json"),
+                            "timesteps": timesteps, "metric": metric, "n_envs": n_envs, "eval_every": eval_every,
+                            "eval_episodes": eval_episodes, "seed": seed})
+    # A sampler seeded by `seed` alone would replay the same parameters each time the study is continued (trial
+    # n + k = trial k): the seed moves on with the trials already in the study, so new trials explore and a
+    # continued study is still reproducible.
+    study.sampler = optuna.samplers.TPESampler(seed=seed + len(study.trials))
 
     def objective(trial: Any) -> float:
         params = sample_params(trial, n_envs)

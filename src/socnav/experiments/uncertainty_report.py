@@ -8,9 +8,12 @@ left out, as the report header says):
   ``w_u_*`` uncertainties, ``nearest_gap``, ``outcome`` on an episode's last step), keyed by ``strength`` and
   ``episode`` (episode ids restart at every strength);
 - ``safety/<estimator>/<perturbation>/episodes.parquet``: one row per episode, keyed by ``strength``, ``repeat``
-  (an independent block of episode seeds) and ``variant`` (``none`` = plain policy, ``paper`` / ``calibrated`` =
-  the safety layer with those thresholds; every variant plays the same episode seeds as ``none``);
-- ``calibrate/<estimator>/calibration.json``: the thresholds ``socnav calibrate`` chose and their proxy scores.
+  (an independent block of episode seeds), ``variant`` (``none`` = plain policy, ``paper`` / ``calibrated`` =
+  the safety layer with those thresholds; every variant plays the same episode seeds as ``none``) and
+  ``sensing`` (``perceived`` / ``true``: what the layer's proximity terms and fallback read; empty for ``none``;
+  records without the column were written before the choice existed and read as ``perceived``);
+- ``calibrate/<estimator>/calibration.json`` (``calibrate-true/<estimator>/`` for ``true`` sensing): the thresholds
+  ``socnav calibrate`` chose and their proxy scores.
 
 Each section writes nothing and returns an empty string when its records are absent (a Table 2 run has no safety
 records, a Table 3 run may have no study records).
@@ -77,8 +80,10 @@ CURVE_UNCERTAINTIES = {"u_ep_heading": "epistemic heading", "u_ep_speed": "epist
                        "u_al_heading": "aleatoric heading", "u_al_speed": "aleatoric speed"}
 STEP_COLUMNS = ["estimator", "perturbation", "strength", "episode", "step", *RAW_COLUMNS, "w_u_feat", "nearest_gap",
                 "outcome"]
-SAFETY_COLUMNS = ["estimator", "perturbation", "strength", "repeat", "variant", "seed", "outcome", "length",
-                  "time_to_goal", "duration", "fallback_steps"]
+SAFETY_COLUMNS = ["estimator", "perturbation", "strength", "repeat", "variant", "sensing", "seed", "outcome",
+                  "length", "time_to_goal", "duration", "fallback_steps"]
+SENSING_ORDER = ["perceived", "true"]
+SENSING_LABELS = {"perceived": "perceived", "true": "true state"}
 
 ZERO = "—"      # undefined ratio: zero denominator
 MISSING = "n/a"  # no records for this cell
@@ -641,7 +646,7 @@ def feature_uncertainty_collisions_section(context: ReportContext) -> str:
 # Table 3: prevented collisions
 # --------------------------------------------------------------------------------------------------------------
 
-TABLE3_COLUMNS = ["estimator", "variant", "column", "repeats", "repeats_defined", "collisions_none",
+TABLE3_COLUMNS = ["estimator", "variant", "sensing", "column", "repeats", "repeats_defined", "collisions_none",
                   "collisions_variant", "prevented_mean", "prevented_std", "paper_mean", "paper_std"]
 
 
@@ -657,38 +662,66 @@ def _table3_groups(perturbations: Iterable[str]) -> dict[str, list[str]]:
     return groups
 
 
+def _with_sensing(safety: pd.DataFrame) -> pd.DataFrame:
+    """The records with a ``sensing`` column: records from before the choice existed read the observation."""
+    if "sensing" in safety:
+        return safety
+    return safety.assign(sensing=np.where(safety["variant"] == "none", "", "perceived"))
+
+
+def _safe_variants(safety: pd.DataFrame) -> list[tuple[str, str]]:
+    """The (variant, sensing) pairs of the safety layer in the records, paper before calibrated, perceived first."""
+    pairs = safety.loc[safety["variant"] != "none", ["variant", "sensing"]].drop_duplicates()
+    variants = _ordered(pairs["variant"], ["paper", "calibrated"])
+    sensings = _ordered(pairs["sensing"], SENSING_ORDER)
+    present = set(pairs.itertuples(index=False, name=None))
+    return [(v, s) for v in variants for s in sensings if (v, s) in present]
+
+
+def variant_label(variant: str, sensing: str, show_sensing: bool) -> str:
+    """``paper thresholds`` etc., with the sensing appended (``, true state``) when `show_sensing`."""
+    label = VARIANT_LABELS.get(variant, variant)
+    return f"{label}, {SENSING_LABELS.get(sensing, sensing)}" if show_sensing and variant != "none" else label
+
+
+def _show_sensing(pairs: Iterable[tuple[str, str]]) -> bool:
+    """Name the sensing in labels unless every safe variant read the observation (as before the choice)."""
+    return any(sensing != "perceived" for variant, sensing in pairs if variant != "none")
+
+
 def prevented_frame(safety: pd.DataFrame) -> pd.DataFrame:
-    """Prevented collisions per (estimator, safe variant, Table 3 column): per repeat ``100 (C_none - C_variant) /
-    C_none`` over the perturbed strengths, then mean and population std over the repeats with ``C_none > 0``
-    (NaN if there is none). ``collisions_*`` are the totals over the repeats used."""
+    """Prevented collisions per (estimator, safe variant, sensing, Table 3 column): per repeat ``100 (C_none -
+    C_variant) / C_none`` over the perturbed strengths, then mean and population std over the repeats with
+    ``C_none > 0`` (NaN if there is none). ``collisions_*`` are the totals over the repeats used."""
     if safety.empty:
         return pd.DataFrame(columns=TABLE3_COLUMNS)
+    safety = _with_sensing(safety)
     perturbed = safety[_perturbed(safety)]
-    keys = ["estimator", "perturbation", "repeat", "variant"]
+    keys = ["estimator", "perturbation", "repeat", "variant", "sensing"]
     collisions = (perturbed["outcome"] == "collision").groupby([perturbed[k] for k in keys]).sum()
+    plain = ("none", "")  # the plain policy has no safety layer, so no sensing
     rows = []
     groups = _table3_groups(safety["perturbation"])
     for estimator in _ordered(safety["estimator"], ESTIMATOR_ORDER):
         mine = safety[safety["estimator"] == estimator]
-        variants = [v for v in _ordered(mine["variant"], ["paper", "calibrated"]) if v != "none"]
-        for variant in variants:
+        for variant, sensing in _safe_variants(mine):
             for column, kinds in groups.items():
                 kinds = [k for k in kinds if (mine["perturbation"] == k).any()]
                 if not kinds:
                     continue
                 repeats = sorted(set(mine["repeat"]))
-                used = [r for r in repeats if all((estimator, k, r, v) in collisions.index
-                                                  for k in kinds for v in ("none", variant))]
+                used = [r for r in repeats if all((estimator, k, r, *v) in collisions.index
+                                                  for k in kinds for v in (plain, (variant, sensing)))]
                 if not used:
                     continue
-                c_none = np.array([sum(collisions[(estimator, k, r, "none")] for k in kinds) for r in used])
-                c_var = np.array([sum(collisions[(estimator, k, r, variant)] for k in kinds) for r in used])
+                c_none = np.array([sum(collisions[(estimator, k, r, *plain)] for k in kinds) for r in used])
+                c_var = np.array([sum(collisions[(estimator, k, r, variant, sensing)] for k in kinds) for r in used])
                 defined = c_none > 0
                 prevented = 100.0 * (c_none[defined] - c_var[defined]) / c_none[defined]
                 paper_mean, paper_std = paper_table3(column, estimator)
-                rows.append({"estimator": estimator, "variant": variant, "column": column, "repeats": len(used),
-                             "repeats_defined": int(defined.sum()), "collisions_none": int(c_none.sum()),
-                             "collisions_variant": int(c_var.sum()),
+                rows.append({"estimator": estimator, "variant": variant, "sensing": sensing, "column": column,
+                             "repeats": len(used), "repeats_defined": int(defined.sum()),
+                             "collisions_none": int(c_none.sum()), "collisions_variant": int(c_var.sum()),
                              "prevented_mean": float(prevented.mean()) if len(prevented) else math.nan,
                              "prevented_std": float(prevented.std(ddof=0)) if len(prevented) else math.nan,
                              "paper_mean": paper_mean, "paper_std": paper_std})
@@ -696,17 +729,20 @@ def prevented_frame(safety: pd.DataFrame) -> pd.DataFrame:
 
 
 def prevented_markdown(table: pd.DataFrame) -> str:
-    """Rows: estimator x thresholds, then the paper's row of that estimator; a column per perturbation type (and
-    pooled action noise). ``—``: no collision without the safety layer; ``(k of n)``: only k repeats had one."""
+    """Rows: estimator x thresholds (x sensing, named when not only ``perceived``), then the paper's row of that
+    estimator; a column per perturbation type (and pooled action noise). ``—``: no collision without the safety
+    layer; ``(k of n)``: only k repeats had one."""
+    table = table if "sensing" in table else table.assign(sensing="perceived")
     columns = _ordered(table["column"], PERTURBATION_ORDER[:3] + ["action_noise"] + PERTURBATION_ORDER[3:])
     header = ["Approach", "Thresholds"] + [perturbation_label(c) for c in columns]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * len(columns)) + "|"]
-    indexed = table.set_index(["estimator", "variant", "column"])
+    indexed = table.set_index(["estimator", "variant", "sensing", "column"])
+    show_sensing = _show_sensing(table[["variant", "sensing"]].itertuples(index=False, name=None))
     for estimator in _ordered(table["estimator"], ESTIMATOR_ORDER):
-        for variant in _ordered(table.loc[table["estimator"] == estimator, "variant"], ["paper", "calibrated"]):
-            row = [estimator_label(estimator), VARIANT_LABELS.get(variant, variant)]
+        for variant, sensing in _safe_variants(table[table["estimator"] == estimator]):
+            row = [estimator_label(estimator), variant_label(variant, sensing, show_sensing)]
             for column in columns:
-                key = (estimator, variant, column)
+                key = (estimator, variant, sensing, column)
                 if key not in indexed.index:
                     row.append(MISSING)
                     continue
@@ -759,9 +795,13 @@ def table3_section(context: ReportContext) -> str:
         "collision to prevent. Action noise (heading + speed) pools both noise types, as the paper's *action noise* "
         "column; the paper's *velocity* is our faster humans. Italic: the paper's values.",
         "",
-        markdown,
-        "",
     ]
+    if _show_sensing(table[["variant", "sensing"]].itertuples(index=False, name=None)):
+        lines += ["*Perceived* / *true state*: what the layer's proximity terms (c_prox, c_ap) and cautious fallback "
+                  "read — the robot's observation, observation noise included, or the simulator's noise-free state "
+                  "(a separate safety sensor); the policy and the uncertainty estimates always see the observation. "
+                  "Without observation noise both read the same.", ""]
+    lines += [markdown, ""]
     unpaired = _unpaired_groups(safety)
     if unpaired:
         lines += [f"**Warning**: in {unpaired} (estimator, perturbation, strength, repeat) group(s) a safe variant "
@@ -774,7 +814,7 @@ def table3_section(context: ReportContext) -> str:
 # The cost of the safety layer
 # --------------------------------------------------------------------------------------------------------------
 
-COST_COLUMNS = ["estimator", "variant", "episodes_perturbed", "episodes_unperturbed", "activation_pct",
+COST_COLUMNS = ["estimator", "variant", "sensing", "episodes_perturbed", "episodes_unperturbed", "activation_pct",
                 "false_activation_pct", "success_pct_perturbed", "success_pct_unperturbed",
                 "collision_pct_perturbed", "collision_pct_unperturbed", "time_to_goal_perturbed",
                 "time_to_goal_unperturbed"]
@@ -797,20 +837,24 @@ def _rates(frame: pd.DataFrame, layer: bool) -> dict[str, float]:
 
 
 def cost_frame(safety: pd.DataFrame) -> pd.DataFrame:
-    """Per (estimator, variant incl. none): fallback activation rate (% of steps) in perturbed episodes, false
-    activation rate (% of steps) in unperturbed ones (NaN for the plain policy), success and collision rates (%)
-    and mean time to goal of successful episodes, in perturbed and unperturbed episodes."""
+    """Per (estimator, variant incl. none, sensing): fallback activation rate (% of steps) in perturbed episodes,
+    false activation rate (% of steps) in unperturbed ones (NaN for the plain policy), success and collision rates
+    (%) and mean time to goal of successful episodes, in perturbed and unperturbed episodes."""
     if safety.empty:
         return pd.DataFrame(columns=COST_COLUMNS)
+    safety = _with_sensing(safety)
     perturbed = _perturbed(safety)
     rows = []
     for estimator in _ordered(safety["estimator"], ESTIMATOR_ORDER):
         mine = safety["estimator"] == estimator
-        for variant in _ordered(safety.loc[mine, "variant"], ["none", "paper", "calibrated"]):
-            chosen = mine & (safety["variant"] == variant)
+        pairs = ([("none", "")] if (safety.loc[mine, "variant"] == "none").any() else []) \
+            + _safe_variants(safety[mine])
+        for variant, sensing in pairs:
+            chosen = mine & (safety["variant"] == variant) & (safety["sensing"] == sensing)
             layer = variant != "none"
             hot, cold = _rates(safety[chosen & perturbed], layer), _rates(safety[chosen & ~perturbed], layer)
-            rows.append({"estimator": estimator, "variant": variant, "episodes_perturbed": hot["episodes"],
+            rows.append({"estimator": estimator, "variant": variant, "sensing": sensing,
+                         "episodes_perturbed": hot["episodes"],
                          "episodes_unperturbed": cold["episodes"], "activation_pct": hot["activation"],
                          "false_activation_pct": cold["activation"], "success_pct_perturbed": hot["success"],
                          "success_pct_unperturbed": cold["success"], "collision_pct_perturbed": hot["collision"],
@@ -828,9 +872,11 @@ def cost_markdown(table: pd.DataFrame) -> str:
               "False activation (% steps, unpert.)", "Success % (pert. / unpert.)", "Collision % (pert. / unpert.)",
               "Time to goal s (pert. / unpert.)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * 6) + "|"]
+    table = table if "sensing" in table else table.assign(sensing=np.where(table["variant"] == "none", "", "perceived"))
+    show_sensing = _show_sensing(table[["variant", "sensing"]].itertuples(index=False, name=None))
     for row in table.to_dict("records"):
         lines.append("| " + " | ".join([
-            estimator_label(row["estimator"]), VARIANT_LABELS.get(row["variant"], row["variant"]),
+            estimator_label(row["estimator"]), variant_label(row["variant"], row["sensing"], show_sensing),
             f"{row['episodes_perturbed']} / {row['episodes_unperturbed']}",
             _f(row["activation_pct"], 2), _f(row["false_activation_pct"], 2),
             f"{_f(row['success_pct_perturbed'], 1)} / {_f(row['success_pct_unperturbed'], 1)}",
@@ -870,16 +916,17 @@ def table3_cost_section(context: ReportContext) -> str:
 # Calibrated thresholds
 # --------------------------------------------------------------------------------------------------------------
 
-def _calibrations(context: ReportContext) -> dict[str, dict[str, Any]]:
+def _calibrations(context: ReportContext) -> dict[tuple[str, str], dict[str, Any]]:
+    """(estimator, sensing) -> calibration report; files from before the sensing choice are ``perceived``."""
     if "uncertainty_calibration" not in context._cache:
         found = {}
-        for path in _record_files(context, "calibrate/*/calibration.json"):
+        for path in _record_files(context, "calibrate*/*/calibration.json"):
             try:
                 data = json.loads(path.read_text())
             except (OSError, ValueError):
                 continue
             if isinstance(data, dict):
-                found[path.parent.name] = data
+                found[(path.parent.name, str(data.get("sensing", "perceived")))] = data
         context._cache["uncertainty_calibration"] = found
     return context._cache["uncertainty_calibration"]
 
@@ -899,18 +946,20 @@ def calibration_section(context: ReportContext) -> str:
         return ""
     keys = ["lambda_ep", "lambda_feat", "lambda_prox", "beta1"]
     rows = []
-    for estimator in _ordered(found, ESTIMATOR_ORDER):
-        data = found[estimator]
-        thresholds = dict(data.get("thresholds")) if isinstance(data.get("thresholds"), dict) else {}
-        for key in ("lambda_ep", "lambda_feat"):  # JSON has no infinity: null is an uncertainty condition that is off
-            if key in thresholds and thresholds[key] is None:
-                thresholds[key] = math.inf
-        row = {"estimator": estimator, "source": "calibrated", **{k: thresholds.get(k) for k in keys},
-               "proximity": thresholds.get("proximity"), "prevented_fraction": data.get("prevented_fraction"),
-               "false_activation_rate": data.get("false_activation_rate")}
-        rows.append(row)
+    for estimator in _ordered((e for e, _ in found), ESTIMATOR_ORDER):
+        for sensing in _ordered((s for e, s in found if e == estimator), SENSING_ORDER):
+            data = found[(estimator, sensing)]
+            thresholds = dict(data.get("thresholds")) if isinstance(data.get("thresholds"), dict) else {}
+            for key in ("lambda_ep", "lambda_feat"):  # JSON has no infinity: null is a condition that is off
+                if key in thresholds and thresholds[key] is None:
+                    thresholds[key] = math.inf
+            source = "calibrated" if sensing == "perceived" else f"calibrated ({SENSING_LABELS.get(sensing, sensing)})"
+            rows.append({"estimator": estimator, "source": source, "sensing": sensing,
+                         **{k: thresholds.get(k) for k in keys}, "proximity": thresholds.get("proximity"),
+                         "prevented_fraction": data.get("prevented_fraction"),
+                         "false_activation_rate": data.get("false_activation_rate")})
         if estimator in _PAPER_THRESHOLDS:
-            rows.append({"estimator": estimator, "source": "paper",
+            rows.append({"estimator": estimator, "source": "paper", "sensing": None,
                          **dict(zip(keys, _PAPER_THRESHOLDS[estimator])), "proximity": None,
                          "prevented_fraction": None, "false_activation_rate": None})
     table = pd.DataFrame(rows)

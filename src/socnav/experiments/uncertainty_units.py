@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import pandas as pd
 
 from socnav.config import load_config
 from socnav.envs.rollout import rollout_episodes
-from socnav.experiments.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbation_override
+from socnav.experiments.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbed_config
 from socnav.experiments.runner import ExecutorResult, _json_safe, _single_threaded_torch, file_digest, register_executor, unit_dir
-from socnav.experiments.spec import Unit
+from socnav.experiments.spec import Unit, calibration_unit_id
 from socnav.io import write_table_atomic, write_text_atomic
 
 #: Seed of the MC-dropout masks: the study is reproducible run to run.
@@ -40,7 +40,7 @@ def _estimator(kind: str, policies: list[Any], k: int, p_test: float | None = No
 
 
 def _perturbed(env: dict[str, Any], perturbation: str, strength: float) -> Any:
-    return load_config({**env, "perturbation": {**env.get("perturbation", {}), **perturbation_override(perturbation, strength)}})
+    return perturbed_config(env, perturbation, strength)
 
 
 def _tag(frame: pd.DataFrame, **columns: Any) -> pd.DataFrame:
@@ -82,8 +82,9 @@ PROXY_BUDGET_SHARES = (1.0, 0.5)
 
 
 def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
-                         proximity: str = "both", window: int = 4,
-                         confidence: float = 0.95) -> tuple[Any, dict[str, Any]]:
+                         proximity: str = "both", window: int = 4, confidence: float = 0.95,
+                         progress: Callable[[int, int], None] | None = None,
+                         sensing: str = "perceived") -> tuple[Any, dict[str, Any]]:
     """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
     `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
 
@@ -95,6 +96,12 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
     (mean over the perturbation types) among those whose false-activation rate is within `budget` at
     `confidence` (one-sided upper bound), both MEASURED in those rollouts.
+
+    `progress(done, total)`: episodes played so far and in all (the total shrinks once the number of distinct
+    candidates is known; it starts at the most there can be).
+
+    `sensing` (``perceived`` | ``true``, `socnav.safety.Thresholds.sensing`): what the rule's proximity terms and
+    the fallback read, in the records and the replays alike; the thresholds returned carry it.
 
     :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
     """
@@ -110,17 +117,28 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     n_envs = min(episodes, 40)
     runs = [CalibrationRun(config, kind != "unperturbed", episodes, CALIBRATION_SEED + index * episodes, kind)
             for index, (kind, config) in enumerate(configs)]
+    per_pass = episodes * len(runs)
+    most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS)
+    played = {"done": 0, "total": per_pass * (2 + most_candidates)}  # collection, plain replay, candidates
+
+    def advance(n: int) -> None:
+        played["done"] += n
+        if progress is not None:
+            progress(played["done"], played["total"])
+
     parts = [collect_records(policy, estimator, run.config, episodes, seed=run.seed, perturbed=run.perturbed,
-                             window=window, n_envs=n_envs, episode_offset=index * episodes)
+                             window=window, n_envs=n_envs, episode_offset=index * episodes, progress=advance,
+                             sensing=sensing)
              for index, run in enumerate(runs)]
     records = pd.concat(parts, ignore_index=True)
     common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
               "false_activation_budget": budget, "episodes_per_configuration": episodes,
               "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS),
-              "proxy_budgets": [share * budget for share in PROXY_BUDGET_SHARES], "confidence": confidence}
+              "proxy_budgets": [share * budget for share in PROXY_BUDGET_SHARES], "confidence": confidence,
+              "sensing": sensing}
     if not records.loc[records["perturbed"], "collided"].any():
         # Nothing to learn from: the layer could only cost false activations, so it is switched off.
-        thresholds = Thresholds.never()
+        thresholds = Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)
         return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
                             "false_activation_rate": 0.0, "n_collisions": 0,
                             "note": "no collision in the calibration episodes: thresholds that never fire", **common}
@@ -129,12 +147,16 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
         for variant in variants:
             for lead in CALIBRATION_LEADS:
                 result = calibrate(records, false_activation_budget=share * budget, proximity=variant, lead=lead)
-                if result.thresholds not in candidates:
-                    candidates.append(result.thresholds)
+                candidate = Thresholds.create(result.thresholds.model_dump(), sensing=sensing)
+                if candidate not in candidates:
+                    candidates.append(candidate)
                     proxies.append({"lead": lead, "proxy_budget": share * budget,
                                     "proxy_prevented_fraction": result.prevented_fraction,
                                     "proxy_false_activation_rate": result.false_activation_rate})
-    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence)
+    played["total"] = per_pass * (2 + len(candidates))
+    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
+                                           progress=advance)
+    thresholds = Thresholds.create(thresholds.model_dump(), sensing=sensing)  # also when none met the budget
     table = pd.concat([table, pd.DataFrame(proxies)], axis=1)
     chosen = table[table["chosen"]]
     report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
@@ -157,7 +179,8 @@ def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResul
     _single_threaded_torch()
     policies, inputs = _policies(root, unit)
     thresholds, report = calibrate_thresholds(policies[0], _estimator(p["estimator"], policies, p["k"]), p["env"],
-                                              p["episodes"], p["budget"], p["proximity"], p["window"])
+                                              p["episodes"], p["budget"], p["proximity"], p["window"],
+                                              sensing=p["sensing"])
     save_thresholds(thresholds, directory / "thresholds.yaml")
     write_text_atomic(directory / "calibration.json", json.dumps(_json_safe(report), indent=2))
     return ExecutorResult(["thresholds.yaml", "calibration.json"], inputs=inputs)
@@ -165,20 +188,23 @@ def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResul
 
 @register_executor("safety_eval")
 def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
-    """The same episodes without the safety layer and with each threshold set, at every strength and repeat."""
+    """The same episodes without the safety layer and with each threshold set and sensing, at every strength and
+    repeat. Records: ``variant`` (none / paper / calibrated) and ``sensing`` (perceived / true; empty for none)."""
     from socnav.safety import FallbackCounter, SafePolicy, Thresholds, load_thresholds
 
     p = unit.params
     _single_threaded_torch()
     policies, inputs = _policies(root, unit)
-    variants = {"paper": load_thresholds(p["thresholds"])}
-    calibrated = [dep for dep in unit.deps if dep.startswith("calibrate/")]
-    if calibrated:
-        path = unit_dir(root, calibrated[0]) / "thresholds.yaml"
-        variants["calibrated"] = load_thresholds(path)
-        inputs[f"{calibrated[0]}/thresholds.yaml"] = file_digest(path)
     # The paper's threshold sets take the experiment's proximity reading; calibrated ones keep the variant chosen.
-    variants["paper"] = Thresholds.create(**{**variants["paper"].model_dump(), "proximity": p["proximity"]})
+    paper = Thresholds.create(load_thresholds(p["thresholds"]).model_dump(), proximity=p["proximity"])
+    variants: list[tuple[str, Any]] = []
+    for sensing in p["sensing"]:
+        variants.append(("paper", Thresholds.create(paper.model_dump(), sensing=sensing)))
+        calibration = calibration_unit_id(p["estimator"], sensing)
+        if calibration in unit.deps:
+            path = unit_dir(root, calibration) / "thresholds.yaml"
+            variants.append(("calibrated", Thresholds.create(load_thresholds(path).model_dump(), sensing=sensing)))
+            inputs[f"{calibration}/thresholds.yaml"] = file_digest(path)
     parts = []
     for strength in p["strengths"]:
         config = _perturbed(p["env"], p["perturbation"], strength)
@@ -188,14 +214,22 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
                     "repeat": repeat}
             plain = rollout_episodes(policies[0], config, p["episodes"], seed=seed, n_envs=p["n_envs"])
             plain["fallback_steps"] = 0
-            parts.append(_tag(plain, **tags, variant="none"))
-            for name, thresholds in variants.items():
-                # a fresh, seeded estimator per run: every variant sees the same dropout masks
-                estimator = _estimator(p["estimator"], policies, p["k"])
-                safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
-                counter = FallbackCounter(safe)
-                records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"], observer=counter)
-                records["fallback_steps"] = counter.per_episode(records["episode"])
-                parts.append(_tag(records, **tags, variant=name))
+            parts.append(_tag(plain, **tags, variant="none", sensing=""))
+            played: dict[Any, pd.DataFrame] = {}
+            for name, thresholds in variants:
+                # Without observation noise the true state IS the observation: both sensings play the same
+                # episodes, so a rollout already played with the other sensing is reused.
+                key = (thresholds.model_copy(update={"sensing": "perceived"})
+                       if config.perturbation.observation_noise == 0.0 else thresholds)
+                if key not in played:
+                    # a fresh, seeded estimator per run: every variant sees the same dropout masks
+                    estimator = _estimator(p["estimator"], policies, p["k"])
+                    safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
+                    counter = FallbackCounter(safe)
+                    records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"],
+                                               observer=counter)
+                    records["fallback_steps"] = counter.per_episode(records["episode"])
+                    played[key] = records
+                parts.append(_tag(played[key].copy(), **tags, variant=name, sensing=thresholds.sensing))
     write_table_atomic(pd.concat(parts, ignore_index=True), directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)

@@ -16,6 +16,8 @@ Samples with ``n_b = 0`` get the zero hidden state (the LSTM's initial state).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -28,12 +30,17 @@ class Dropout(nn.Dropout):
 
     torch's CPU dropout draws its mask with `bernoulli_`, which is markedly slower than the vectorised uniform
     generator at these sizes; a subclass keeps `isinstance(m, nn.Dropout)` true for MC-dropout and for users.
+    ``uniform_source`` (None: torch's RNG) is the hook through which ``MCDropoutEstimator(uniforms=...)`` feeds
+    externally drawn uniforms, so that another implementation (the ONNX runtime) can see the same masks.
     """
+
+    uniform_source: Callable[[th.Tensor], th.Tensor] | None = None
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         if not self.training or self.p == 0.0:
             return x
-        keep = (th.rand_like(x) >= self.p).to(x.dtype)
+        uniform = th.rand_like(x) if self.uniform_source is None else self.uniform_source(x)
+        keep = (uniform >= self.p).to(x.dtype)
         return x * keep * (1.0 / (1.0 - self.p))
 
 

@@ -1,38 +1,74 @@
-"""Saving and loading trained socnav policies in a safe format: no pickled objects, only JSON and tensors.
-`socnav.load_policy(path)` rebuilds the network from its recorded config and loads weights with `weights_only=True`.
+"""Saving and loading trained socnav policies and training checkpoints in a safe format: no pickled objects, only
+JSON and tensors. Nothing in a file can execute code, and a crafted file gets a one-line error, never a traceback.
 
-A policy file is a zip archive holding
+A policy file (`save_policy`, `socnav.load_policy`) is a zip archive holding
     socnav.json  {"format": "socnav-policy", "version": 1, "algo": ..., "algo_config": {...}, "env_config": {...}, ...}
     policy.pt    the policy's ``state_dict`` (tensors only, read with ``torch.load(weights_only=True)``).
+A training checkpoint (`save_checkpoint`, `load_checkpoint`, what ``socnav train --resume`` continues from) holds
+    checkpoint.json  {"format": "socnav-checkpoint", "version": 1, algo, algo_config, env_config, seed, the counters
+                     (num_timesteps, n_updates, total_timesteps, progress), the schedules as data
+                     ({"kind": "constant", "value": ...}), the episode-statistics buffers and the run's own counters}
+    state.pt         {"policy": state_dict, "optimizer": optimizer state_dict} (tensors and plain numbers only).
 SB3's own ``model.save`` format pickles objects (``cloudpickle``), so loading one from an untrusted source can run
-arbitrary code; we keep it only for our own resumable training checkpoints and never for ``load_policy``.
+arbitrary code; socnav never reads it.
+
+Reading is bounded: only stored or deflated, unencrypted members, each with a size cap checked on the declared size
+and again while decompressing; the header is validated (known presets, network sizes within limits) and the
+tensors' shapes are compared with the shapes the header's network would have (built on torch's ``meta`` device,
+which allocates nothing) before the real network is built; NaN/Inf weights are refused.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import zipfile
+from collections import deque
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Optional
 
 import torch as th
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator
 
 from socnav.rl.policy import ODVActorCriticPolicy
-from socnav.rl.presets import AlgoConfig, policy_kwargs_for
+from socnav.rl.presets import AlgoConfig, AlgoName, policy_kwargs_for
 
 FORMAT_NAME = "socnav-policy"
 FORMAT_VERSION = 1
 METADATA_FILE = "socnav.json"
 WEIGHTS_FILE = "policy.pt"
 PRETRAINED = "pretrained"
+CHECKPOINT_FORMAT = "socnav-checkpoint"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_HEADER = "checkpoint.json"
+CHECKPOINT_STATE = "state.pt"
 
-__all__ = ["PolicyLoadError", "load_policy", "pretrained_path", "save_policy"]
+#: Caps on what a file may make us read or allocate. The shipped policy's weights are 0.4 MB, its header 2 KB.
+MAX_FILE_BYTES = 512 << 20
+MAX_HEADER_BYTES = 1 << 20
+MAX_TENSOR_BYTES = 256 << 20
+MAX_MEMBERS = 16
+MAX_LAYER_SIZE = 4096
+MAX_LAYERS = 8
+MAX_TORCH_THREADS = 256  # make_model applies a checkpoint's torch_threads process-wide
+_ZIP_METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
+_FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # timestamps would make two saves of the same state differ
+
+__all__ = [
+    "CheckpointError", "PolicyLoadError", "load_checkpoint", "load_policy", "pretrained_path", "read_checkpoint_header",
+    "save_checkpoint", "save_policy", "validation_message",
+]
 
 
 class PolicyLoadError(ValueError):
     """A file that is not a readable socnav policy (missing, corrupted, foreign or from an incompatible version)."""
+
+
+class CheckpointError(RuntimeError):
+    """A training checkpoint that cannot be continued from (missing, unreadable, crafted, or not the one the run's
+    state names); the message says which file and why."""
 
 
 def pretrained_path() -> Path:
@@ -40,48 +76,245 @@ def pretrained_path() -> Path:
     return Path(str(resources.files("socnav") / "data" / "pretrained_odv_ppo_drop_position_swap.zip"))
 
 
-def save_policy(policy: ODVActorCriticPolicy, path: str | Path, metadata: dict[str, Any]) -> Path:
-    """Write `policy` and JSON-safe `metadata` (must hold ``algo``, ``algo_config``, ``env_config``) atomically."""
+# ---------------------------------------------------------------------------------------------------------------
+# Headers
+# ---------------------------------------------------------------------------------------------------------------
+
+def _check_network_size(config: AlgoConfig) -> AlgoConfig:
+    """Refuse networks larger than any socnav preset by orders of magnitude (and absurd thread counts): a header
+    must not make us allocate."""
+    sizes = {"lstm_hidden_size": [config.lstm_hidden_size], "net_arch_pi": list(config.net_arch_pi),
+             "net_arch_vf": list(config.net_arch_vf)}
+    for name, values in sizes.items():
+        if any(not 0 < value <= MAX_LAYER_SIZE for value in values):
+            raise ValueError(f"{name} {values} outside the allowed layer sizes 1..{MAX_LAYER_SIZE}")
+    for name, count in (("n_lstm_layers", config.n_lstm_layers), ("net_arch_pi", len(config.net_arch_pi)),
+                        ("net_arch_vf", len(config.net_arch_vf))):
+        if count > MAX_LAYERS:
+            raise ValueError(f"{name}: {count} layers, at most {MAX_LAYERS} allowed")
+    if config.torch_threads is not None and config.torch_threads > MAX_TORCH_THREADS:
+        raise ValueError(f"torch_threads {config.torch_threads} above the allowed {MAX_TORCH_THREADS}")
+    return config
+
+
+class _Header(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    algo: AlgoName
+    algo_config: AlgoConfig
+    env_config: dict[str, Any]
+    seed: Optional[StrictInt] = Field(None, ge=0)
+
+    @field_validator("algo_config")
+    @classmethod
+    def _network_size(cls, config: AlgoConfig) -> AlgoConfig:
+        return _check_network_size(config)
+
+
+class PolicyHeader(_Header):
+    """``socnav.json`` of a policy file."""
+
+    format: Literal["socnav-policy"]
+    version: Literal[1]
+    timesteps: Optional[StrictInt] = Field(None, ge=0)
+
+
+class ScheduleData(BaseModel):
+    """A schedule stored as data and rebuilt on load (socnav's presets only use constant ones)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["constant"]
+    value: float = Field(gt=0, allow_inf_nan=False)
+
+
+class EpisodeInfo(BaseModel):
+    """One entry of SB3's episode-statistics buffer (return, length, duration), as the training curve reads it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    r: float = Field(allow_inf_nan=False)
+    l: StrictInt = Field(ge=0)  # noqa: E741 (SB3's key)
+    t: float = Field(ge=0, allow_inf_nan=False)
+
+
+class CheckpointHeader(_Header):
+    """``checkpoint.json`` of a training checkpoint: everything besides tensors that a resumed run needs."""
+
+    format: Literal["socnav-checkpoint"]
+    version: Literal[1]
+    seed: StrictInt = Field(ge=0)
+    num_timesteps: StrictInt = Field(ge=0)
+    n_updates: StrictInt = Field(ge=0)
+    total_timesteps: StrictInt = Field(ge=0)
+    progress_remaining: float = Field(allow_inf_nan=False)
+    learning_rate: ScheduleData
+    clip_range: ScheduleData
+    clip_range_vf: Optional[ScheduleData]
+    ep_info_buffer: list[EpisodeInfo] = Field(max_length=10_000)
+    ep_success_buffer: list[StrictBool] = Field(max_length=10_000)
+    run: dict[str, Any] = Field(default_factory=dict, description="the training run's own counters (opaque here)")
+
+
+def validation_message(error: ValidationError) -> str:
+    """pydantic's errors as one line naming each field and the value it got (as `ConfigError` names them)."""
+    parts = []
+    for item in error.errors()[:5]:
+        field = ".".join(str(p) for p in item["loc"]) or "<root>"
+        got = repr(item.get("input"))
+        parts.append(f"{field}: {item['msg']} (got {got if len(got) <= 60 else got[:57] + '...'})")
+    return "; ".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Bounded archive reading
+# ---------------------------------------------------------------------------------------------------------------
+
+def _read_members(path: Path, limits: dict[str, int], error: type[Exception], what: str) -> dict[str, bytes]:
+    """The named members of the zip at `path`, refusing encryption, unknown compression and anything over its cap."""
+    if not path.is_file():
+        raise error(f"no {what} file at {path}")
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise error(f"{path} is {path.stat().st_size} bytes, more than a {what} file can be ({MAX_FILE_BYTES})")
+    contents: dict[str, bytes] = {}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+            if len(infos) > MAX_MEMBERS:
+                raise error(f"{path} holds {len(infos)} entries; a {what} file has at most {MAX_MEMBERS}")
+            by_name = {info.filename: info for info in infos}
+            missing = [name for name in limits if name not in by_name]
+            if missing:
+                sb3 = "data" in by_name
+                hint = " (an SB3 model zip? socnav writes its own format, never SB3's pickles)" if sb3 else ""
+                raise error(f"{path} is not a socnav {what}: it lacks {' and '.join(missing)}{hint}")
+            for name, limit in limits.items():
+                info = by_name[name]
+                if info.flag_bits & 0x1:
+                    raise error(f"{path}: {name} is encrypted; socnav files never are")
+                if info.compress_type not in _ZIP_METHODS:
+                    raise error(f"{path}: {name} uses zip compression method {info.compress_type}; allowed: "
+                                + ", ".join(f"{code} ({label})" for code, label in _ZIP_METHODS.items()))
+                if info.file_size > limit:
+                    raise error(f"{path}: {name} declares {info.file_size} bytes, over the limit of {limit}")
+                with archive.open(info) as stream:
+                    # At most the declared size (already within the cap): a member lying about its size is cut
+                    # there, and its checksum then fails, so a small file never decompresses into a large buffer.
+                    data = stream.read(info.file_size + 1)
+                if len(data) != info.file_size:
+                    raise error(f"{path}: {name} does not decompress to its declared size ({info.file_size} bytes)")
+                contents[name] = data
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, NotImplementedError, RuntimeError) as exc:
+        raise error(f"{path} is not a readable socnav {what} (corrupted or not a zip archive: {exc})") from None
+    return contents
+
+
+def _parse_json(data: bytes, path: Path, name: str, error: type[Exception]) -> Any:
+    try:
+        return json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: {name} is not valid JSON ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise error(f"{path}: {name} is nested too deeply to be a socnav header") from None
+
+
+def _write_archive(path: Path, members: dict[str, bytes]) -> Path:
+    """Write a zip atomically, with fixed timestamps: the same content always gives the same bytes."""
     from socnav.io import atomic_path
 
+    with atomic_path(path) as temporary:
+        with zipfile.ZipFile(temporary, "w") as archive:
+            for name, data in members.items():
+                info = zipfile.ZipInfo(name, date_time=_FIXED_ZIP_TIME)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                archive.writestr(info, data)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Tensors
+# ---------------------------------------------------------------------------------------------------------------
+
+def _load_tensors(data: bytes, path: Path, name: str, error: type[Exception]) -> Any:
+    try:
+        return th.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupted / non-tensor payloads
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise error(f"{path}: {name} is not a tensors-only state dict ({type(exc).__name__}: {first[:200]})") from None
+
+
+def _expected_shapes(config: AlgoConfig, max_humans: int) -> dict[str, tuple[int, ...]]:
+    """Shapes of the state dict of the network `config` describes, computed on the meta device (nothing allocated)."""
+    from socnav.envs.spaces import action_space, observation_space
+
+    with th.device("meta"):
+        policy = ODVActorCriticPolicy(observation_space(max_humans), action_space(), lambda _: 0.0,
+                                      **policy_kwargs_for(config))
+    return {key: tuple(value.shape) for key, value in policy.state_dict().items()}
+
+
+def _finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
+    """All values finite, except the feature-range sentinel: h_min = +inf where h_max = -inf (nothing seen yet)."""
+    if not tensor.is_floating_point():
+        return True
+    if name.endswith("features_extractor.h_min") or name.endswith("features_extractor.h_max"):
+        prefix = name.rsplit(".", 1)[0]
+        h_min, h_max = state.get(f"{prefix}.h_min"), state.get(f"{prefix}.h_max")
+        if isinstance(h_min, th.Tensor) and isinstance(h_max, th.Tensor) and h_min.shape == h_max.shape:
+            unseen = (h_min == math.inf) & (h_max == -math.inf)
+            return bool((th.isfinite(tensor) | unseen).all())
+    return bool(th.isfinite(tensor).all())
+
+
+def _check_state_dict(state: Any, expected: dict[str, tuple[int, ...]], path: Path, name: str,
+                      error: type[Exception]) -> dict[str, th.Tensor]:
+    """`state` must be exactly the expected tensors (names and shapes) and finite."""
+    if not isinstance(state, dict) or not all(isinstance(v, th.Tensor) for v in state.values()):
+        raise error(f"{path}: {name} does not hold a state dict of tensors")
+    missing = sorted(set(expected) - set(state))
+    extra = sorted(set(state) - set(expected))
+    if missing or extra:
+        raise error(f"{path}: weights do not fit the recorded network (missing {missing[:3]}, unexpected {extra[:3]})")
+    for key, shape in expected.items():
+        if tuple(state[key].shape) != shape:
+            raise error(f"{path}: weights do not fit the recorded network ({key} has shape "
+                        f"{tuple(state[key].shape)}, the header's network needs {shape})")
+        if not _finite(key, state[key], state):
+            raise error(f"{path}: {name} holds NaN or Inf values in {key}")
+    return state
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Policies
+# ---------------------------------------------------------------------------------------------------------------
+
+def save_policy(policy: ODVActorCriticPolicy, path: str | Path, metadata: dict[str, Any]) -> Path:
+    """Write `policy` and JSON-safe `metadata` (must hold ``algo``, ``algo_config``, ``env_config``) atomically."""
     for key in ("algo", "algo_config", "env_config"):
         if key not in metadata:
             raise ValueError(f"policy metadata needs {key!r}; got keys {sorted(metadata)}")
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **metadata}
     weights = io.BytesIO()
     th.save({name: tensor.detach().cpu() for name, tensor in policy.state_dict().items()}, weights)
-    path = Path(path)
-    with atomic_path(path) as temporary:
-        with zipfile.ZipFile(temporary, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-            archive.writestr(METADATA_FILE, json.dumps(header, indent=2, sort_keys=True))
-            archive.writestr(WEIGHTS_FILE, weights.getvalue())
-    return path
+    return _write_archive(Path(path), {METADATA_FILE: json.dumps(header, indent=2, sort_keys=True).encode(),
+                                       WEIGHTS_FILE: weights.getvalue()})
 
 
-def _read_archive(path: Path) -> tuple[dict[str, Any], bytes]:
-    if not path.is_file():
-        raise PolicyLoadError(f"no policy file at {path}")
-    try:
-        with zipfile.ZipFile(path) as archive:
-            names = set(archive.namelist())
-            if METADATA_FILE not in names or WEIGHTS_FILE not in names:
-                hint = " (an SB3 model zip? socnav policies are written by `socnav train`)" if "data" in names else ""
-                raise PolicyLoadError(
-                    f"{path} is not a socnav policy: it lacks {METADATA_FILE} and {WEIGHTS_FILE}{hint}"
-                )
-            header = json.loads(archive.read(METADATA_FILE))
-            weights = archive.read(WEIGHTS_FILE)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError) as exc:
-        raise PolicyLoadError(f"{path} is not a readable socnav policy (corrupted or not a zip archive: {exc})") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise PolicyLoadError(f"{path}: {METADATA_FILE} is not valid JSON ({exc})") from None
+def _read_archive(path: Path) -> tuple[dict[str, Any], PolicyHeader, bytes]:
+    members = _read_members(path, {METADATA_FILE: MAX_HEADER_BYTES, WEIGHTS_FILE: MAX_TENSOR_BYTES},
+                            PolicyLoadError, "policy")
+    header = _parse_json(members[METADATA_FILE], path, METADATA_FILE, PolicyLoadError)
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise PolicyLoadError(f"{path}: {METADATA_FILE} does not declare format {FORMAT_NAME!r}")
     if header.get("version") != FORMAT_VERSION:
         raise PolicyLoadError(
             f"{path}: policy format version {header.get('version')!r} is not supported; allowed: {FORMAT_VERSION}"
         )
-    return header, weights
+    try:
+        return header, PolicyHeader.model_validate(header), members[WEIGHTS_FILE]
+    except ValidationError as exc:
+        raise PolicyLoadError(f"{path}: invalid policy metadata: {validation_message(exc)}") from None
 
 
 def load_policy(path: str | Path) -> ODVActorCriticPolicy:
@@ -90,32 +323,152 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     The returned SB3 policy is in eval mode (dropout off); ``policy.predict(obs, deterministic=True)`` gives the
     mean action. Its metadata is on ``policy.socnav_metadata`` (algo, algo_config, env_config, timesteps, ...).
 
-    :raises PolicyLoadError: missing, corrupted, foreign or incompatible file. Nothing is unpickled: the header is
-        JSON and the weights are read with ``torch.load(weights_only=True)``.
+    :raises PolicyLoadError: missing, corrupted, foreign, crafted or incompatible file (one line). Nothing is
+        unpickled: the header is JSON and the weights are read with ``torch.load(weights_only=True)``.
     """
     from socnav.config import ConfigError, load_config
     from socnav.envs.spaces import action_space, observation_space
 
     path = pretrained_path() if str(path) == PRETRAINED else Path(path)
-    header, weights = _read_archive(path)
+    raw_header, header, weights = _read_archive(path)
     try:
-        algo_config = AlgoConfig.model_validate(header["algo_config"])
-        env_config = load_config(header["env_config"])
-    except (KeyError, ValueError, ConfigError) as exc:
-        raise PolicyLoadError(f"{path}: invalid policy metadata ({exc})") from None
-    try:
-        state = th.load(io.BytesIO(weights), map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupted / non-tensor payloads
-        raise PolicyLoadError(f"{path}: {WEIGHTS_FILE} is not a tensors-only state dict ({type(exc).__name__}: {exc})") from None
+        env_config = load_config(header.env_config)
+    except ConfigError as exc:
+        raise PolicyLoadError(f"{path}: invalid policy metadata: {' '.join(str(exc).split())}") from None
+    state = _load_tensors(weights, path, WEIGHTS_FILE, PolicyLoadError)
+    _check_state_dict(state, _expected_shapes(header.algo_config, env_config.max_humans), path, WEIGHTS_FILE,
+                      PolicyLoadError)
     policy = ODVActorCriticPolicy(
-        observation_space(env_config.max_humans), action_space(), lambda _: 0.0, **policy_kwargs_for(algo_config)
+        observation_space(env_config.max_humans), action_space(), lambda _: 0.0,
+        **policy_kwargs_for(header.algo_config)
     )
-    if not isinstance(state, dict):
-        raise PolicyLoadError(f"{path}: {WEIGHTS_FILE} does not hold a state dict")
-    try:
-        policy.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
-        raise PolicyLoadError(f"{path}: weights do not fit the recorded network ({exc})") from None
+    policy.load_state_dict(state, strict=True)  # names and shapes checked above
     policy.set_training_mode(False)
-    policy.socnav_metadata = header  # type: ignore[attr-defined]
+    policy.socnav_metadata = raw_header  # type: ignore[attr-defined]  (validated above)
     return policy
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Training checkpoints
+# ---------------------------------------------------------------------------------------------------------------
+
+def _schedule_data(schedule: Any, name: str) -> dict[str, Any] | None:
+    """A schedule as data: SB3 wraps our constant hyperparameters in FloatSchedule(ConstantSchedule(value))."""
+    from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule
+
+    if schedule is None:
+        return None
+    inner = schedule.value_schedule if isinstance(schedule, FloatSchedule) else schedule
+    if not isinstance(inner, ConstantSchedule):
+        raise ValueError(f"cannot checkpoint the {name} schedule {schedule!r}: only constant schedules are stored")
+    return {"kind": "constant", "value": float(inner.val)}
+
+
+def _json_number(value: Any) -> Any:
+    return value.item() if hasattr(value, "item") else value
+
+
+def save_checkpoint(model: Any, path: str | Path, env_config: dict[str, Any], seed: int,
+                    run: dict[str, Any] | None = None) -> Path:
+    """Write a resumable checkpoint of the ODVPPO `model` (built by `make_model`) atomically.
+
+    :param env_config: the training env config (JSON dict); `seed`: the run seed.
+    :param run: the training run's own counters, stored as given (JSON-safe values).
+    """
+    header = {
+        "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "algo": model.algo_name,
+        "algo_config": model.algo_config, "env_config": env_config, "seed": seed,
+        "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
+        "total_timesteps": int(model._total_timesteps), "progress_remaining": float(model._current_progress_remaining),
+        "learning_rate": _schedule_data(model.lr_schedule, "learning_rate"),
+        "clip_range": _schedule_data(model.clip_range, "clip_range"),
+        "clip_range_vf": _schedule_data(model.clip_range_vf, "clip_range_vf"),
+        "ep_info_buffer": [{key: _json_number(info[key]) for key in ("r", "l", "t")}
+                           for info in (model.ep_info_buffer or [])],
+        "ep_success_buffer": [bool(success) for success in (model.ep_success_buffer or [])],
+        "run": run or {},
+    }
+    state = io.BytesIO()
+    th.save({"policy": {name: tensor.detach().cpu() for name, tensor in model.policy.state_dict().items()},
+             "optimizer": model.policy.optimizer.state_dict()}, state)
+    text = json.dumps(header, indent=2, sort_keys=True, allow_nan=False)
+    return _write_archive(Path(path), {CHECKPOINT_HEADER: text.encode(), CHECKPOINT_STATE: state.getvalue()})
+
+
+def read_checkpoint_header(path: str | Path) -> CheckpointHeader:
+    """The validated header of the checkpoint at `path`, after reading every member within its size cap (so a torn
+    file fails here); the tensors are not unpacked.
+
+    :raises CheckpointError: missing, torn, foreign (e.g. SB3's pickled zips), crafted or invalid file.
+    """
+    path = Path(path)
+    members = _read_members(path, {CHECKPOINT_HEADER: MAX_HEADER_BYTES, CHECKPOINT_STATE: MAX_TENSOR_BYTES},
+                            CheckpointError, "checkpoint")
+    return _validate_checkpoint_header(_parse_json(members[CHECKPOINT_HEADER], path, CHECKPOINT_HEADER,
+                                                   CheckpointError), path)
+
+
+def _validate_checkpoint_header(data: Any, path: Path) -> CheckpointHeader:
+    try:
+        return CheckpointHeader.model_validate(data)
+    except ValidationError as exc:
+        raise CheckpointError(f"{path}: invalid {CHECKPOINT_HEADER}: {validation_message(exc)}") from None
+
+
+def load_checkpoint(path: str | Path, env: Any, tensorboard_log: str | None = None,
+                    verbose: int = 0) -> tuple[Any, CheckpointHeader]:
+    """Rebuild the ODVPPO of a checkpoint on `env`: network, optimizer state, counters, schedules and episode
+    statistics as they were saved (saving the result again gives the same bytes). The caller reseeds it.
+
+    :raises CheckpointError: missing, foreign, crafted or invalid file; nothing in it is unpickled.
+    """
+    from socnav.config import ConfigError, load_config
+    from socnav.rl.presets import make_model
+    from stable_baselines3.common.utils import FloatSchedule
+
+    path = Path(path)
+    members = _read_members(path, {CHECKPOINT_HEADER: MAX_HEADER_BYTES, CHECKPOINT_STATE: MAX_TENSOR_BYTES},
+                            CheckpointError, "checkpoint")
+    header = _validate_checkpoint_header(_parse_json(members[CHECKPOINT_HEADER], path, CHECKPOINT_HEADER,
+                                                     CheckpointError), path)
+    try:
+        env_config = load_config(header.env_config)
+    except ConfigError as exc:
+        raise CheckpointError(f"{path}: invalid env_config: {' '.join(str(exc).split())}") from None
+    payload = _load_tensors(members[CHECKPOINT_STATE], path, CHECKPOINT_STATE, CheckpointError)
+    if not isinstance(payload, dict) or set(payload) != {"policy", "optimizer"}:
+        raise CheckpointError(f"{path}: {CHECKPOINT_STATE} must hold exactly 'policy' and 'optimizer'")
+    weights = _check_state_dict(payload["policy"], _expected_shapes(header.algo_config, env_config.max_humans),
+                                path, CHECKPOINT_STATE, CheckpointError)
+    optimizer_state = payload["optimizer"]
+    if not isinstance(optimizer_state, dict) or set(optimizer_state) != {"state", "param_groups"}:
+        raise CheckpointError(f"{path}: {CHECKPOINT_STATE} holds no optimizer state")
+    for slot in optimizer_state["state"].values() if isinstance(optimizer_state["state"], dict) else [None]:
+        if not isinstance(slot, dict) or not all(isinstance(v, th.Tensor) and bool(th.isfinite(v).all())
+                                                 for v in slot.values()):
+            raise CheckpointError(f"{path}: the optimizer state holds non-tensor, NaN or Inf values")
+
+    model = make_model(header.algo, env, header.seed, overrides=header.algo_config.model_dump(),
+                       tensorboard_log=tensorboard_log, verbose=verbose)
+    model.policy.load_state_dict(weights, strict=True)  # names and shapes checked above
+    parameters = list(model.policy.parameters())
+    for index, slot in optimizer_state["state"].items():
+        fits = isinstance(index, int) and 0 <= index < len(parameters) and all(
+            value.shape == parameters[index].shape for key, value in slot.items() if key != "step")
+        if not fits:
+            raise CheckpointError(f"{path}: the optimizer state does not fit the network (entry {index!r})")
+    try:
+        model.policy.optimizer.load_state_dict(optimizer_state)
+    except (ValueError, KeyError, TypeError, RuntimeError, IndexError) as exc:
+        raise CheckpointError(f"{path}: the optimizer state does not fit the network ({exc})") from None
+    model.learning_rate = header.learning_rate.value
+    model.lr_schedule = FloatSchedule(header.learning_rate.value)
+    model.clip_range = FloatSchedule(header.clip_range.value)
+    model.clip_range_vf = None if header.clip_range_vf is None else FloatSchedule(header.clip_range_vf.value)
+    model.num_timesteps = header.num_timesteps
+    model._n_updates = header.n_updates
+    model._total_timesteps = header.total_timesteps
+    model._current_progress_remaining = header.progress_remaining
+    model.ep_info_buffer = deque((info.model_dump() for info in header.ep_info_buffer), maxlen=model._stats_window_size)
+    model.ep_success_buffer = deque(header.ep_success_buffer, maxlen=model._stats_window_size)
+    return model, header

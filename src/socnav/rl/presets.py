@@ -10,11 +10,12 @@ search replaces them. Every field can be overridden per run (``make_model(..., o
 from __future__ import annotations
 
 from types import MappingProxyType
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import torch as th
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, StrictInt, model_validator
 
+from socnav.config import StrictModel
 from socnav.rl.odv_ppo import ODVPPO
 from socnav.rl.policy import ODVActorCriticPolicy
 
@@ -23,46 +24,54 @@ __all__ = ["ALGOS", "PRESETS", "AlgoConfig", "AlgoName", "large_batch_overrides"
 AlgoName = Literal["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]
 
 
-class AlgoConfig(BaseModel):
-    """All hyperparameters of one training run (PPO, network, ODV, dropout, runtime)."""
+#: Upper bounds: far beyond any PPO setting in use, below sizes whose buffers or networks cannot be allocated.
+_MAX_STEPS = 1_000_000
+_MAX_WIDTH = 4096
+LayerSizes = tuple[Annotated[StrictInt, Field(gt=0, le=_MAX_WIDTH)], ...]
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+
+class AlgoConfig(StrictModel):
+    """All hyperparameters of one training run (PPO, network, ODV, dropout, runtime); every number finite, every
+    count a strict integer (socnav.config.StrictModel)."""
+
+    model_config = ConfigDict(frozen=True)
 
     # -- PPO (SB3 names) --
-    learning_rate: float = Field(3e-4, gt=0)
-    n_steps: int = Field(128, gt=0, description="rollout steps per environment")
-    batch_size: int = Field(128, gt=1, description="minibatch size of one gradient step")
-    n_epochs: int = Field(10, gt=0)
+    learning_rate: float = Field(3e-4, gt=0, le=1)
+    n_steps: StrictInt = Field(128, gt=0, le=_MAX_STEPS, description="rollout steps per environment")
+    batch_size: StrictInt = Field(128, gt=1, le=_MAX_STEPS, description="minibatch size of one gradient step")
+    n_epochs: StrictInt = Field(10, gt=0, le=1000)
     gamma: float = Field(0.99, ge=0, le=1)
     gae_lambda: float = Field(0.95, ge=0, le=1)
-    clip_range: float = Field(0.2, gt=0)
-    clip_range_vf: float | None = None
+    clip_range: float = Field(0.2, gt=0, le=1, description="PPO clips the policy ratio to [1 - c, 1 + c]")
+    clip_range_vf: float | None = Field(None, gt=0, le=1e6, description="value clip, in return units (None: off)")
     normalize_advantage: bool = True
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = Field(0.5, gt=0)
-    target_kl: float | None = None
+    ent_coef: float = Field(0.0, ge=0, le=100, description="entropy bonus weight")
+    vf_coef: float = Field(0.5, ge=0, le=100, description="value loss weight")
+    max_grad_norm: float = Field(0.5, gt=0, le=1e6)
+    target_kl: float | None = Field(None, gt=0, le=1e3, description="early stop of an update (None: off)")
     # -- network (paper Fig. 3) --
-    lstm_hidden_size: int = Field(64, gt=0)
-    n_lstm_layers: int = Field(2, gt=0)
-    net_arch_pi: tuple[int, ...] = (128, 128)
-    net_arch_vf: tuple[int, ...] = (128, 128)
+    lstm_hidden_size: StrictInt = Field(64, gt=0, le=_MAX_WIDTH)
+    n_lstm_layers: StrictInt = Field(2, gt=0, le=16)
+    net_arch_pi: LayerSizes = Field((128, 128), max_length=16)
+    net_arch_vf: LayerSizes = Field((128, 128), max_length=16)
     ortho_init: bool = True
-    log_std_init: float = 0.0
+    log_std_init: float = Field(0.0, ge=-20, le=2, description="initial log sigma (sigma in e^-20 ... e^2)")
     # -- observation-dependent variance (paper IV-A) --
     odv: bool = False
-    log_std_min: float = -20.0
-    log_std_max: float = 0.25
-    variance_coef: float = Field(0.0, ge=0, description="lambda_sigma of eq. (4)")
-    variance_target: float = Field(0.0, ge=0, description="sigma^2_tgt of eq. (4)")
+    log_std_min: float = Field(-20.0, ge=-50, le=5)
+    log_std_max: float = Field(0.25, ge=-50, le=5)
+    variance_coef: float = Field(0.0, ge=0, le=1e3, description="lambda_sigma of eq. (4)")
+    variance_target: float = Field(0.0, ge=0, le=1e3, description="sigma^2_tgt of eq. (4)")
     # -- dropout (paper IV-B) --
     p_train: float = Field(0.0, ge=0, lt=1, description="dropout probability during training")
     p_test: float = Field(0.5, ge=0, lt=1, description="MC-dropout probability at test time (stored)")
     # -- runtime --
     device: str = "cpu"
-    torch_threads: int | None = Field(
+    torch_threads: StrictInt | None = Field(
         1,
         gt=0,
+        le=1024,
         description=(
             "torch.set_num_threads(...) when the model is built (process-wide; None leaves torch alone). "
             "1 by default: the matrices are small, so a second intra-op thread gains only ~10-30% wall time "

@@ -4,8 +4,10 @@
 Run directory::
 
     run.json                 what was asked (env config, algo, overrides, seed, timesteps) and the status
-    checkpoints/step_N.zip   SB3 checkpoint (optimizer state included); checkpoints/state.json names it (written
+    checkpoints/step_N.zip   safe checkpoint (tensors + JSON, `socnav.rl.persistence.save_checkpoint`: network,
+                             optimizer state, counters, schedules as data); checkpoints/state.json names it (written
                              last: a kill at any moment leaves a state naming an intact zip and its log rows)
+    .lock                    held (flock) while a training works in the directory
     curve.csv                training curve: timesteps, wall_time_s, ep_rew_mean, ep_len_mean, success_rate
     eval.csv                 periodic evaluation on validation seeds (goal/collision/timeout %, PV, return)
     model.zip                the final policy in socnav's safe format (`socnav.load_policy`)
@@ -19,6 +21,7 @@ evaluation plays episodes ``VALIDATION_SEED_BASE + k``; both are far from the sm
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,16 +30,20 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 import torch as th
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from stable_baselines3.common.callbacks import BaseCallback
 
-from socnav.config import ConfigLike, load_config
+from socnav.config import ConfigError, ConfigLike, load_config
 from socnav.envs.rollout import rollout_episodes, summarize
 from socnav.envs.vec_env import make_vec_env
-from socnav.io import atomic_path, read_table, write_table_atomic, write_text_atomic
+from socnav.io import file_lock, read_table, remove_stale_temporaries, write_table_atomic, write_text_atomic
 from socnav.rl.odv_ppo import ODVPPO
-from socnav.rl.persistence import save_policy
+from socnav.rl.persistence import (
+    MAX_HEADER_BYTES, CheckpointError, CheckpointHeader, load_checkpoint, read_checkpoint_header, save_checkpoint, save_policy,
+    validation_message,
+)
 from socnav.rl.policy import NonFiniteError
-from socnav.rl.presets import make_model, resolve_config
+from socnav.rl.presets import AlgoName, make_model, resolve_config
 
 TRAIN_SEED_BASE = 2**40
 VALIDATION_SEED_BASE = 2**41
@@ -46,15 +53,18 @@ CURVE_COLUMNS = ["timesteps", "wall_time_s", "ep_rew_mean", "ep_len_mean", "succ
 EVAL_COLUMNS = ["timesteps", "wall_time_s", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
                 "return_mean", "return_std"]
 
-__all__ = ["CheckpointError", "TrainResult", "TrainingInterrupted", "train", "training_env_seed"]
+CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.zip$")  # the only files of checkpoints/ a run writes or deletes
+
+__all__ = ["CheckpointError", "CheckpointState", "RunDirectoryBusy", "RunInfo", "TrainResult", "TrainingInterrupted",
+           "can_resume", "move_run_aside", "read_run_info", "train", "training_env_seed"]
 
 
 class TrainingInterrupted(RuntimeError):
     """Training stopped early (non-finite values); the last checkpoint in the run directory is intact."""
 
 
-class CheckpointError(RuntimeError):
-    """`resume=True` found a checkpoint it cannot continue from (unreadable, or not the step state.json names)."""
+class RunDirectoryBusy(RuntimeError):
+    """Another training holds the run directory's lock."""
 
 
 @dataclass
@@ -63,6 +73,184 @@ class TrainResult:
     timesteps: int
     wall_time_s: float
     final_eval: dict[str, float] = field(default_factory=dict)
+    resumed_from: int = 0  # the checkpoint step the run continued from (0: it started afresh)
+
+
+class RunCounters(BaseModel):
+    """The run's own counters at a checkpoint (stored in the checkpoint and in state.json)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    wall_time_s: float = Field(ge=0, allow_inf_nan=False)
+    next_eval: int = Field(ge=1)
+    curve_rows: int = Field(ge=0)
+    eval_rows: int = Field(ge=0)
+
+
+class CheckpointState(RunCounters):
+    """``checkpoints/state.json``: the checkpoint to resume from (a plain file name inside checkpoints/)."""
+
+    num_timesteps: int = Field(ge=0)
+    checkpoint: str
+
+    @field_validator("checkpoint")
+    @classmethod
+    def _plain_name(cls, name: str) -> str:
+        if not CHECKPOINT_NAME.match(name):
+            raise ValueError("must be a checkpoint file name inside checkpoints/, step_<N>.zip (no directories)")
+        return name
+
+
+class RunInfo(BaseModel):
+    """What a training run was asked to do (``run.json``); the status fields written later are kept as extras."""
+
+    model_config = ConfigDict(extra="allow")
+
+    env_config: dict[str, Any]
+    algo: AlgoName
+    overrides: dict[str, Any] = Field(default_factory=dict)
+    seed: int = Field(ge=0, lt=MAX_SEED, strict=True)
+    timesteps: int = Field(ge=1, strict=True)
+    n_envs: int = Field(ge=1, strict=True)
+    eval_every: int = Field(ge=1, strict=True)
+    eval_episodes: int = Field(ge=1, strict=True)
+
+
+def read_run_info(out_dir: str | Path) -> RunInfo:
+    """The validated ``run.json`` of a training run directory.
+
+    :raises ConfigError: missing or unreadable file, or a field of the wrong type or out of range (named).
+    """
+    path = Path(out_dir) / "run.json"
+    if not path.is_file():
+        raise ConfigError(f"no run.json in {out_dir} (not a socnav training run directory)")
+    try:
+        data = json.loads(_read_small_file(path, ConfigError))
+    except (ValueError, RecursionError) as exc:
+        raise ConfigError(f"{path} is not readable JSON ({type(exc).__name__})") from None
+    try:
+        info = RunInfo.model_validate(data)
+        resolve_config(info.algo, info.overrides)
+        load_config(info.env_config)
+    except ValidationError as exc:
+        raise ConfigError(f"invalid {path}: {validation_message(exc)}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: env_config: {exc}") from None
+    except ValueError as exc:  # resolve_config: an unknown or invalid override
+        raise ConfigError(f"{path}: overrides: {exc}") from None
+    return info
+
+
+def _read_small_file(path: Path, error: type[Exception]) -> bytes:
+    """The bytes of a run-metadata file, refusing one far larger than socnav writes (a crafted file)."""
+    try:
+        if path.stat().st_size > MAX_HEADER_BYTES:
+            raise error(f"{path} is {path.stat().st_size} bytes, far larger than socnav writes it")
+        return path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path} is unreadable ({exc})") from None
+
+
+def _read_state(path: Path) -> CheckpointState:
+    try:
+        return CheckpointState.model_validate_json(_read_small_file(path, CheckpointError))
+    except ValidationError as exc:
+        raise CheckpointError(f"invalid {path}: {validation_message(exc)}; delete {path.parent} to restart "
+                              "the run") from None
+
+
+def _read_log(out_dir: Path, name: str) -> list[dict[str, Any]]:
+    """The rows of a run's curve.csv / eval.csv (none if it is missing)."""
+    path = out_dir / name
+    if not path.is_file():
+        return []
+    try:
+        return read_table(path).to_dict("records")
+    except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise CheckpointError(f"{path} is unreadable ({type(exc).__name__}); the logs cannot be continued") from None
+
+
+def _log_rows(out_dir: Path, name: str) -> int:
+    return len(_read_log(out_dir, name))
+
+
+def _recover_state(out_dir: Path) -> CheckpointState | None:
+    """With state.json gone, the newest checkpoint whose log rows are all in the logs (its own header records
+    them); None if checkpoints/ holds no checkpoint. Never deletes anything.
+
+    :raises CheckpointError: checkpoints are there but none can be continued consistently.
+    """
+    directory = out_dir / "checkpoints"
+    named = sorted(((int(m.group(1)), path) for path in directory.glob("step_*.zip")
+                    if (m := CHECKPOINT_NAME.match(path.name))), reverse=True)
+    if not named:
+        return None
+    curve_rows, eval_rows = _log_rows(out_dir, "curve.csv"), _log_rows(out_dir, "eval.csv")
+    reasons = []
+    for _, path in named:
+        try:
+            header = read_checkpoint_header(path)
+            counters = RunCounters.model_validate(header.run)
+        except (CheckpointError, ValidationError) as exc:
+            reasons.append(f"{path.name}: {' '.join(str(exc).split())[:200]}")
+            continue
+        if counters.curve_rows <= curve_rows and counters.eval_rows <= eval_rows:
+            return CheckpointState(num_timesteps=header.num_timesteps, checkpoint=path.name,
+                                   **counters.model_dump())
+        reasons.append(f"{path.name}: its log rows are not all in curve.csv / eval.csv")
+    raise CheckpointError(
+        f"{directory / 'state.json'} is missing and no checkpoint there can be continued consistently "
+        f"({'; '.join(reasons)}); move {directory} aside to restart the run from step 0"
+    )
+
+
+def _resume_point(out_dir: Path) -> tuple[CheckpointState, Path, CheckpointHeader] | None:
+    """(state, checkpoint file, its header) to continue the run in `out_dir` from, None if it has no checkpoint.
+
+    :raises CheckpointError: the state is invalid, names a missing or unreadable checkpoint, or one of another step.
+    """
+    state_file = out_dir / "checkpoints" / "state.json"
+    state = _read_state(state_file) if state_file.is_file() else _recover_state(out_dir)
+    if state is None:
+        return None
+    checkpoint = out_dir / "checkpoints" / state.checkpoint
+    if not checkpoint.is_file():
+        raise CheckpointError(f"{state_file} names {state.checkpoint}, which is missing; delete "
+                              f"{checkpoint.parent} to restart the run")
+    header = read_checkpoint_header(checkpoint)
+    if header.num_timesteps != state.num_timesteps:
+        raise CheckpointError(f"{checkpoint} (step {header.num_timesteps}) does not match {state_file} "
+                              f"(step {state.num_timesteps}); delete both to restart")
+    return state, checkpoint, header
+
+
+def can_resume(out_dir: str | Path) -> bool:
+    """Whether `train(..., resume=True)` can continue the run in `out_dir` (or start it: no checkpoint there)."""
+    try:
+        _resume_point(Path(out_dir))
+    except CheckpointError:
+        return False
+    return True
+
+
+def move_run_aside(out_dir: str | Path) -> Path:
+    """Rename the run directory `out_dir` to ``<out_dir>.old-<UTC timestamp>`` (never deleting it); returns the new
+    path. Holds its lock while renaming, so a training still working in it is never moved.
+
+    :raises RunDirectoryBusy: a training holds the directory.
+    """
+    out_dir = Path(out_dir)
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    target = out_dir.with_name(f"{out_dir.name}.old-{stamp}")
+    suffix = 1
+    while target.exists():
+        target = out_dir.with_name(f"{out_dir.name}.old-{stamp}-{suffix}")
+        suffix += 1
+    with file_lock(out_dir / ".lock", blocking=False) as locked:
+        if not locked:
+            raise RunDirectoryBusy(f"another socnav train is working in {out_dir} (its .lock is held)")
+        out_dir.rename(target)
+    return target
 
 
 def training_env_seed(seed: int) -> int:
@@ -98,16 +286,17 @@ class _RunMonitor(BaseCallback):
 class _Run:
     """State of one training run directory."""
 
-    def __init__(self, out_dir: Path, env_config: Any, algo: str, seed: int, timesteps: int, eval_every: int,
-                 eval_episodes: int, progress: Callable[[int, float | None], None] | None):
+    def __init__(self, out_dir: Path, env_config: Any, algo: str, algo_config: Any, seed: int, timesteps: int,
+                 eval_every: int, eval_episodes: int):
         self.out_dir = out_dir
         self.env_config = env_config
         self.algo = algo
+        self.algo_config = algo_config
         self.seed = seed
         self.timesteps = timesteps
         self.eval_every = eval_every
         self.eval_episodes = eval_episodes
-        self.progress = progress
+        self.progress: Callable[[int, float | None], None] | None = None  # set when training starts
         self.curve: list[dict[str, float]] = []
         self.evals: list[dict[str, float]] = []
         self.elapsed_before = 0.0  # wall time of earlier (interrupted) sessions of this run
@@ -172,48 +361,56 @@ class _Run:
             self.save_checkpoint(model)
 
     def save_checkpoint(self, model: ODVPPO) -> None:
-        """A new step-named zip (model + optimizer), the logs, then the state naming both (written last), then the
-        older zips go: until the state is replaced, the previous state still names an intact zip."""
+        """A new step-named checkpoint (model, optimizer, counters), the logs, then the state naming both (written
+        last), then the older checkpoints go: until the state is replaced, the previous state still names an intact
+        checkpoint."""
         checkpoint = self.checkpoint_dir / f"step_{int(model.num_timesteps)}.zip"
-        with atomic_path(checkpoint) as temporary:
-            model.save(temporary)
+        counters = RunCounters(wall_time_s=self.wall_time(), next_eval=self.next_eval, curve_rows=len(self.curve),
+                               eval_rows=len(self.evals))
+        save_checkpoint(model, checkpoint, self.env_config.model_dump(mode="json"), self.seed, counters.model_dump())
         self.write_logs()
-        state = {"num_timesteps": int(model.num_timesteps), "wall_time_s": self.wall_time(),
-                 "next_eval": self.next_eval, "curve_rows": len(self.curve), "eval_rows": len(self.evals),
-                 "checkpoint": checkpoint.name}
-        write_text_atomic(self.checkpoint_state, json.dumps(state, indent=2))
+        state = CheckpointState(num_timesteps=int(model.num_timesteps), checkpoint=checkpoint.name,
+                                **counters.model_dump())
+        write_text_atomic(self.checkpoint_state, state.model_dump_json(indent=2))
         self.checkpoint = checkpoint
-        for old in self.checkpoint_dir.glob("*.zip"):
-            if old.name != checkpoint.name:
+        self._remove_checkpoints(keep=checkpoint.name)
+
+    def _remove_checkpoints(self, keep: str | None = None) -> None:
+        """Delete this run's step_N.zip files (other files in checkpoints/ are not ours to delete)."""
+        for old in self.checkpoint_dir.glob("step_*.zip"):
+            if CHECKPOINT_NAME.match(old.name) and old.name != keep:
                 old.unlink(missing_ok=True)
 
     def discard_checkpoints(self) -> None:
         """Forget any checkpoint in the run directory (state first: it is what names a zip)."""
         self.checkpoint_state.unlink(missing_ok=True)
-        for old in self.checkpoint_dir.glob("*.zip"):
-            old.unlink(missing_ok=True)
+        self._remove_checkpoints()
 
-    def restore(self) -> dict[str, Any] | None:
-        """Logs and counters of the last checkpoint (rows logged after it are dropped: they will be redone)."""
-        if not self.checkpoint_state.is_file():
+    def restore(self) -> CheckpointState | None:
+        """Logs and counters of the last checkpoint (rows logged after it are dropped: they will be redone); None
+        when the run has no checkpoint."""
+        point = _resume_point(self.out_dir)
+        if point is None:
             return None
+        state, self.checkpoint, header = point
+        asked = {"algo": self.algo, "algo_config": self.algo_config, "seed": self.seed, "env_config": self.env_config}
         try:
-            state = json.loads(self.checkpoint_state.read_text())
-            for key in ("num_timesteps", "next_eval", "curve_rows", "eval_rows", "wall_time_s"):
-                float(state[key])
-        except (ValueError, TypeError, KeyError) as exc:
-            raise CheckpointError(f"{self.checkpoint_state} is unreadable ({exc}); delete {self.checkpoint_dir} "
-                                  "to restart the run") from None
-        self.checkpoint = self.checkpoint_dir / str(state.get("checkpoint", "latest.zip"))
-        if not self.checkpoint.is_file():
-            raise CheckpointError(f"{self.checkpoint_state} names {self.checkpoint.name}, which is missing; delete "
-                                  f"{self.checkpoint_dir} to restart the run")
-        if (self.out_dir / "curve.csv").is_file():
-            self.curve = read_table(self.out_dir / "curve.csv").to_dict("records")[: state["curve_rows"]]
-        if (self.out_dir / "eval.csv").is_file():
-            self.evals = read_table(self.out_dir / "eval.csv").to_dict("records")[: state["eval_rows"]]
-        self.elapsed_before = float(state["wall_time_s"])
-        self.next_eval = int(state["next_eval"])
+            found = {"algo": header.algo, "algo_config": header.algo_config, "seed": header.seed,
+                     "env_config": load_config(header.env_config)}
+        except ConfigError as exc:
+            raise CheckpointError(f"{self.checkpoint}: invalid env_config: {' '.join(str(exc).split())}") from None
+        differ = [key for key in asked if asked[key] != found[key]]
+        if differ:  # checked before anything is built from the header
+            raise CheckpointError(f"{self.checkpoint} belongs to another run (its {', '.join(differ)} differ from "
+                                  "run.json); delete checkpoints/ or choose another directory")
+        for name, rows in (("curve.csv", state.curve_rows), ("eval.csv", state.eval_rows)):
+            if _log_rows(self.out_dir, name) < rows:
+                raise CheckpointError(f"{self.out_dir / name} holds fewer rows than {self.checkpoint_state} names "
+                                      f"({rows}); the logs cannot be continued consistently")
+        self.curve = _read_log(self.out_dir, "curve.csv")[: state.curve_rows]
+        self.evals = _read_log(self.out_dir, "eval.csv")[: state.eval_rows]
+        self.elapsed_before = state.wall_time_s
+        self.next_eval = state.next_eval
         return state
 
 
@@ -243,10 +440,13 @@ def train(
     :param eval_every: timesteps between evaluations + checkpoints (default: a tenth of the run, >= one rollout).
     :param eval_episodes: validation episodes per periodic evaluation (seeds disjoint from training and test).
     :param resume: continue from ``out_dir/checkpoints`` if a checkpoint is there (else start fresh); the run
-        reaches the same total `timesteps`, and its curve/eval logs continue from the checkpoint.
+        reaches the same total `timesteps`, and its curve/eval logs continue from the checkpoint. Without it an
+        earlier run's checkpoints in `out_dir` are discarded. Checkpoints are read safely (nothing unpickled).
     :param progress: True for a rich progress bar with the live success rate, or a callable
         ``progress(timesteps_done, success_rate)``.
     :raises TrainingInterrupted: a NaN/Inf in a loss or an output; the message names the step and the tensor.
+    :raises RunDirectoryBusy: another training holds `out_dir` (its ``.lock``).
+    :raises CheckpointError: `resume` found a checkpoint it cannot continue from (the message says why).
     """
     if timesteps < 1:
         raise ValueError(f"timesteps must be >= 1, got {timesteps}")
@@ -257,43 +457,48 @@ def train(
     algo_config = resolve_config(algo, overrides)  # validates before any work starts
     rollout_size = algo_config.n_steps * n_envs
     eval_every = max(int(eval_every or timesteps // 10), rollout_size)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NotADirectoryError(f"{out_dir} is a file, not a run directory")
     out_dir.mkdir(parents=True, exist_ok=True)
-    info = {"env_config": env_config.model_dump(mode="json"), "algo": algo, "algo_config": algo_config.model_dump(mode="json"),
-            "overrides": overrides or {}, "seed": seed, "timesteps": timesteps, "n_envs": n_envs,
-            "eval_every": eval_every, "eval_episodes": eval_episodes}
+    with file_lock(out_dir / ".lock", blocking=False) as locked:
+        if not locked:
+            raise RunDirectoryBusy(f"another socnav train is working in {out_dir} (its .lock is held)")
+        remove_stale_temporaries(out_dir)  # a killed run's half-written files; no other writer while we hold the lock
+        info = {"env_config": env_config.model_dump(mode="json"), "algo": algo,
+                "algo_config": algo_config.model_dump(mode="json"), "overrides": overrides or {}, "seed": seed,
+                "timesteps": timesteps, "n_envs": n_envs, "eval_every": eval_every, "eval_episodes": eval_episodes}
+        run = _Run(out_dir, env_config, algo, algo_config, seed, timesteps, eval_every, eval_episodes)
+        state = run.restore() if resume else None
+        return _train_locked(run, info, state, progress, tensorboard, verbose, overrides)
 
-    bar, callback_progress = _progress_display(progress, timesteps)
-    run = _Run(out_dir, env_config, algo, seed, timesteps, eval_every, eval_episodes, callback_progress)
-    env = make_vec_env(env_config, n_envs=n_envs)
+
+def _train_locked(run: _Run, info: dict[str, Any], state: CheckpointState | None,
+                  progress: bool | Callable[[int, float | None], None], tensorboard: bool, verbose: int,
+                  overrides: dict[str, Any] | None) -> TrainResult:
+    """`train` once the run directory is locked and its checkpoint (if resuming) validated."""
+    out_dir, env_config, algo, seed, timesteps = run.out_dir, run.env_config, run.algo, run.seed, run.timesteps
+    algo_config = run.algo_config
+    bar, run.progress = _progress_display(progress, timesteps)
+    env = make_vec_env(env_config, n_envs=info["n_envs"])
     tensorboard_log = str(out_dir / "tb") if tensorboard else None
-    state = run.restore() if resume else None
     if state is None:
-        # A fresh start: drop an earlier run's checkpoint left in out_dir, or a `--resume` after a kill before this
-        # run's first checkpoint would continue *that* run under this run's run.json (state first: it names the zip).
+        # A fresh start: without `resume`, an earlier run's checkpoint left in out_dir goes, or a later `--resume`
+        # would continue *that* run under this run's run.json (with `resume` we only get here when there is none).
         run.discard_checkpoints()
-    if state is not None:
-        if algo_config.torch_threads is not None:  # as make_model does for a fresh run
-            th.set_num_threads(algo_config.torch_threads)
+        model = make_model(algo, env, seed, overrides=overrides, tensorboard_log=tensorboard_log, verbose=verbose)
+        env.seed(training_env_seed(seed))  # after make_model, whose set_random_seed seeded the env with `seed`
+    else:
         try:
-            model = ODVPPO.load(run.checkpoint, env=env, device=algo_config.device, tensorboard_log=tensorboard_log)
-        except Exception as exc:  # SB3 raises many types for a torn or foreign zip
+            model, _ = load_checkpoint(run.checkpoint, env, tensorboard_log=tensorboard_log, verbose=verbose)
+        except BaseException:
             env.close()
-            raise CheckpointError(f"{run.checkpoint} cannot be loaded ({type(exc).__name__}: {exc}); delete "
-                                  f"{run.checkpoint.parent} to restart the run") from exc
-        if model.num_timesteps != state["num_timesteps"]:
-            env.close()
-            raise CheckpointError(f"{run.checkpoint} (step {model.num_timesteps}) does not match "
-                                  f"{run.checkpoint_state} (step {state['num_timesteps']}); delete both to restart")
-        model.algo_name, model.algo_config = algo, algo_config.model_dump(mode="json")  # type: ignore[attr-defined]
-        # SB3's load does not reseed torch, and the environments restart: seed both from (seed, step), so a resumed
-        # run is reproducible from its checkpoint (it is not bit-identical to an uninterrupted run, whose
-        # environments were mid-episode) and never replays another run's training episodes.
+            raise
+        # The environments restart and torch is reseeded from (seed, step), so a resumed run is reproducible from
+        # its checkpoint (it is not bit-identical to an uninterrupted run, whose environments were mid-episode)
+        # and never replays another run's training episodes.
         env_seed, torch_seed = _resume_seeds(seed, int(model.num_timesteps))
         model.set_random_seed(torch_seed)
         env.seed(env_seed)  # applied at the next reset
-    else:
-        model = make_model(algo, env, seed, overrides=overrides, tensorboard_log=tensorboard_log, verbose=verbose)
-        env.seed(training_env_seed(seed))  # after make_model, whose set_random_seed seeded the env with `seed`
     remaining = timesteps - int(model.num_timesteps)
     _write_run_json(out_dir, {**info, "status": "running"})
 
@@ -315,7 +520,8 @@ def train(
     metadata = {"algo": algo, "algo_config": algo_config.model_dump(mode="json"),
                 "env_config": env_config.model_dump(mode="json"), "seed": seed, "timesteps": int(model.num_timesteps)}
     model_path = save_policy(model.policy, out_dir / "model.zip", metadata)
-    result = TrainResult(model_path, int(model.num_timesteps), run.wall_time(), final_eval)
+    result = TrainResult(model_path, int(model.num_timesteps), run.wall_time(), final_eval,
+                         resumed_from=0 if state is None else state.num_timesteps)
     _write_run_json(out_dir, {**info, "status": "complete", "wall_time_s": result.wall_time_s,
                               "final_eval": final_eval, "num_timesteps": result.timesteps})
     return result

@@ -24,6 +24,7 @@ from socnav.safety.calibration import (
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
 from socnav.safety.rule import (
     PROXIMITY_VARIANTS,
+    SENSING_CHOICES,
     THRESHOLD_PRESETS,
     NearestHuman,
     RuleConditions,
@@ -42,6 +43,7 @@ __all__ = [
     "CAUTIOUS_RADIUS_SCALE",
     "PROXIMITY_VARIANTS",
     "RECORD_COLUMNS",
+    "SENSING_CHOICES",
     "THRESHOLD_PRESETS",
     "CalibrationResult",
     "CalibrationRun",

@@ -10,7 +10,7 @@
                     false activations to avoid)
 ``u_ep_heading``    WINDOWED epistemic heading uncertainty at that step
 ``u_feat``          WINDOWED predictive feature uncertainty
-``gap``             nearest-human gap ``d(t)`` from the observation (``inf`` without humans)
+``gap``             nearest-human gap ``d(t)`` from the sensed observation (``inf`` without humans)
 ``relative_speed``  ``|dv|`` to the nearest human
 ``previous_gap``    ``d(t-1)`` of the same episode, NaN at its first step
 ``collided``        per episode (repeated on its rows): the episode ended in a collision
@@ -47,7 +47,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from statistics import NormalDist
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -61,6 +61,7 @@ __all__ = [
     "CalibrationResult",
     "CalibrationRun",
     "calibrate",
+    "clopper_pearson_upper",
     "collect_records",
     "evaluate_thresholds",
     "rollout_scores",
@@ -335,11 +336,16 @@ def collect_records(
     n_envs: int = 8,
     episode_offset: int = 0,
     deterministic: bool = True,
+    progress: Callable[[int], None] | None = None,
+    sensing: str = "perceived",
 ) -> pd.DataFrame:
     """Per-step calibration records (module docstring) of ``n_episodes`` plain-policy episodes (episode k from
     seed ``seed + k``, id ``episode_offset + k``), with the windowed uncertainty of ``estimator``.
 
     ``perturbed``: the flag to store; None: True iff the config has any perturbation switched on.
+    ``sensing``: what the proximity columns (``gap``, speeds, ``previous_gap``) are read from, as
+    ``Thresholds.sensing``: the observation (``perceived``) or the noise-free state (``true``).
+    ``progress(n)`` is called with the number of episodes finished at each step that finishes some.
     Concatenate the frames of an unperturbed and some perturbed configs (distinct ``episode_offset``).
     """
     from socnav.safety.safe_policy import SafePolicy
@@ -357,7 +363,8 @@ def collect_records(
     for env in range(n_envs):
         world.seed(env, seed + env)
     world.reset()
-    probe = SafePolicy(policy, estimator, Thresholds.never(), config, window=window, n_envs=n_envs)
+    probe = SafePolicy(policy, estimator, Thresholds.create(Thresholds.never().model_dump(), sensing=sensing),
+                       config, window=window, n_envs=n_envs)
     running = np.arange(n_envs)
     steps = np.zeros(n_envs, dtype=np.int64)
     next_episode, n_finished = n_envs, 0
@@ -365,7 +372,8 @@ def collect_records(
         "episode", "step", "u_ep_heading", "u_feat", "gap", "relative_speed", "closing_speed", "previous_gap")}
     outcomes: dict[int, tuple[bool, float]] = {}
     while n_finished < n_episodes:
-        actions, _ = probe.predict(world.observe(), deterministic=deterministic)
+        true_observation = world.observe(noisy=False) if probe.needs_true_observation else None
+        actions, _ = probe.predict(world.observe(), deterministic=deterministic, true_observation=true_observation)
         live = running >= 0
         nearest = probe.last_nearest
         assert nearest is not None
@@ -384,6 +392,8 @@ def collect_records(
             collided = int(result.outcome[env]) == OUTCOME_COLLISION
             outcomes[int(running[env]) + episode_offset] = (collided, float(steps[env] - 1) if collided else np.nan)
             n_finished += 1
+            if progress is not None:
+                progress(1)
             if next_episode < n_episodes:
                 running[env] = next_episode
                 world.seed(env, seed + next_episode)
@@ -423,12 +433,14 @@ def _restart(estimator: Any) -> None:
 
 
 def rollout_scores(thresholds: Thresholds | None, policy: Any, estimator: Any, runs: Sequence[CalibrationRun],
-                   window: int = 4, n_envs: int = 40) -> dict[str, Any]:
+                   window: int = 4, n_envs: int = 40,
+                   progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Collisions and fallback activations of real rollouts on ``runs``: the plain ``policy`` if ``thresholds``
-    is None, else :class:`~socnav.safety.SafePolicy` with them.
+    is None, else :class:`~socnav.safety.SafePolicy` with them. ``progress(n)``: n more episodes finished.
 
     :return: ``collisions`` (dict group -> count over the perturbed runs' episodes of that group),
-        ``false_activation_rate`` (fallback steps / steps over the unperturbed runs; 0 for the plain policy).
+        ``false_activation_rate`` (fallback steps / steps over the unperturbed runs; 0 for the plain policy), its
+        standard error ``false_activation_se``, and the counts ``false_activation_steps`` and ``unperturbed_steps``.
     """
     from socnav.envs.rollout import rollout_episodes
     from socnav.safety.safe_policy import FallbackCounter, SafePolicy
@@ -438,24 +450,57 @@ def rollout_scores(thresholds: Thresholds | None, policy: Any, estimator: Any, r
     fallbacks_per_episode: list[np.ndarray] = []
     for run in runs:
         if thresholds is None:
-            records = rollout_episodes(policy, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs)
+            records = rollout_episodes(policy, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs,
+                                       progress=progress)
             fallbacks = np.zeros(len(records))
         else:
             _restart(estimator)
             safe = SafePolicy(policy, estimator, thresholds, run.config, window=window)
             counter = FallbackCounter(safe)
             records = rollout_episodes(safe, run.config, run.n_episodes, seed=run.seed, n_envs=n_envs,
-                                       observer=counter)
+                                       observer=counter, progress=progress)
             fallbacks = np.asarray(counter.per_episode(records["episode"]), dtype=np.float64)
         if run.perturbed:
             collisions[run.group] = collisions.get(run.group, 0) + int((records["outcome"] == "collision").sum())
         else:
             lengths.append(records["length"].to_numpy(np.float64))
             fallbacks_per_episode.append(fallbacks)
-    rate, standard_error = _ratio_and_standard_error(
-        np.concatenate(fallbacks_per_episode) if fallbacks_per_episode else np.zeros(0),
-        np.concatenate(lengths) if lengths else np.zeros(0))
-    return {"collisions": collisions, "false_activation_rate": rate, "false_activation_se": standard_error}
+    counts = np.concatenate(fallbacks_per_episode) if fallbacks_per_episode else np.zeros(0)
+    steps = np.concatenate(lengths) if lengths else np.zeros(0)
+    rate, standard_error = _ratio_and_standard_error(counts, steps)
+    return {"collisions": collisions, "false_activation_rate": rate, "false_activation_se": standard_error,
+            "false_activation_steps": int(counts.sum()), "unperturbed_steps": int(steps.sum())}
+
+
+def clopper_pearson_upper(events: int, trials: int, confidence: float = 0.95) -> float:
+    """Exact (Clopper-Pearson) one-sided upper confidence bound of a binomial proportion after ``events`` in
+    ``trials``: the p at which seeing at most ``events`` has probability ``1 - confidence``, i.e. the
+    ``confidence`` quantile of Beta(events + 1, trials - events); 1 when every trial is an event. Unlike the
+    normal approximation it is not 0 after 0 events: 1 - (1 - confidence)^(1 / trials), about 3 / trials at 95 %.
+    """
+    from scipy.stats import beta
+
+    if trials < 1:
+        return 1.0
+    if not 0 <= events <= trials:
+        raise ValueError(f"events must be in [0, trials={trials}], got {events}")
+    if events == trials:
+        return 1.0
+    return float(beta.ppf(confidence, events + 1, trials - events))
+
+
+def false_activation_upper(scores: Mapping[str, Any], confidence: float) -> float:
+    """One-sided upper bound of a measured false-activation rate (``rollout_scores`` output): the larger of the
+    normal bound ``rate + z SE`` with episodes as the independent units (wide when activations cluster in a few
+    episodes) and the exact Clopper-Pearson bound on the step counts (not 0 when no step fired, where the normal
+    bound collapses to the point estimate). ``confidence = 0.5``: the point estimate."""
+    rate = float(scores["false_activation_rate"])
+    if confidence <= 0.5:
+        return rate
+    normal = rate + NormalDist().inv_cdf(confidence) * float(scores["false_activation_se"])
+    exact = clopper_pearson_upper(int(scores["false_activation_steps"]), int(scores["unperturbed_steps"]),
+                                  confidence)
+    return max(normal, exact)
 
 
 def _ratio_and_standard_error(counts: np.ndarray, lengths: np.ndarray) -> tuple[float, float]:
@@ -474,11 +519,14 @@ def _ratio_and_standard_error(counts: np.ndarray, lengths: np.ndarray) -> tuple[
 
 def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator: Any,
                        runs: Sequence[CalibrationRun], false_activation_budget: float = 0.05, window: int = 4,
-                       n_envs: int = 40, confidence: float = 0.95) -> tuple[Thresholds, pd.DataFrame]:
+                       n_envs: int = 40, confidence: float = 0.95,
+                       progress: Callable[[int], None] | None = None) -> tuple[Thresholds, pd.DataFrame]:
     """The candidate that prevents the most collisions in REAL rollouts on the calibration ``runs``, among those
     whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget`` with
-    ``confidence``: its one-sided upper bound ``rate + z * SE`` (normal approximation, episodes as the independent
-    units; ``confidence = 0.5`` uses the point estimate) must not exceed the budget. A few dozen calibration
+    ``confidence``: its one-sided upper bound (:func:`false_activation_upper`: the larger of the normal bound
+    ``rate + z * SE``, episodes as the independent units, and the exact Clopper-Pearson bound on the steps;
+    ``confidence = 0.5`` uses the point estimate) must not exceed the budget. ``progress(n)``: n more episodes
+    replayed (``len(candidates) + 1`` passes over ``runs``). A few dozen calibration
     episodes estimate the rate only roughly; without the margin, a rule chosen at the edge of the budget can
     exceed it on new episodes.
 
@@ -496,21 +544,22 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
         raise ValueError("select_by_rollouts needs at least one candidate")
     if not 0.5 <= confidence < 1.0:
         raise ValueError(f"confidence must be in [0.5, 1), got {confidence}")
-    z = NormalDist().inv_cdf(confidence)
     if not any(run.perturbed for run in runs) or all(run.perturbed for run in runs):
         raise ValueError("runs need both perturbed (collisions to prevent) and unperturbed (false activations) runs")
-    plain = rollout_scores(None, policy, estimator, runs, window, n_envs)["collisions"]
+    plain = rollout_scores(None, policy, estimator, runs, window, n_envs, progress)["collisions"]
     groups = [group for group, count in plain.items() if count > 0]
     rows = []
     for index, thresholds in enumerate(candidates):
-        scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs)
+        scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs, progress)
         per_group = {group: (plain[group] - scores["collisions"][group]) / plain[group] for group in groups}
         rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": sum(plain.values()),
                      "safe_collisions": sum(scores["collisions"].values()),
                      "prevented_fraction": float(np.mean(list(per_group.values()))) if groups else float("nan"),
                      **{f"prevented_{group}": value for group, value in per_group.items()},
                      "false_activation_rate": scores["false_activation_rate"],
-                     "false_activation_upper": scores["false_activation_rate"] + z * scores["false_activation_se"]})
+                     # A rule that cannot fire has no false activation to be uncertain about.
+                     "false_activation_upper": (0.0 if thresholds == Thresholds.never()
+                                                else false_activation_upper(scores, confidence))})
     table = pd.DataFrame(rows)
     feasible = table["false_activation_upper"] <= false_activation_budget + 1e-12
     table["chosen"] = False

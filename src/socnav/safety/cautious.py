@@ -1,7 +1,8 @@
 """The cautious fallback controller of the safety layer (paper IV-C, SPEC section 5).
 
-ORCA for the robot towards its goal, from its observation, with every human's radius taken ``radius_scale`` (1.5)
-times its OBSERVED value (the human row's field 4; the robot's own radius is unchanged), the ORCA velocity turned
+ORCA for the robot towards its goal, from the observation it is given (by :class:`~socnav.safety.SafePolicy`: the
+robot's observation, or with ``sensing: true`` the simulator's noise-free one), with every human's radius taken
+``radius_scale`` (1.5) times its OBSERVED value (the human row's field 4; the robot's own radius is unchanged), the ORCA velocity turned
 into ``(v, dtheta)`` within the robot's limits (``holonomic_to_unicycle``: speed in ``[0, v_pref]``, turn within
 ``max_heading_change``), i.e. an action in ``[-1, 1]^2``.
 

@@ -20,7 +20,13 @@
   rule must not be blinded for a step; at that step all velocities are zero anyway and the proximity condition
   decides.
 
-All inputs are taken from the robot's own (possibly noisy) observation; see :func:`nearest_human`.
+The proximity inputs (``d``, ``dv``, ``d(t-1)``) come from an observation (see :func:`nearest_human`); which one is
+``Thresholds.sensing``: ``perceived`` (default) -- the robot's own observation, observation noise included, the
+only thing a robot without a separate safety sensor has -- or ``true`` -- the simulator's noise-free observation
+of the same step, as a separate safety sensor (e.g. a lidar proximity field) would give. With ``true`` the cautious
+controller reads it too, while the policy and the uncertainty estimates still see the noisy observation
+(:class:`~socnav.safety.SafePolicy`). ``perceived`` stays the default: it is what the paper's formulation reads and
+what a deployment without such a sensor can run, and old threshold files keep their meaning.
 """
 
 from __future__ import annotations
@@ -31,14 +37,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Mapping, Union
 
+import numba
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator
 
+from socnav.config import YAML_MAX_BYTES, StrictModel, YAMLTooLargeError, safe_load_yaml, short_repr, yaml_problem
 from socnav.io import write_text_atomic
 
 __all__ = [
     "PROXIMITY_VARIANTS",
+    "SENSING_CHOICES",
     "THRESHOLD_PRESETS",
     "NearestHuman",
     "RuleConditions",
@@ -56,6 +65,9 @@ SPEED, HEADING = 0, 1  # action dimensions of `Uncertainty.u_ep`
 
 Proximity = Literal["abs-relative-speed", "closing-speed"]
 PROXIMITY_VARIANTS: tuple[str, ...] = ("abs-relative-speed", "closing-speed")
+Sensing = Literal["perceived", "true"]
+#: What the proximity terms and the cautious controller read: the (noisy) observation or the true state.
+SENSING_CHOICES: tuple[str, ...] = ("perceived", "true")
 
 #: Paper thresholds (lambda_ep, lambda_feat, lambda_prox, beta1) per estimator kind (paper V-B.3).
 THRESHOLD_PRESETS: dict[str, tuple[float, float, float, float]] = {
@@ -68,24 +80,30 @@ class ThresholdsError(ValueError):
     """Thresholds are invalid; the message names the field and what is allowed."""
 
 
-class Thresholds(BaseModel):
+class Thresholds(StrictModel):
     """Constants of the collision-probability rule (immutable, validated, unknown fields rejected).
 
-    ``lambda_ep``, ``lambda_feat``: uncertainty thresholds (>= 0; ``inf`` switches that condition off);
-    ``lambda_prox``: proximity threshold in metres (>= 0); ``beta1``: weight of the speed term (>= 0, s);
+    ``lambda_ep``, ``lambda_feat``: uncertainty thresholds (>= 0; ``inf`` switches that condition off, NaN is
+    refused); ``lambda_prox``: proximity threshold in metres (finite, 0 ... 1000); ``beta1``: weight of the speed
+    term (finite, 0 ... 100 s);
     ``proximity``: ``abs-relative-speed`` (``d + beta1 |dv|``, as printed in the paper) or ``closing-speed``
-    (``d - beta1 v_close``); see the module docstring.
+    (``d - beta1 v_close``); ``sensing``: ``perceived`` (the observation, noise included) or ``true`` (the
+    simulator's noise-free state) for the proximity terms and the cautious controller; see the module docstring.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
-    lambda_ep: float = Field(..., ge=0, description="windowed epistemic heading uncertainty threshold")
-    lambda_feat: float = Field(..., ge=0, description="windowed predictive feature uncertainty threshold")
-    lambda_prox: float = Field(..., ge=0, description="metres: d + beta1 * speed below this is 'close'")
-    beta1: float = Field(..., ge=0, allow_inf_nan=False, description="seconds: weight of the speed term")
+    # inf is meaningful here (the condition never holds: `Thresholds.never`, calibration's "off"); NaN is not
+    lambda_ep: float = Field(..., ge=0, allow_inf_nan=True,
+                             description="windowed epistemic heading uncertainty threshold (inf: off)")
+    lambda_feat: float = Field(..., ge=0, allow_inf_nan=True,
+                               description="windowed predictive feature uncertainty threshold (inf: off)")
+    lambda_prox: float = Field(..., ge=0, le=1000, description="metres: d + beta1 * speed below this is 'close'")
+    beta1: float = Field(..., ge=0, le=100, description="seconds: weight of the speed term")
     proximity: Proximity = Field("abs-relative-speed", description="speed term of c_prox")
+    sensing: Sensing = Field("perceived", description="what c_prox, c_ap and the cautious controller read")
 
-    @field_validator("lambda_ep", "lambda_feat", "lambda_prox")
+    @field_validator("lambda_ep", "lambda_feat")
     @classmethod
     def _not_nan(cls, value: float) -> float:
         if math.isnan(value):
@@ -102,13 +120,14 @@ class Thresholds(BaseModel):
             raise ThresholdsError(_format_error(exc)) from None
 
     @classmethod
-    def preset(cls, name: str, proximity: Proximity = "abs-relative-speed") -> "Thresholds":
+    def preset(cls, name: str, proximity: Proximity = "abs-relative-speed",
+               sensing: Sensing = "perceived") -> "Thresholds":
         """The paper's thresholds for ``mc`` (MC-dropout) or ``ensemble``."""
         if name not in THRESHOLD_PRESETS:
             raise ThresholdsError(f"unknown thresholds preset {name!r}; allowed: {', '.join(THRESHOLD_PRESETS)}")
         lambda_ep, lambda_feat, lambda_prox, beta1 = THRESHOLD_PRESETS[name]
         return cls.create(lambda_ep=lambda_ep, lambda_feat=lambda_feat, lambda_prox=lambda_prox, beta1=beta1,
-                          proximity=proximity)
+                          proximity=proximity, sensing=sensing)
 
     @classmethod
     def never(cls) -> "Thresholds":
@@ -125,8 +144,8 @@ def _format_error(error: ValidationError) -> str:
         if item["type"] == "extra_forbidden":
             message = f"unknown field; allowed fields: {allowed}"
         elif item["type"] == "missing":
-            message = "missing; required fields: lambda_ep, lambda_feat, lambda_prox, beta1 (optional: proximity)"
-        lines.append(f"  - {field}: {message} (got {item.get('input')!r})")
+            message = "missing; required fields: lambda_ep, lambda_feat, lambda_prox, beta1 (optional: proximity, sensing)"
+        lines.append(f"  - {field}: {message} (got {short_repr(item.get('input'))})")
     return "\n".join(lines)
 
 
@@ -149,11 +168,15 @@ def load_thresholds(path_or_name: Union[str, Path, Mapping[str, Any], Thresholds
         raise ThresholdsError(
             f"thresholds file not found: {path} (or use a preset name: {', '.join(THRESHOLD_PRESETS)})"
         )
-    text = path.read_text()
     try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise ThresholdsError(f"thresholds file {path} is not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}") from exc
+        if path.stat().st_size > YAML_MAX_BYTES:  # threshold files hold four numbers
+            raise YAMLTooLargeError(f"{path.stat().st_size:,} bytes; socnav reads files of at most {YAML_MAX_BYTES:,}")
+        text = path.read_text()
+        data = json.loads(text) if path.suffix == ".json" else safe_load_yaml(text)
+    except json.JSONDecodeError as exc:
+        raise ThresholdsError(f"thresholds file {path} is not valid JSON: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise ThresholdsError(f"thresholds file {path} {yaml_problem(exc)}") from None
     if isinstance(data, dict) and isinstance(data.get("thresholds"), dict):
         data = data["thresholds"]
     if not isinstance(data, dict):
@@ -202,23 +225,39 @@ def nearest_human(observation: Mapping[str, np.ndarray]) -> NearestHuman:
     Rows are real humans first, sorted farthest to closest, so the nearest human is the LAST real row
     (``humans_mask`` is a prefix). Environments without humans get ``gap = inf`` and zero speeds.
     """
-    humans = np.asarray(observation["humans"], dtype=np.float64)
+    humans = np.asarray(observation["humans"])
     mask = np.asarray(observation["humans_mask"])
     if humans.ndim == 2:
         humans, mask = humans[None], mask[None]
-    count = (mask > 0.5).sum(axis=1)
-    present = count > 0
-    rows = humans[np.arange(len(humans)), np.maximum(count - 1, 0)]
-    rel_pos, rel_vel = rows[:, 0:2], rows[:, 2:4]
-    distance = np.linalg.norm(rel_pos, axis=1)
-    relative_speed = np.linalg.norm(rel_vel, axis=1)
-    closing = -np.einsum("ij,ij->i", rel_pos, rel_vel) / np.maximum(distance, 1e-9)
-    return NearestHuman(
-        gap=np.where(present, rows[:, 6], np.inf),
-        relative_speed=np.where(present, relative_speed, 0.0),
-        closing_speed=np.where(present, closing, 0.0),
-        present=present,
-    )
+    gap, relative_speed, closing_speed, present = _nearest_kernel(humans, mask)
+    return NearestHuman(gap=gap, relative_speed=relative_speed, closing_speed=closing_speed, present=present)
+
+
+@numba.njit(cache=True)
+def _nearest_kernel(humans: np.ndarray,
+                    mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """`nearest_human`'s arrays in one compiled pass (float64 arithmetic): per environment, the last real row's
+    gap (column 6), ``|dv|`` and ``-(p_rel . v_rel) / max(|p_rel|, 1e-9)``; ``inf``, 0, 0 without a human."""
+    batch = humans.shape[0]
+    gap, relative_speed, closing_speed = np.empty(batch), np.empty(batch), np.empty(batch)
+    present = np.empty(batch, dtype=np.bool_)
+    for env in range(batch):
+        count = 0
+        for row in range(mask.shape[1]):
+            if mask[env, row] > 0.5:
+                count += 1
+        present[env] = count > 0
+        if count == 0:
+            gap[env], relative_speed[env], closing_speed[env] = np.inf, 0.0, 0.0
+            continue
+        nearest = humans[env, count - 1]
+        px, py = np.float64(nearest[0]), np.float64(nearest[1])
+        vx, vy = np.float64(nearest[2]), np.float64(nearest[3])
+        distance = np.sqrt(px * px + py * py)
+        relative_speed[env] = np.sqrt(vx * vx + vy * vy)
+        closing_speed[env] = -(px * vx + py * vy) / max(distance, 1e-9)
+        gap[env] = np.float64(nearest[6])
+    return gap, relative_speed, closing_speed, present
 
 
 def _check_proximity(proximity: str) -> None:
@@ -271,6 +310,8 @@ def rule_conditions(
     score = proximity_score(gap, relative_speed, thresholds.beta1, thresholds.proximity)
     c_prox = np.isfinite(gap) & (score < thresholds.lambda_prox)  # no human: never close
     c_ap = np.isnan(previous_gap) | (gap <= previous_gap)
+    if c_ep.ndim and c_ep.shape == c_feat.shape == c_prox.shape == c_ap.shape:
+        return RuleConditions(c_ep, c_feat, c_prox, c_ap)  # fresh arrays already (the common, batched case)
     c_ep, c_feat, c_prox, c_ap = np.broadcast_arrays(c_ep, c_feat, c_prox, c_ap)
     return RuleConditions(c_ep.copy(), c_feat.copy(), c_prox.copy(), c_ap.copy())
 

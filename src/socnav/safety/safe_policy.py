@@ -9,9 +9,13 @@ At every step, for every environment of the batch:
    ``u_feat`` (B,) attributes, e.g. ``socnav.uncertainty.Uncertainty``), windowed per environment over the last
    ``window`` steps of the current episode (mean of ``min(window, steps so far)`` values, as
    ``socnav.uncertainty.WindowedUncertainty``; a simple ring buffer kept here);
-3. the nearest human's gap and speed term from the observation and the previous step's gap of the same episode;
+3. the nearest human's gap and speed term and the previous step's gap of the same episode, read from the *sensed*
+   observation: with ``thresholds.sensing == "perceived"`` the observation itself (noise included), with ``"true"``
+   the simulator's noise-free observation of the same step (``true_observation``: passed to ``predict`` or given
+   before it with :meth:`SafePolicy.sense`; ``socnav.envs.rollout.rollout_episodes`` does the latter for every
+   policy whose ``needs_true_observation`` is True). The policy and the estimator always see the observation;
 4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap``; where it fires, the action is replaced by the
-   :class:`~socnav.safety.cautious.CautiousController`'s.
+   :class:`~socnav.safety.cautious.CautiousController`'s, computed from the sensed observation.
 
 Episode boundaries: call :meth:`SafePolicy.reset` with the environments whose episode ended (before the next
 ``predict`` sees their new first observation), or pass SB3's ``episode_start`` to ``predict``. Without either,
@@ -38,7 +42,8 @@ class SafePolicy:
 
     :param policy: anything with ``predict(obs, state=None, episode_start=None, deterministic=True)``, batched.
     :param estimator: callable ``estimator(obs) -> Uncertainty``-like (``u_ep``, ``u_al``, ``u_feat``).
-    :param thresholds: a :class:`Thresholds`, a preset name (``mc``, ``ensemble``), a file path or a mapping.
+    :param thresholds: a :class:`Thresholds`, a preset name (``mc``, ``ensemble``), a file path or a mapping;
+        its ``sensing`` says what the proximity terms and the cautious controller read (module docstring).
     :param config: the env config (limits for the cautious controller).
     :param window: uncertainty window ``w`` in steps (paper: 4).
     :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
@@ -76,6 +81,7 @@ class SafePolicy:
         self.last_uncertainty: dict[str, np.ndarray] = {}
         self.last_nearest: NearestHuman | None = None
         self.last_previous_gap = np.zeros(0)
+        self._sensed: dict[str, np.ndarray] | None = None
         if n_envs is not None:
             self._allocate(int(n_envs))
 
@@ -125,11 +131,44 @@ class SafePolicy:
 
     # ------------------------------------------------------------------------------------------- acting
 
+    @property
+    def needs_true_observation(self) -> bool:
+        """Whether ``predict`` needs the simulator's noise-free observation (``thresholds.sensing == "true"``)."""
+        return self.thresholds.sensing == "true"
+
+    def sense(self, true_observation: Mapping[str, np.ndarray]) -> None:
+        """Give the noise-free observation of the step the next ``predict`` acts on (used once, then dropped)."""
+        self._sensed = {key: np.asarray(value) for key, value in true_observation.items()}
+
+    def _sensed_observation(self, obs: dict[str, np.ndarray], true_observation: Any, single: bool
+                            ) -> dict[str, np.ndarray]:
+        """What the proximity terms and the cautious controller read this step (batched)."""
+        sensed = true_observation if true_observation is not None else self._sensed
+        self._sensed = None  # a stale true state must never be read on a later step
+        if not self.needs_true_observation:
+            return obs
+        if sensed is None:
+            raise ValueError("thresholds.sensing='true': the safety layer reads the simulator's noise-free "
+                             "observation; pass predict(..., true_observation=world.observe(noisy=False)) or call "
+                             "sense() before predict (socnav.envs.rollout.rollout_episodes does), or use "
+                             "sensing='perceived'")
+        sensed = {key: np.asarray(value)[None] if single else np.asarray(value) for key, value in sensed.items()}
+        if sensed["robot"].shape != obs["robot"].shape or sensed["humans"].shape != obs["humans"].shape:
+            raise ValueError(f"true_observation has shapes robot {sensed['robot'].shape}, humans "
+                             f"{sensed['humans'].shape}; the observation has {obs['robot'].shape}, "
+                             f"{obs['humans'].shape}")
+        return sensed
+
     def predict(self, observation: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None,
-                deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        """Batched safe actions (a single observation gives a single action); returns ``(actions, state)``."""
+                deterministic: bool = True, true_observation: Mapping[str, np.ndarray] | None = None
+                ) -> tuple[np.ndarray, Any]:
+        """Batched safe actions (a single observation gives a single action); returns ``(actions, state)``.
+
+        ``true_observation``: the same step's noise-free observation, read instead of ``observation`` by the
+        proximity terms and the cautious controller when ``thresholds.sensing == "true"`` (ignored otherwise)."""
         single = np.asarray(observation["robot"]).ndim == 1
         obs = {key: np.asarray(value)[None] if single else np.asarray(value) for key, value in observation.items()}
+        sensed = self._sensed_observation(obs, true_observation, single)
         batch = obs["robot"].shape[0]
         if self.n_envs is None:
             self._allocate(batch)
@@ -152,7 +191,7 @@ class SafePolicy:
                                  "u_al_speed": windowed[:, 2], "u_al_heading": windowed[:, 3],
                                  "u_feat": windowed[:, 4]}
 
-        nearest = nearest_human(obs)
+        nearest = nearest_human(sensed)
         previous_gap = self._previous_gap.copy()
         conditions = rule_conditions(windowed[:, 1], windowed[:, 4], nearest.gap,
                                      nearest.speed(self.thresholds.proximity), previous_gap, self.thresholds)
@@ -161,7 +200,7 @@ class SafePolicy:
         fallback = conditions.p_col
         if fallback.any():
             chosen = np.flatnonzero(fallback)
-            cautious, _ = self.cautious.predict({key: value[chosen] for key, value in obs.items()})
+            cautious, _ = self.cautious.predict({key: value[chosen] for key, value in sensed.items()})
             actions[chosen] = cautious
         self.episode_fallbacks += fallback
         self.last_fallback, self.last_conditions, self.last_nearest = fallback, conditions, nearest

@@ -10,17 +10,26 @@ Example::
     u.u_ep_heading, u.u_feat                                 # (B,) arrays
 """
 
-from socnav.uncertainty.estimators import (
-    ESTIMATOR_KINDS,
-    EnsembleEstimator,
-    MCDropoutEstimator,
-    Uncertainty,
-    ensemble_feature_uncertainty,
-    feature_uncertainty,
-    make_estimator,
-    summarise_samples,
-)
+from socnav.uncertainty.stats import Uncertainty, ensemble_feature_uncertainty, feature_uncertainty, summarise_samples
 from socnav.uncertainty.window import WindowedUncertainty
+
+# The estimators (torch) load on first use, so that the NumPy-only parts above (and `socnav.uncertainty.stats`,
+# which the torch-free runtime imports) do not pull in torch.
+_LAZY = {
+    "ESTIMATOR_KINDS": "socnav.uncertainty.estimators",
+    "EnsembleEstimator": "socnav.uncertainty.estimators",
+    "MCDropoutEstimator": "socnav.uncertainty.estimators",
+    "make_estimator": "socnav.uncertainty.estimators",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'socnav.uncertainty' has no attribute {name!r}")
+
 
 __all__ = [
     "ESTIMATOR_KINDS",

@@ -33,16 +33,23 @@ from __future__ import annotations
 
 import copy
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
 from typing import Any, ContextManager, Literal
 
 import numpy as np
 import torch as th
 from torch import nn
 
-from socnav.envs.spaces import ACTION_NAMES
+# The equations live in NumPy-only `stats` (shared with the torch-free runtime); re-exported here.
+from socnav.uncertainty.stats import (
+    Uncertainty,
+    _apply_feature_map,
+    _feature_map,
+    ensemble_feature_uncertainty,
+    feature_uncertainty,
+    summarise_samples,
+)
 
 __all__ = [
     "ESTIMATOR_KINDS",
@@ -56,149 +63,7 @@ __all__ = [
     "summarise_samples",
 ]
 
-#: Index of each action dimension in the env action (and in every (B, 2) array of :class:`Uncertainty`).
-SPEED = ACTION_NAMES.index("speed")
-HEADING = ACTION_NAMES.index("heading")
-
 ObsLike = Mapping[str, "np.ndarray | th.Tensor"]
-
-
-# ----------------------------------------------------------------------------------------------------------
-# The result
-# ----------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Uncertainty:
-    """Uncertainty of a batch of ``B`` observations (all arrays float64).
-
-    :param mean_action: (B, 2) average of the K sampled action means ``mu_bar`` (unclipped; index 0 speed,
-        1 heading change).
-    :param u_ep: (B, 2) epistemic uncertainty ``(1/K) sum_k (mu_k - mu_bar)^2``.
-    :param u_al: (B, 2) aleatoric uncertainty ``(1/K) sum_k sigma_k^2``.
-    :param u_feat: (B,) predictive feature uncertainty (MC-dropout eq. (8) or ensemble eq. (9)).
-    """
-
-    mean_action: np.ndarray
-    u_ep: np.ndarray
-    u_al: np.ndarray
-    u_feat: np.ndarray
-
-    def __post_init__(self) -> None:
-        for name in ("mean_action", "u_ep", "u_al", "u_feat"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
-        batch = self.u_feat.shape[0] if self.u_feat.ndim == 1 else -1
-        if batch < 0 or any(
-            a.ndim != 2 or a.shape[0] != batch for a in (self.mean_action, self.u_ep, self.u_al)
-        ) or not self.mean_action.shape == self.u_ep.shape == self.u_al.shape:
-            raise ValueError(
-                "Uncertainty needs mean_action, u_ep, u_al of one shape (B, A) and u_feat (B,), got "
-                f"{self.mean_action.shape}, {self.u_ep.shape}, {self.u_al.shape}, {self.u_feat.shape}"
-            )
-
-    @property
-    def batch_size(self) -> int:
-        """Number of observations ``B``."""
-        return int(self.u_feat.shape[0])
-
-    @property
-    def u_ep_speed(self) -> np.ndarray:
-        """(B,) epistemic uncertainty of the speed action."""
-        return self.u_ep[:, SPEED]
-
-    @property
-    def u_ep_heading(self) -> np.ndarray:
-        """(B,) epistemic uncertainty of the heading-change action (the safety rule's ``c_ep``)."""
-        return self.u_ep[:, HEADING]
-
-    @property
-    def u_al_speed(self) -> np.ndarray:
-        """(B,) aleatoric uncertainty of the speed action."""
-        return self.u_al[:, SPEED]
-
-    @property
-    def u_al_heading(self) -> np.ndarray:
-        """(B,) aleatoric uncertainty of the heading-change action."""
-        return self.u_al[:, HEADING]
-
-    def as_dict(self) -> dict[str, np.ndarray]:
-        """Flat (B,) columns for a DataFrame: ``mean_action_speed``, ``mean_action_heading``, ``u_ep_speed``,
-        ``u_ep_heading``, ``u_al_speed``, ``u_al_heading``, ``u_feat``."""
-        out: dict[str, np.ndarray] = {}
-        for field in ("mean_action", "u_ep", "u_al"):
-            values = getattr(self, field)
-            for index, action in enumerate(ACTION_NAMES):
-                out[f"{field}_{action}"] = values[:, index]
-        out["u_feat"] = self.u_feat
-        return out
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Pure functions (the equations)
-# ----------------------------------------------------------------------------------------------------------
-def feature_uncertainty(variances: Any, h_min: Any, h_max: Any) -> np.ndarray:
-    """MC-dropout feature uncertainty, paper eq. (8), of per-element variances ``V`` (..., D).
-
-        V_max,d = (h_max,d - h_min,d)^2 / 12
-        u_feat  = sum_d w_d * r_d,   w_d = V_d / sum_d' V_d',   r_d = V_d / V_max,d
-
-    ``u_feat`` is the ``w``-weighted average of the normalised variances ``r_d``, so it lies in
-    ``[min_d r_d, max_d r_d]``, i.e. in [0, 1] whenever every ``V_d <= V_max,d``. It is *not* clipped: ``V_max``
-    is the variance of a uniform distribution on the tracked range, not a hard bound (a distribution on
-    that range can reach 3 ``V_max``, and dropout samples can leave the range seen in training), so values
-    above 1 are possible and mean "more spread than uniform over the training range".
-
-    Degenerate cases (explicit, not NaN):
-
-    * an element whose range is untracked (``h_min = +inf`` / ``h_max = -inf``, nothing observed yet),
-      non-finite, or of zero width (``h_max <= h_min``: the element never varied in training) has no usable
-      ``V_max`` and is **excluded** from both sums (weights are renormalised over the remaining elements);
-    * if the variances of all remaining elements are zero (or no element remains), ``u_feat = 0``, the limit
-      of eq. (8) as ``V -> 0`` (``0 <= u_feat <= max_d r_d``).
-
-    :param variances: (..., D) non-negative element-wise variances.
-    :param h_min: (D,) tracked element-wise minimum.
-    :param h_max: (D,) tracked element-wise maximum.
-    :return: (...) float64 array.
-    """
-    return _apply_feature_map(_to_numpy(variances), *_feature_map(h_min, h_max))
-
-
-def _feature_map(h_min: Any, h_max: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``(valid, 1 / V_max)`` per element, (D,) each; ``1 / V_max = 0`` on the excluded (invalid) elements."""
-    lo, hi = _to_numpy(h_min), _to_numpy(h_max)
-    width = hi - lo
-    valid = np.isfinite(lo) & np.isfinite(hi) & (width > 0.0)
-    inv_v_max = np.where(valid, 12.0 / np.where(valid, width, 1.0) ** 2, 0.0)
-    return valid, inv_v_max
-
-
-def _apply_feature_map(v: np.ndarray, valid: np.ndarray, inv_v_max: np.ndarray) -> np.ndarray:
-    """Eq. (8) over the valid elements: ``sum_d V_d^2 / V_max,d / sum_d V_d`` (0 where ``sum_d V_d = 0``)."""
-    v = v * valid
-    total = v.sum(axis=-1)
-    weighted = (v * v * inv_v_max).sum(axis=-1)
-    return np.where(total > 0.0, weighted / np.where(total > 0.0, total, 1.0), 0.0)
-
-
-def ensemble_feature_uncertainty(variances: Any) -> np.ndarray:
-    """Ensemble feature uncertainty, paper eq. (9): ``u_feat = (1/D) sum_d V_d`` of ``V`` (..., D)."""
-    return _to_numpy(variances).mean(axis=-1)
-
-
-def summarise_samples(mu: Any, log_std: Any, h: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Moments of K samples: ``(mu_bar, u_ep, u_al, V)`` from ``mu``, ``log_std`` (K, B, A) and ``h`` (K, B, D).
-
-        mu_bar = (1/K) sum_k mu_k,   u_ep = (1/K) sum_k (mu_k - mu_bar)^2,   u_al = (1/K) sum_k exp(2 log sigma_k)
-        V_d    = (1/K) sum_k (h_{d,k} - h_bar_d)^2
-
-    Shapes of the results: (B, A), (B, A), (B, A), (B, D); float64.
-    """
-    mu, log_std, h = _to_numpy(mu), _to_numpy(log_std), _to_numpy(h)
-    actions = mu.shape[-1]
-    both = np.concatenate([mu, h], axis=-1)  # one mean / variance over [mu, h] (fewer small NumPy calls)
-    mean = both.mean(axis=0)
-    var = np.square(both - mean).mean(axis=0)
-    u_al = np.exp(2.0 * log_std).mean(axis=0)
-    return mean[..., :actions], var[..., :actions], u_al, var[..., actions:]
 
 
 def repeat_obs(obs: Mapping[str, th.Tensor], k: int) -> dict[str, th.Tensor]:
@@ -209,12 +74,6 @@ def repeat_obs(obs: Mapping[str, th.Tensor], k: int) -> dict[str, th.Tensor]:
 # ----------------------------------------------------------------------------------------------------------
 # Helpers
 # ----------------------------------------------------------------------------------------------------------
-def _to_numpy(x: Any) -> np.ndarray:
-    if isinstance(x, th.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
-
-
 def _as_policy(obj: Any) -> Any:
     """The policy of ``obj``: a policy with ``action_stats`` itself, or an SB3 model whose ``.policy`` is one."""
     if hasattr(obj, "action_stats"):
@@ -290,11 +149,24 @@ class MCDropoutEstimator:
     :param p_test: MC-dropout probability; None = ``policy.p_test`` (0.5 in the presets). ``p_test = 0``
         gives K identical samples, hence ``u_ep = 0`` and ``u_feat = 0``.
     :param seed: seed of a private, reproducible dropout-mask stream (None: the global RNG).
+    :param uniforms: external dropout-mask stream (a hook for comparing implementations, e.g. the ONNX runtime
+        against torch): ``uniforms(layer, shape) -> array`` of U[0, 1) samples, with ``layer`` the index into
+        ``policy.dropout_layers()`` and ``shape`` that layer's input shape (rows sample-major); each dropout
+        layer then keeps ``uniform >= p_test``, exactly as with torch's own draws. Called in forward order, once
+        per active layer and call (the LSTM-input layers are skipped when no observation of the batch has a
+        human). Overrides ``seed``; see ``socnav.runtime.DropoutStream`` for a seeded NumPy stream.
     """
 
     kind = "mc"
 
-    def __init__(self, policy: Any, k: int = 20, p_test: float | None = None, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        policy: Any,
+        k: int = 20,
+        p_test: float | None = None,
+        seed: int | None = None,
+        uniforms: Callable[[int, tuple[int, ...]], np.ndarray] | None = None,
+    ) -> None:
         self.policy = _as_policy(policy)
         if k < 2:
             raise ValueError(f"MC-dropout needs k >= 2 samples, got k={k}")
@@ -305,6 +177,7 @@ class MCDropoutEstimator:
         if not self.policy.dropout_layers():
             raise ValueError("the policy has no dropout layers; MC-dropout needs them")
         self.seed = seed
+        self.uniforms = uniforms
         self._rng_states: tuple[th.Tensor, th.Tensor | None] | None = None
         if seed is not None:
             self._rng_states = self._initial_states(int(seed))
@@ -363,9 +236,24 @@ class MCDropoutEstimator:
             self._private_rng(seed) if seed is not None or self._rng_states is not None else nullcontext()
         )
         # inference_mode: no autograd bookkeeping at all (~5 % of the pass); the samples only go to NumPy.
-        with rng, th.inference_mode(), self.policy.mc_dropout(self.p_test):
+        with rng, th.inference_mode(), self.policy.mc_dropout(self.p_test), self._external_uniforms():
             h, mu, log_std = self.policy.action_stats(repeated)  # one pass over K * B rows
         return h.view(self.k, batch, -1), mu.view(self.k, batch, -1), log_std.view(self.k, batch, -1)
+
+    @contextmanager
+    def _external_uniforms(self) -> Iterator[None]:
+        """Context: every dropout layer draws its uniforms from ``self.uniforms`` (no-op without it)."""
+        if self.uniforms is None:
+            yield
+            return
+        layers = self.policy.dropout_layers()
+        for index, layer in enumerate(layers):
+            layer.uniform_source = _UniformSource(self.uniforms, index)
+        try:
+            yield
+        finally:
+            for layer in layers:
+                layer.uniform_source = None
 
     def __call__(self, obs: ObsLike, seed: int | None = None) -> Uncertainty:
         """Uncertainty of a batch of observations (dict of (B, ...) arrays or tensors, or one observation).
@@ -396,6 +284,20 @@ class MCDropoutEstimator:
         if key != self._map_key:
             self._map_key, self._map = key, _feature_map(lo, hi)
         return self._map
+
+
+class _UniformSource:
+    """``source(x)``: the uniforms of one dropout layer from an external stream, as a tensor shaped like ``x``."""
+
+    def __init__(self, uniforms: Callable[[int, tuple[int, ...]], np.ndarray], layer: int) -> None:
+        self.uniforms, self.layer = uniforms, layer
+
+    def __call__(self, x: th.Tensor) -> th.Tensor:
+        values = np.asarray(self.uniforms(self.layer, tuple(x.shape)), dtype=np.float32)
+        if values.shape != tuple(x.shape):
+            raise ValueError(f"uniforms for dropout layer {self.layer}: expected shape {tuple(x.shape)}, "
+                             f"got {values.shape}")
+        return th.from_numpy(values).to(x.device)
 
 
 # ----------------------------------------------------------------------------------------------------------

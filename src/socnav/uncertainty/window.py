@@ -14,9 +14,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 
-from socnav.uncertainty.estimators import Uncertainty
+from socnav.uncertainty.stats import Uncertainty
 
 __all__ = ["WindowedUncertainty"]
 
@@ -83,11 +84,35 @@ class WindowedUncertainty:
             self._buffer = np.zeros((self.n_envs, self.window, 2 * action_dim + 1))
         elif action_dim != self._action_dim:
             raise ValueError(f"action dimension changed from {self._action_dim} to {action_dim}")
-        rows = np.arange(self.n_envs)
-        self._buffer[rows, self._pos] = np.concatenate([u.u_ep, u.u_al, u.u_feat[:, None]], axis=1)
-        self._pos = (self._pos + 1) % self.window
-        self._count = np.minimum(self._count + 1, self.window)
-        # Slots not yet written since the last reset hold zeros, so the sum over the whole window is exact.
-        mean = self._buffer.sum(axis=1) / self._count[:, None]
-        a = action_dim
-        return Uncertainty(u.mean_action, mean[:, :a], mean[:, a : 2 * a], mean[:, 2 * a])
+        u_ep, u_al, u_feat = _push(self._buffer, self._pos, self._count, u.u_ep, u.u_al, u.u_feat)
+        return Uncertainty(u.mean_action, u_ep, u_al, u_feat)
+
+
+@numba.njit(cache=True)
+def _push(buffer: np.ndarray, pos: np.ndarray, count: np.ndarray, u_ep: np.ndarray, u_al: np.ndarray,
+          u_feat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Write ``[u_ep, u_al, u_feat]`` of every env into its slot ``pos``, advance ``pos`` and ``count`` (in place)
+    and return the means over each env's window. Slots not yet written since the last reset hold zeros, so the
+    sum over the whole window divided by ``count`` is exact."""
+    n_envs, window, _ = buffer.shape
+    a = u_ep.shape[1]
+    mean_ep, mean_al, mean_feat = np.empty((n_envs, a)), np.empty((n_envs, a)), np.empty(n_envs)
+    for env in range(n_envs):
+        slot = buffer[env, pos[env]]
+        slot[:a] = u_ep[env]
+        slot[a:2 * a] = u_al[env]
+        slot[2 * a] = u_feat[env]
+        pos[env] = (pos[env] + 1) % window
+        count[env] = min(count[env] + 1, window)
+        for column in range(2 * a + 1):
+            total = 0.0
+            for index in range(window):
+                total += buffer[env, index, column]
+            value = total / count[env]
+            if column < a:
+                mean_ep[env, column] = value
+            elif column < 2 * a:
+                mean_al[env, column - a] = value
+            else:
+                mean_feat[env] = value
+    return mean_ep, mean_al, mean_feat

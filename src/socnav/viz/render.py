@@ -1,5 +1,9 @@
 """Off-screen rendering of one social-navigation scene into an RGB array.
-One matplotlib figure (Agg canvas, no pyplot) is built once; per frame only the moving artists are redrawn."""
+One matplotlib figure (Agg canvas, no pyplot) is built once; per frame only the moving artists are redrawn.
+
+With ``SceneRenderer(annotate=True)`` a frame explains itself: a title, a legend (robot, attentive and
+inattentive humans, personal space, goal, trail), a metre scale, the outcome in large type, and uncertainty bars
+with tick values and the threshold marked."""
 
 from __future__ import annotations
 
@@ -11,12 +15,16 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import EllipseCollection, LineCollection
 from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Rectangle
 
 # Palette. The robot colour is used by no other artist except the robot's own trail.
 ROBOT_COLOR = "#e4572e"
 HUMAN_COLOR = "#3a6ea5"
 HUMAN_EDGE_COLOR = "#1d3a57"
+INATTENTIVE_COLOR = "#b0b0b0"  # humans that ignore the robot: grey fill, dashed outline
+INATTENTIVE_EDGE_COLOR = "#555555"
+THRESHOLD_COLOR = "#d62828"
 ROBOT_GOAL_COLOR = "#2a9d8f"
 PANEL_BAR_COLOR = "#6c5b7b"
 
@@ -43,6 +51,13 @@ class SceneFrame:
     robot_color: str | None = None  # override, e.g. to highlight a safety fallback
     caption: str = ""  # extra text (outcome, step, ...)
     side_panel: dict[str, float] | None = None  # label -> value in [0, 1], drawn as bars
+    attentive: np.ndarray | None = None  # (N,) bool: False = the human ignores the robot (None: all attentive)
+    title: str = ""  # what is shown (scenario, policy, seed, ...), on top of the scene (replaces the time)
+    outcome: str = ""  # drawn in large type across the scene (e.g. at the last frame)
+    #: per bar label: ((position in [0, 1], tick label), ...) drawn under the bar -- the bar's scale in words
+    panel_ticks: dict[str, tuple[tuple[float, str], ...]] | None = None
+    panel_marks: dict[str, float] | None = None  # per bar label: threshold position in [0, 1], a red line
+    panel_title: str = ""  # heading of the bars
 
 
 class SceneRenderer:
@@ -58,10 +73,14 @@ class SceneRenderer:
       layout and restored from a pixel cache; only the moving artists are drawn per frame.
     """
 
-    def __init__(self, width: int = 480, height: int = 480, extent: float = 8.5, dpi: int = 80):
+    def __init__(self, width: int = 480, height: int = 480, extent: float = 8.5, dpi: int = 80,
+                 annotate: bool = False, fallback_color: str | None = None):
+        """`annotate`: draw a legend (beside the scene, in the side-panel column, which is then always there) and a
+        metre scale; `fallback_color`: the robot's colour while a safety fallback drives, listed in the legend."""
         if min(width, height, extent, dpi) <= 0:
             raise ValueError("width, height, extent and dpi must be positive")
         self.width, self.height, self.extent, self.dpi = int(width), int(height), float(extent), int(dpi)
+        self.annotate, self.fallback_color = bool(annotate), fallback_color
 
         self.fig = Figure(figsize=(self.width / self.dpi, self.height / self.dpi), dpi=self.dpi, facecolor="white")
         self.canvas = FigureCanvasAgg(self.fig)
@@ -73,11 +92,15 @@ class SceneRenderer:
         self.panel_ax = self.fig.add_axes((1.0 - PANEL_FRACTION + 0.02, 0.05, PANEL_FRACTION - 0.05, 0.9))
         self.panel_ax.set_xlim(0.0, 1.0)
         self.panel_ax.set_axis_off()
+        self.legend_ax = self.fig.add_axes((1.0 - PANEL_FRACTION + 0.01, 0.01, PANEL_FRACTION - 0.02, 0.36))
+        self.legend_ax.set_axis_off()
+        self.legend_ax.set_visible(False)
 
         self._add_static_scene()
         self._add_dynamic_scene()
         self._panel_bars: list[Rectangle] = []
-        self._layout: tuple[str, ...] | None = None  # side-panel keys of the cached background
+        self._panel_marks: list[Line2D] = []
+        self._layout: tuple | None = None  # side-panel layout of the cached background
         self._background = None  # pixel cache of the static layer
 
     # ------------------------------------------------------------------ setup
@@ -90,6 +113,43 @@ class SceneRenderer:
         origin = [[(0, -e), (0, e)], [(-e, 0), (e, 0)]]
         self.ax.add_collection(LineCollection(origin, colors="#d8d8d8", linewidths=0.8, zorder=0))
         self.ax.add_patch(Rectangle((-e, -e), 2 * e, 2 * e, fill=False, edgecolor="#999999", linewidth=1.0))
+        if self.annotate:
+            self._add_scale_bar()
+            self._add_legend()
+
+    def _add_scale_bar(self) -> None:
+        """A metre scale in the lower right corner of the scene (the grid lines are 1 m apart)."""
+        e = self.extent
+        length = 2.0 if e >= 4 else 1.0
+        x1, y = e - 0.4, -e + 1.4  # above the caption line
+        self.ax.plot([x1 - length, x1], [y, y], color="black", linewidth=2.5, solid_capstyle="butt", zorder=5)
+        for x in (x1 - length, x1):
+            self.ax.plot([x, x], [y - 0.12, y + 0.12], color="black", linewidth=1.5, zorder=5)
+        self.ax.text(x1 - length / 2, y + 0.2, f"{length:g} m (grid 1 m)", ha="center", va="bottom", fontsize=8,
+                     zorder=5)
+
+    def _add_legend(self) -> None:
+        """Proxy artists for every kind of thing in the scene, in the side column."""
+        handles = [
+            Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=ROBOT_COLOR,
+                   markeredgecolor="black", label="robot (line: heading)"),
+        ]
+        if self.fallback_color is not None:
+            handles.append(Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=self.fallback_color,
+                                  markeredgecolor="black", label="robot, safety fallback driving"))
+        handles += [
+            Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=HUMAN_COLOR,
+                   markeredgecolor=HUMAN_EDGE_COLOR, label="human, sees the robot"),
+            Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=INATTENTIVE_COLOR,
+                   markeredgecolor=INATTENTIVE_EDGE_COLOR, label="human, ignores the robot (dashed)"),
+            Line2D([], [], marker="o", linestyle="", markersize=13, markerfacecolor="none",
+                   markeredgecolor=to_rgba(HUMAN_COLOR, 0.6), label="personal space (dashed ring)"),
+            Line2D([], [], marker="*", linestyle="", markersize=12, markerfacecolor=ROBOT_GOAL_COLOR,
+                   markeredgecolor="#14524b", label="robot's goal (x: humans' goals)"),
+            Line2D([], [], color=ROBOT_COLOR, linewidth=1.5, label="trail (recent path)"),
+        ]
+        self.legend_ax.legend(handles=handles, loc="lower left", fontsize=7, frameon=False, borderaxespad=0.0,
+                              handletextpad=0.4, labelspacing=0.5)
 
     def _add_dynamic_scene(self) -> None:
         """Create every moving artist once (animated, so it is left out of the static layer)."""
@@ -106,6 +166,8 @@ class SceneRenderer:
                                     linestyles="--", linewidths=0.9)
         (self.human_goals,) = ax.plot([], [], "x", color=HUMAN_COLOR, alpha=0.35, markersize=4)
         self.humans = discs(facecolors=HUMAN_COLOR, edgecolors=HUMAN_EDGE_COLOR, linewidths=0.8)
+        self.inattentive = discs(facecolors=INATTENTIVE_COLOR, edgecolors=INATTENTIVE_EDGE_COLOR, linewidths=1.2,
+                                 linestyles="--")
         self.human_vel = ax.add_collection(LineCollection([], colors=to_rgba(HUMAN_EDGE_COLOR, 0.5), linewidths=1.0))
         (self.robot_goal,) = ax.plot([], [], "*", color=ROBOT_GOAL_COLOR, markeredgecolor="#14524b", markersize=15)
         self.robot = ax.add_patch(Circle((0.0, 0.0), 0.3, facecolor=ROBOT_COLOR, edgecolor="black", linewidth=1.0))
@@ -114,33 +176,60 @@ class SceneRenderer:
         self.time_text = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=9, bbox=box)
         self.caption_text = ax.text(0.02, 0.02, "", transform=ax.transAxes, ha="left", va="bottom", fontsize=9,
                                     bbox=box)
+        self.title_text = ax.text(0.5, 0.98, "", transform=ax.transAxes, ha="center", va="top", fontsize=9,
+                                  fontweight="bold", bbox=box)
+        self.outcome_text = ax.text(0.5, 0.5, "", transform=ax.transAxes, ha="center", va="center", fontsize=30,
+                                    fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
-            self.trail_lines, self.personal_space, self.human_goals, self.humans, self.human_vel,
-            self.robot_goal, self.robot, self.heading_line, self.time_text, self.caption_text,
+            self.trail_lines, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
+            self.robot_goal, self.robot, self.heading_line, self.time_text, self.caption_text, self.title_text,
+            self.outcome_text,
         ]  # fmt: skip
         for artist in self._dynamic:
             artist.set_animated(True)
 
-    def _set_layout(self, panel_keys: tuple[str, ...] | None) -> None:
-        """Place the axes for this side-panel layout and rasterise the static layer."""
-        self.ax.set_position((0.0, 0.0, 1.0 - PANEL_FRACTION, 1.0) if panel_keys else (0.0, 0.0, 1.0, 1.0))
+    def _set_layout(self, layout: tuple) -> None:
+        """Place the axes for this side-panel layout and rasterise the static layer.
+
+        `layout` = (bar labels or None, ticks, threshold marks, panel title), all hashable."""
+        panel_keys, ticks, marks, panel_title = layout
+        ticks, marks = dict(ticks or ()), dict(marks or ())
+        side = bool(panel_keys) or self.annotate
+        self.ax.set_position((0.0, 0.0, 1.0 - PANEL_FRACTION, 1.0) if side else (0.0, 0.0, 1.0, 1.0))
         self.panel_ax.set_visible(bool(panel_keys))
-        for artist in [*self.panel_ax.patches, *self.panel_ax.texts]:
+        self.legend_ax.set_visible(self.annotate)
+        # With a legend below them, the bars take the upper part of the column.
+        bottom = 0.4 if self.annotate else 0.05
+        self.panel_ax.set_position((1.0 - PANEL_FRACTION + 0.02, bottom, PANEL_FRACTION - 0.05, 0.95 - bottom))
+        for artist in [*self.panel_ax.patches, *self.panel_ax.texts, *self.panel_ax.lines]:
             artist.remove()
-        self._panel_bars = []
+        self._panel_bars, self._panel_marks = [], []
         keys = panel_keys or ()
-        self.panel_ax.set_ylim(max(len(keys), PANEL_MIN_ROWS), 0.0)  # row i spans [i, i+1], first key on top
+        rows = max(len(keys), PANEL_MIN_ROWS if not self.annotate else 1)
+        self.panel_ax.set_ylim(rows + (0.6 if panel_title else 0.0), -0.6 if panel_title else 0.0)
+        if panel_title:
+            self.panel_ax.text(0.0, -0.1, panel_title, fontsize=8, fontweight="bold", ha="left", va="bottom")
         for i, key in enumerate(keys):  # grey track + label are static, the coloured bar moves
             y = i + 0.45
-            self.panel_ax.add_patch(Rectangle((0.0, y), 1.0, 0.4, facecolor="#eeeeee", edgecolor="#bbbbbb",
+            self.panel_ax.add_patch(Rectangle((0.0, y), 1.0, 0.3, facecolor="#eeeeee", edgecolor="#bbbbbb",
                                               linewidth=0.5))
             self.panel_ax.text(0.0, y - 0.05, key, fontsize=8, ha="left", va="bottom")
-            bar = self.panel_ax.add_patch(Rectangle((0.0, y), 0.0, 0.4, facecolor=PANEL_BAR_COLOR, animated=True))
+            for position, label in ticks.get(key, ()):
+                self.panel_ax.plot([position, position], [y + 0.3, y + 0.38], color="#777777", linewidth=0.6)
+                self.panel_ax.text(position, y + 0.38, label, fontsize=6, ha="center", va="top", color="#555555")
+            bar = self.panel_ax.add_patch(Rectangle((0.0, y), 0.0, 0.3, facecolor=PANEL_BAR_COLOR, animated=True))
             self._panel_bars.append(bar)
+            if key in marks:  # animated too: drawn over the moving bar
+                (mark,) = self.panel_ax.plot([marks[key]] * 2, [y - 0.08, y + 0.38], color=THRESHOLD_COLOR,
+                                             linewidth=2.0, animated=True)
+                self._panel_marks.append(mark)
+        if marks:
+            self.panel_ax.text(0.0, len(keys) + 0.1, "red line: safety threshold", fontsize=7,
+                               color=THRESHOLD_COLOR, ha="left", va="top")
         self.canvas.draw()  # animated artists are skipped
         self._background = self.canvas.copy_from_bbox(self.fig.bbox)
-        self._layout = panel_keys
+        self._layout = layout
 
     # ------------------------------------------------------------------ per-frame updates
     def _update_scene(self, f: SceneFrame) -> None:
@@ -152,15 +241,19 @@ class SceneRenderer:
         ps_radii = np.broadcast_to(np.asarray(f.personal_space_radii, dtype=float), (n,))
         active = np.broadcast_to(np.asarray(f.active, dtype=bool), (n,))
         humans = np.flatnonzero(active[1:]) + 1
+        attentive = (np.ones(n, dtype=bool) if f.attentive is None
+                     else np.broadcast_to(np.asarray(f.attentive, dtype=bool), (n,)))
+        seeing, ignoring = humans[attentive[humans]], humans[~attentive[humans]]
 
-        # Humans: body discs, personal-space rings (radius r + r_prox), velocity ticks (1 s ahead), goals.
-        zeros = np.zeros(len(humans))
-        for discs, diameters in ((self.humans, 2 * radii[humans]),
-                                 (self.personal_space, 2 * (radii[humans] + ps_radii[humans]))):
-            discs.set_offsets(pos[humans])
+        # Humans: body discs (grey, dashed: ignores the robot), personal-space rings (radius r + r_prox), velocity
+        # ticks (1 s ahead), goals.
+        for discs, agents, diameters in ((self.humans, seeing, 2 * radii[seeing]),
+                                         (self.inattentive, ignoring, 2 * radii[ignoring]),
+                                         (self.personal_space, humans, 2 * (radii[humans] + ps_radii[humans]))):
+            discs.set_offsets(pos[agents].reshape(-1, 2))
             discs.set_widths(diameters)
             discs.set_heights(diameters)
-            discs.set_angles(zeros)
+            discs.set_angles(np.zeros(len(agents)))
         self.human_vel.set_segments(np.stack([pos[humans], pos[humans] + vel[humans]], axis=1))
         self.human_goals.set_data(goals[humans, 0], goals[humans, 1])
 
@@ -183,6 +276,11 @@ class SceneRenderer:
         self.time_text.set_text(f"t = {f.time:5.1f} s")
         self.caption_text.set_text(f.caption)
         self.caption_text.set_visible(bool(f.caption))
+        self.title_text.set_text(f.title)
+        self.title_text.set_visible(bool(f.title))
+        self.time_text.set_visible(not f.title)  # the title takes the top; a caption can carry the time
+        self.outcome_text.set_text(f.outcome)
+        self.outcome_text.set_visible(bool(f.outcome))
 
     def _update_trails(self, trails: np.ndarray | None, active: np.ndarray, robot_color: str) -> None:
         """Trails as polylines fading from oldest to newest.
@@ -213,14 +311,16 @@ class SceneRenderer:
     def render(self, frame: SceneFrame) -> np.ndarray:
         """Draw `frame` and return a new uint8 array of shape `(height, width, 3)`."""
         panel_keys = tuple(frame.side_panel) if frame.side_panel else None
-        if self._background is None or panel_keys != self._layout:
-            self._set_layout(panel_keys)
+        layout = (panel_keys, tuple((frame.panel_ticks or {}).items()), tuple((frame.panel_marks or {}).items()),
+                  frame.panel_title)
+        if self._background is None or layout != self._layout:
+            self._set_layout(layout)
         self._update_scene(frame)
         if panel_keys:
             self._update_panel(frame.side_panel)
 
         self.canvas.restore_region(self._background)
-        for artist in [*self._dynamic, *self._panel_bars]:
+        for artist in [*self._dynamic, *self._panel_bars, *self._panel_marks]:
             if artist.get_visible():
                 self.fig.draw_artist(artist)
         image = np.asarray(self.canvas.buffer_rgba())[..., :3]

@@ -1,0 +1,386 @@
+"""Export a trained socnav policy to ONNX for the torch-free runtime (`socnav.runtime`, `socnav export`).
+The dropout keep-masks are graph inputs, so K MC-dropout samples (and the deterministic pass) run as one call.
+
+The graph (:class:`NavigatorGraph`) is the policy's forward pass written with explicit masks: the LSTM layers over
+the human rows, the final hidden state read at the last real row (the LSTM is causal, so rows after it — padding —
+never change it; no packing needed), the actor MLP with its dropout layers replaced by ``x * keep``, the mean and
+the ODV log-sigma heads (clamped), and optionally the critic. See `socnav.runtime.format` for the file layout.
+In the file, the LSTM layers are ONNX ``LSTM`` nodes fed each row's number of humans as ``sequence_lens`` (their
+``Y_h`` is that last-real-row state), and LSTM outputs nothing reads are dropped: a small graph, since onnxruntime
+pays a per-node cost on every call of the deployed navigator (see :func:`_encoder`).
+Export uses torch's TorchScript-based ``torch.onnx.export(..., dynamo=False)``: in torch 2.13 the dynamo exporter
+turns the LSTM's sequence length into a constant on every export after the first in a process, which would break
+the dynamic number of humans. The written file is checked against the torch policy before it replaces ``out``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from torch import nn
+
+from socnav.runtime.format import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    METADATA_KEY,
+    OBSERVATION_INPUTS,
+    OUTPUTS,
+    VALUE_OUTPUT,
+)
+
+__all__ = ["ExportError", "NavigatorGraph", "export_onnx"]
+
+#: ONNX opset of the written graph (LSTM, Clip, ...: every op it uses exists since opset 14).
+OPSET = 17
+#: Largest |ONNX - torch| accepted by the check after export (float32 arithmetic in a different order).
+EXPORT_TOLERANCE = 1e-4
+
+
+class ExportError(ValueError):
+    """The policy cannot be exported (unsupported network, missing metadata) or the export does not match it."""
+
+
+class NavigatorGraph(nn.Module):
+    """The policy network of an ``ODVActorCriticPolicy`` with its dropout layers driven by keep-mask inputs.
+
+    ``forward(robot, humans, humans_mask, *keep) -> (h, mean, log_std[, value])``; ``keep`` holds one mask per
+    entry of ``policy.dropout_layers()`` (LSTM inputs (N, L, width), then ``h`` and the actor layers (N, width)).
+    With all-ones masks it is the deterministic policy; with ``[u >= p] / (1 - p)`` masks it is the policy in
+    ``mc_dropout(p)`` mode with those uniforms. The weights are the policy's own modules (shared, not copied).
+    """
+
+    def __init__(self, policy: Any, with_value: bool = False) -> None:
+        super().__init__()
+        extractor = policy.features_extractor
+        self.lstm_layers = extractor.lstm_layers
+        self.actor = policy.mlp_extractor.policy_net
+        self.action_net = policy.action_net
+        self.odv = bool(policy.odv)
+        if self.odv:
+            self.log_std_net = policy.log_std_net
+            self.log_std_bounds = (float(policy.log_std_min), float(policy.log_std_max))
+        else:
+            self.log_std_parameter = policy.log_std  # not `log_std`: that name is the output
+        self.with_value = with_value
+        if with_value:
+            self.critic = policy.mlp_extractor.value_net
+            self.value_net = policy.value_net
+        self.dropout_inputs = _dropout_inputs(policy)
+        self.encoder = _encoder(list(self.lstm_layers))
+
+    def forward(self, robot: th.Tensor, humans: th.Tensor, humans_mask: th.Tensor,
+                *keep: th.Tensor) -> tuple[th.Tensor, ...]:
+        n_lstm = len(self.lstm_layers)
+        h = self.encoder.apply(humans, humans_mask, *keep[:n_lstm])
+        features = th.cat([h * keep[n_lstm], robot], dim=1)
+        latent = features
+        actor_masks = iter(keep[n_lstm + 1:])
+        for module in self.actor:
+            latent = latent * next(actor_masks) if isinstance(module, nn.Dropout) else module(latent)
+        mean = self.action_net(latent)
+        if self.odv:
+            log_std = th.clamp(self.log_std_net(latent), *self.log_std_bounds)
+        else:
+            log_std = self.log_std_parameter.expand_as(mean)
+        if not self.with_value:
+            return h, mean, log_std
+        return h, mean, log_std, self.value_net(self.critic(features))
+
+
+def _encode(layers: list[nn.LSTM], humans: th.Tensor, humans_mask: th.Tensor,
+            keep: tuple[th.Tensor, ...]) -> th.Tensor:
+    """``h`` (N, H): the top LSTM layer's output at each row's last real human row (0 for a row without humans),
+    each layer's input multiplied by its keep mask. The LSTM is causal, so padding rows after the last real one
+    never change it."""
+    x = humans
+    for lstm, mask in zip(layers, keep):
+        x = lstm(x * mask)[0]  # (N, L, H)
+    # h = x[b, n_b - 1]: a one-hot selection (exact: the other rows are multiplied by 0), zero where n_b = 0.
+    count = th.round(humans_mask.sum(dim=1))
+    steps = th.arange(x.shape[1], dtype=x.dtype, device=x.device)
+    select = (steps[None, :] == th.clamp(count - 1.0, min=0.0)[:, None]).to(x.dtype)
+    return (x * select[:, :, None]).sum(dim=1) * (count > 0.0).to(x.dtype)[:, None]
+
+
+def _onnx_gates(weight: th.Tensor) -> th.Tensor:
+    """torch's LSTM gate blocks (input, forget, cell, output) in ONNX's order (input, output, forget, cell)."""
+    input_gate, forget_gate, cell_gate, output_gate = weight.detach().chunk(4, dim=0)
+    return th.cat([input_gate, output_gate, forget_gate, cell_gate]).clone()
+
+
+def _encoder(layers: list[nn.LSTM]) -> type[th.autograd.Function]:
+    """The human encoder of the graph as an autograd Function: :func:`_encode` in torch, and in the ONNX graph
+    one ``LSTM`` node per layer fed ``sequence_lens`` = each row's number of humans, whose ``Y_h`` output IS
+    that state (an ONNX LSTM stops at the sequence length; length 0 leaves the zero initial state). onnxruntime
+    then runs far fewer nodes per call than for the generic export of :func:`_encode` (no initial-state
+    ``Shape`` / ``ConstantOfShape`` nodes, no one-hot selection); `export_onnx` checks the file against
+    :func:`_encode` on rows with 0 .. L humans."""
+    for lstm in layers:
+        if lstm.num_layers != 1 or lstm.bidirectional or not lstm.batch_first or lstm.proj_size:
+            raise ExportError("unsupported network: the LSTM layers must be single-layer, unidirectional, "
+                              "batch-first and without projection")
+
+    def weights(lstm: nn.LSTM) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        w, r = _onnx_gates(lstm.weight_ih_l0)[None], _onnx_gates(lstm.weight_hh_l0)[None]
+        if lstm.bias:  # ONNX's B: [input biases | recurrence biases]
+            b = th.cat([_onnx_gates(lstm.bias_ih_l0), _onnx_gates(lstm.bias_hh_l0)])[None]
+        else:
+            b = th.zeros(1, 8 * lstm.hidden_size, dtype=w.dtype)
+        return w, r, b
+
+    class Encoder(th.autograd.Function):
+        @staticmethod
+        def forward(ctx: Any, humans: th.Tensor, humans_mask: th.Tensor, *keep: th.Tensor) -> th.Tensor:
+            if th.jit.is_tracing():  # exporting: `symbolic` writes the graph, and tracing through the LSTM
+                # modules' parameters in here fails; only the output's shape and type matter
+                return humans.new_zeros((humans.shape[0], layers[-1].hidden_size))
+            return _encode(layers, humans, humans_mask, keep)
+
+        @staticmethod
+        def symbolic(g: Any, humans: Any, humans_mask: Any, *keep: Any) -> Any:
+            def constant(value: th.Tensor) -> Any:
+                return g.op("Constant", value_t=value)
+
+            axis_0, axis_1 = constant(th.tensor([0])), constant(th.tensor([1]))
+            count = g.op("Round", g.op("ReduceSum", humans_mask, axis_1, keepdims_i=0))
+            lengths = g.op("Cast", count, to_i=6)  # INT32, as sequence_lens requires
+            x = g.op("Transpose", g.op("Mul", humans, keep[0]), perm_i=[1, 0, 2])  # time-major (L, N, F)
+            y = state = None
+            for index, lstm in enumerate(layers):
+                if index:  # Y (L, 1, N, H) of the layer below, times this layer's (time-major) keep mask
+                    x = g.op("Mul", g.op("Squeeze", y, axis_1), g.op("Transpose", keep[index], perm_i=[1, 0, 2]))
+                y, state, _ = g.op("LSTM", x, *(constant(w) for w in weights(lstm)), lengths,
+                                   hidden_size_i=lstm.hidden_size, outputs=3)
+            return g.op("Squeeze", state, axis_0)  # Y_h (1, N, H) -> (N, H)
+
+    return Encoder
+
+
+def _dropout_inputs(policy: Any) -> list[dict[str, Any]]:
+    """Name, shape kind and width of each keep-mask input, in the order of ``policy.dropout_layers()``."""
+    extractor = policy.features_extractor
+    layers = policy.dropout_layers()
+    expected = [*extractor.input_dropouts, extractor.h_dropout, *policy.mlp_extractor.dropout_layers()]
+    if [id(layer) for layer in layers] != [id(layer) for layer in expected]:
+        raise ExportError("unsupported network: dropout layers other than the LSTM inputs, h and the actor's")
+    inputs = []
+    for index, lstm in enumerate(extractor.lstm_layers):
+        inputs.append({"name": f"keep_lstm_input_{index}", "per_human": True, "width": int(lstm.input_size)})
+    inputs.append({"name": "keep_h", "per_human": False, "width": int(extractor.lstm_hidden_size)})
+    linear_widths = [m.out_features for m in policy.mlp_extractor.policy_net if isinstance(m, nn.Linear)]
+    for index, width in enumerate(linear_widths):
+        inputs.append({"name": f"keep_actor_{index}", "per_human": False, "width": int(width)})
+    if len(inputs) != len(layers):
+        raise ExportError("unsupported network: the actor must have one dropout layer per hidden layer")
+    return inputs
+
+
+def _example_inputs(graph: NavigatorGraph, rows: int, steps: int, seed: int = 0) -> tuple[th.Tensor, ...]:
+    """Random observation-shaped inputs (some rows with fewer or no humans) and random keep masks."""
+    generator = th.Generator().manual_seed(seed)
+    robot = th.randn(rows, 5, generator=generator)
+    humans = th.randn(rows, steps, 7, generator=generator)
+    counts = th.arange(rows) % (steps + 1)
+    mask = (th.arange(steps)[None, :] < counts[:, None]).float()
+    humans = humans * mask[:, :, None]
+    keep = []
+    for spec in graph.dropout_inputs:
+        shape = (rows, steps, spec["width"]) if spec["per_human"] else (rows, spec["width"])
+        keep.append((th.rand(shape, generator=generator) >= 0.5).float() * 2.0)
+    return (robot, humans, mask, *keep)
+
+
+def _load(model: Any) -> Any:
+    """The policy of ``model``: a path / ``"pretrained"`` (loaded with `load_policy`), a policy or an SB3 model."""
+    if isinstance(model, (str, Path)):
+        from socnav.rl.persistence import load_policy
+
+        return load_policy(model)
+    policy = getattr(model, "policy", model)
+    if not hasattr(policy, "features_extractor") or not hasattr(policy, "dropout_layers"):
+        raise ExportError(f"expected a socnav policy file or an ODVActorCriticPolicy, got {type(model).__name__}")
+    return policy
+
+
+def _metadata(policy: Any, graph: NavigatorGraph, env_config: Any, thresholds: Any, thresholds_source: str,
+              k: int, p_test: float, window: int) -> dict[str, Any]:
+    from socnav import __version__
+    from socnav.envs.spaces import ACTION_NAMES, HUMAN_FEATURE_NAMES, ROBOT_FEATURE_NAMES
+    from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE
+
+    h_min, h_max = (t.detach().cpu().double().numpy().tolist() for t in policy.feature_range)
+    header = getattr(policy, "socnav_metadata", {})
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "socnav_version": __version__,
+        "observation": {
+            "robot": list(ROBOT_FEATURE_NAMES),
+            "human": list(HUMAN_FEATURE_NAMES),
+            "max_humans": int(env_config.max_humans),
+            "layout": "robot-centric, x-axis towards the goal; real human rows first, sorted farthest to closest "
+                      "(the closest is the last real row); zero padding; humans_mask 1 on real rows",
+        },
+        "action": {
+            "names": list(ACTION_NAMES),
+            "low": -1.0,
+            "high": 1.0,
+            "command": "v = v_pref (a0 + 1) / 2, dtheta = max_heading_change * a1",
+            "max_heading_change": float(env_config.max_heading_change),
+            "time_step": float(env_config.time_step),
+        },
+        "env_config": env_config.model_dump(mode="json"),
+        "policy": {
+            "algo": header.get("algo"),
+            "timesteps": header.get("timesteps"),
+            "seed": header.get("seed"),
+            "odv": bool(policy.odv),
+            "dropout_p": float(policy.dropout_p),
+            "lstm_hidden_size": int(policy.features_extractor.lstm_hidden_size),
+        },
+        "mc_dropout": {"k": int(k), "p_test": float(p_test)},
+        "dropout_inputs": graph.dropout_inputs,
+        "outputs": [*OUTPUTS, *([VALUE_OUTPUT] if graph.with_value else [])],
+        "feature_range": {"h_min": h_min, "h_max": h_max},
+        "safety": {
+            "thresholds": thresholds.model_dump(),
+            "source": thresholds_source,
+            "window": int(window),
+            "radius_scale": CAUTIOUS_RADIUS_SCALE,
+        },
+    }
+
+
+def export_onnx(
+    model: Any,
+    out: str | Path,
+    thresholds: Any = "mc",
+    k: int = 20,
+    p_test: float | None = None,
+    window: int = 4,
+    with_value: bool = False,
+    env_config: Any = None,
+) -> Path:
+    """Write ``model``'s policy network and everything the runtime needs as one ONNX file (atomically).
+
+    :param model: a policy file (``socnav train``'s ``model.zip``), ``"pretrained"``, an ``ODVActorCriticPolicy``
+        or an SB3 model holding one.
+    :param out: the ``.onnx`` file to write.
+    :param thresholds: safety thresholds: a preset name (``mc``, ``ensemble``), a ``socnav calibrate`` file, a
+        mapping or a :class:`~socnav.safety.Thresholds`.
+    :param k: MC-dropout samples K the runtime draws per decision (>= 2).
+    :param p_test: MC-dropout probability (None: the policy's stored ``p_test``).
+    :param window: uncertainty window in steps (paper: 4).
+    :param with_value: also export the critic (output ``value``).
+    :param env_config: the env config the policy acts in (None: the one stored in the policy file).
+    :raises ExportError: an unsupported network, a missing env config, bad arguments, or an exported graph
+        whose outputs differ from the torch policy's by more than :data:`EXPORT_TOLERANCE`.
+    :raises socnav.rl.persistence.PolicyLoadError: an unreadable policy file.
+    :raises socnav.safety.ThresholdsError: invalid thresholds.
+    """
+    import onnx
+
+    from socnav.config import load_config
+    from socnav.io import atomic_path
+    from socnav.safety.rule import load_thresholds
+
+    policy = _load(model)
+    if k < 2:
+        raise ExportError(f"MC-dropout needs k >= 2 samples, got k={k}")
+    if window < 1:
+        raise ExportError(f"window must be >= 1, got {window}")
+    p_test = float(policy.p_test if p_test is None else p_test)
+    if not 0.0 <= p_test < 1.0:
+        raise ExportError(f"p_test must lie in [0, 1), got {p_test}")
+    if env_config is None:
+        stored = getattr(policy, "socnav_metadata", {}).get("env_config")
+        if stored is None:
+            raise ExportError("the policy carries no env config (not loaded from a policy file): pass env_config")
+        env_config = stored
+    env_config = load_config(env_config)
+    observed = int(policy.observation_space["humans"].shape[0])
+    if observed != env_config.max_humans:
+        raise ExportError(f"the policy observes max_humans={observed} but the env config has "
+                          f"max_humans={env_config.max_humans}")
+    source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
+    thresholds = load_thresholds(thresholds)
+
+    graph = NavigatorGraph(policy, with_value=with_value)
+    output_names = [*OUTPUTS, *([VALUE_OUTPUT] if with_value else [])]
+    input_names = [*OBSERVATION_INPUTS, *(spec["name"] for spec in graph.dropout_inputs)]
+    # Rows and human rows are dynamic: K samples run as one call and the runtime trims the padding rows.
+    dynamic = {name: {0: "rows"} for name in input_names + output_names}
+    for name in ("humans", "humans_mask", *(spec["name"] for spec in graph.dropout_inputs if spec["per_human"])):
+        dynamic[name] = {0: "rows", 1: "human_rows"}
+    metadata = _metadata(policy, graph, env_config, thresholds, source, k, p_test, window)
+
+    modes = [(module, module.training) for module in graph.modules()]
+    graph.train(False)
+    try:
+        with th.no_grad(), _quiet_exporter():
+            buffer = io.BytesIO()
+            th.onnx.export(graph, _example_inputs(graph, 3, 2), buffer, input_names=input_names,
+                           output_names=output_names, dynamic_axes=dynamic, opset_version=OPSET, dynamo=False)
+            proto = onnx.load_from_string(buffer.getvalue())
+            _drop_unused_outputs(proto)
+            proto.metadata_props.add(key=METADATA_KEY, value=json.dumps(metadata))
+            path = Path(out)
+            with atomic_path(path) as temporary:
+                onnx.save(proto, str(temporary))
+                _check(graph, temporary, input_names, env_config.max_humans)
+    finally:
+        for module, mode in modes:
+            module.training = mode
+    return path
+
+
+def _drop_unused_outputs(proto: Any) -> None:
+    """Blank the optional LSTM outputs that nothing reads (the top layer's sequence ``Y``, every ``Y_c``), so
+    that onnxruntime does not write them on every call."""
+    graph = proto.graph
+    read = {name for node in graph.node for name in node.input} | {output.name for output in graph.output}
+    for node in graph.node:
+        if node.op_type == "LSTM":
+            for index, name in enumerate(node.output):
+                if name and name not in read:
+                    node.output[index] = ""
+
+
+@contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    """Silence the exporter's warnings and log lines: torch internals (deprecations, axis renaming, optional
+    torchvision ops), nothing a user can act on."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def _check(graph: NavigatorGraph, path: Path, input_names: list[str], max_humans: int) -> None:
+    """Run the written file with onnxruntime on random inputs; raise :class:`ExportError` unless it matches."""
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for rows, steps in ((1, 1), (7, max_humans)):
+        inputs = _example_inputs(graph, rows, steps, seed=rows)
+        expected = graph(*inputs)
+        got = session.run(None, {name: value.numpy() for name, value in zip(input_names, inputs)})
+        error = max(float(np.abs(g - e.numpy()).max()) for g, e in zip(got, expected))
+        if not math.isfinite(error) or error > EXPORT_TOLERANCE:
+            raise ExportError(f"the exported graph differs from the torch policy by {error:.2e} "
+                              f"(rows={rows}, human rows={steps}); tolerance {EXPORT_TOLERANCE:g}")

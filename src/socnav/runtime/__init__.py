@@ -1,0 +1,32 @@
+"""socnav's torch-free runtime: run an exported navigator (`socnav export`) on a robot with onnxruntime.
+Imports NumPy, onnxruntime and socnav's simulator kernels and safety layer — never torch or Stable-Baselines3.
+
+Example (one control step; a ROS 2 node would call `act` from its timer callback)::
+
+    from socnav.runtime import SafeNavigator
+
+    navigator = SafeNavigator.load("navigator.onnx", seed=0)
+    navigator.reset()                                            # at the start of every navigation task
+    decision = navigator.act(
+        {"position": [0, -4], "velocity": [0, 0], "heading": 1.57, "goal": [0, 4], "v_pref": 1.0, "radius": 0.3},
+        {"positions": [[0.2, 1.0]], "velocities": [[0, -1]], "radii": [0.3]},
+    )
+    v, dtheta = decision.command                                 # decision.fallback, decision.uncertainty
+"""
+
+from socnav.runtime.navigator import Decision, HumansState, InputError, RobotState, SafeNavigator
+from socnav.runtime.network import DropoutStream, ExportedPolicy, NavigatorLoadError, NetworkOutput
+from socnav.uncertainty.stats import Uncertainty
+
+__all__ = [
+    "Decision",
+    "DropoutStream",
+    "ExportedPolicy",
+    "HumansState",
+    "InputError",
+    "NavigatorLoadError",
+    "NetworkOutput",
+    "RobotState",
+    "SafeNavigator",
+    "Uncertainty",
+]

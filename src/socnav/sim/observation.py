@@ -1,0 +1,61 @@
+"""One robot's observation and command from plain state arrays, through the environment's own compiled kernels.
+The deployed navigator (`socnav.runtime`) and the simulator therefore build identical observations and commands.
+
+`observe_batch` IS the kernel `CrowdWorld.observe` calls (`socnav.sim.world._observe`), and `robot_command` the one
+`CrowdWorld.step` calls: one function each, shared, never a copy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from socnav.sim.world import _observe as observe_batch
+from socnav.sim.world import _robot_command
+
+__all__ = ["observe_batch", "observe_robot", "robot_command"]
+
+_NO_NOISE_KEY = np.zeros(1, dtype=np.uint64)
+_NO_NOISE_STEP = np.zeros(1, dtype=np.int64)
+
+
+def observe_robot(
+    position: np.ndarray,
+    velocity: np.ndarray,
+    heading: float,
+    goal: np.ndarray,
+    v_pref: float,
+    radius: float,
+    human_positions: np.ndarray,
+    human_velocities: np.ndarray,
+    human_radii: np.ndarray,
+    max_humans: int,
+) -> dict[str, np.ndarray]:
+    """The observation (batch of one, as `CrowdWorld.observe`) of a robot among ``n`` humans (world frame).
+
+    Inputs are float64 arrays already checked by the caller: ``position``, ``velocity``, ``goal`` (2,);
+    ``human_positions``, ``human_velocities`` (n, 2); ``human_radii`` (n,). With more than ``max_humans`` humans
+    the closest ``max_humans`` (by gap) are kept, exactly as in the simulator. No observation noise is added.
+
+    :return: ``{"robot": (1, 5), "humans": (1, max_humans, 7), "humans_mask": (1, max_humans)}``, float32.
+    """
+    n_humans = len(human_radii)
+    positions = np.empty((1, 1 + n_humans, 2))
+    velocities = np.empty((1, 1 + n_humans, 2))
+    radii = np.empty((1, 1 + n_humans))
+    positions[0, 0], positions[0, 1:] = position, human_positions
+    velocities[0, 0], velocities[0, 1:] = velocity, human_velocities
+    radii[0, 0], radii[0, 1:] = radius, human_radii
+    goals = np.zeros_like(positions)  # the kernel reads the robot's goal (slot 0) only
+    goals[0, 0] = goal
+    active = np.ones((1, 1 + n_humans), dtype=np.bool_)
+    robot, humans, mask = observe_batch(positions, velocities, radii, goals, np.array([float(v_pref)]), active,
+                                        np.array([float(heading)]), int(max_humans))
+    return {"robot": robot, "humans": humans, "humans_mask": mask}
+
+
+def robot_command(action: np.ndarray, v_pref: float, max_heading_change: float) -> tuple[float, float]:
+    """``(v, dtheta)`` of an action in [-1, 1]^2 (clipped), as the simulator applies it without action noise:
+    ``v = v_pref (a0 + 1) / 2``, ``dtheta = max_heading_change * a1``."""
+    speed, turn = _robot_command(np.asarray(action, dtype=np.float64).reshape(1, 2), np.array([float(v_pref)]),
+                                 float(max_heading_change), _NO_NOISE_KEY, _NO_NOISE_STEP, 0.0, 0.0)
+    return float(speed[0]), float(turn[0])

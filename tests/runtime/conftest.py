@@ -1,0 +1,65 @@
+"""Fixtures of the runtime tests: navigator files exported once per session, and observations of every scenario.
+Exports go through the CLI (`socnav export`) and the Python API, so both paths are exercised."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from socnav.config import load_config
+from socnav.envs.controllers import OrcaController
+from socnav.sim.scenarios import scenario_names
+from socnav.sim.world import CrowdWorld
+
+#: Humans per scenario in the collected observations: one, a crowd, the full observation, and a varying number.
+SCENARIO_HUMANS = {"position_swap": 1, "circle_crossing": 5, "circle_interaction": 10, "random": (0, 10)}
+
+
+@pytest.fixture(scope="session")
+def pretrained_policy():
+    import torch
+
+    import socnav
+
+    torch.set_num_threads(1)
+    return socnav.load_policy("pretrained")
+
+
+@pytest.fixture(scope="session")
+def navigator_file(tmp_path_factory: pytest.TempPathFactory, pretrained_policy) -> Path:
+    """The shipped policy exported with `socnav export` (paper MC-dropout thresholds, K = 20)."""
+    from typer.testing import CliRunner
+
+    from socnav.cli import app
+
+    path = tmp_path_factory.mktemp("export") / "navigator.onnx"
+    result = CliRunner().invoke(app, ["export", "pretrained", "--out", str(path), "--value"])
+    assert result.exit_code == 0, result.output
+    assert path.is_file()
+    return path
+
+
+@pytest.fixture(scope="session")
+def observations() -> dict[str, np.ndarray]:
+    """>= 1,000 observations from all four scenarios (ORCA-driven robot), plus rows with no human at all."""
+    assert set(SCENARIO_HUMANS) == set(scenario_names())
+    batches = []
+    for index, (scenario, humans) in enumerate(SCENARIO_HUMANS.items()):
+        config = load_config({"scenario": scenario, "n_humans": humans})
+        world = CrowdWorld(config, n_envs=16)
+        for env in range(world.n_envs):
+            world.seed(env, 1000 * index + env)
+        world.reset()
+        controller = OrcaController(config)
+        for _ in range(17):
+            obs = world.observe()
+            batches.append(obs)
+            result = world.step(controller.predict(obs)[0])
+            world.reset(np.flatnonzero(result.terminated | result.truncated))
+    merged = {key: np.concatenate([batch[key] for batch in batches]) for key in batches[0]}
+    empty = {key: value[:8].copy() for key, value in merged.items()}
+    empty["humans"][:] = 0.0
+    empty["humans_mask"][:] = 0.0
+    return {key: np.concatenate([merged[key], empty[key]]) for key in merged}
