@@ -17,7 +17,7 @@ from socnav.experiments.perturbations import perturbation_override
 from socnav.safety import SafePolicy, Thresholds
 from socnav.uncertainty import MCDropoutEstimator
 
-TABLE3_WORLD = {"scenario": "position_swap", "n_humans": 1, "personal_space": [0.3, 0.4], "cooperation": [0.0, 0.1]}
+TABLE3_WORLD = {"scenario": "position_swap", "n_humans": 1, "personal_space": [0.3, 0.4]}  # configs/experiments/table3.yaml
 STRENGTHS = {"observation_noise": [1.0, 2.0], "heading_noise": [1.0, 2.0], "speed_noise": [0.6, 1.0],
              "faster_humans": [4.0, 8.0], "more_humans": [4.0, 7.0]}
 ALWAYS_WHEN_APPROACHING = Thresholds.create(lambda_ep=0.0, lambda_feat=0.0, lambda_prox=1e6, beta1=0.0)
@@ -35,7 +35,7 @@ def main() -> None:
         for strength in strengths:
             config = socnav.load_config({**TABLE3_WORLD, "perturbation": perturbation_override(kind, strength)})
             plain = rollout_episodes(policy, config, args.episodes, seed=0, n_envs=50)
-            safe = SafePolicy(policy, MCDropoutEstimator(policy, k=20, seed=0), ALWAYS_WHEN_APPROACHING, config)
+            safe = SafePolicy(policy, MCDropoutEstimator(policy, k=20, seed=0), ALWAYS_WHEN_APPROACHING, config)  # perceived
             guarded = rollout_episodes(safe, config, args.episodes, seed=0, n_envs=50)
             counts = [int((frame["outcome"] == "collision").sum()) for frame in (plain, guarded)]
             totals = [totals[0] + counts[0], totals[1] + counts[1]]

@@ -365,3 +365,21 @@ def test_table3_reports_each_sensing_against_the_same_plain_runs():
     old = prevented_frame(frame.drop(columns="sensing"))
     assert set(old["sensing"]) == {"perceived"}
     assert _cells(prevented_markdown(old))[0][1] == "paper thresholds"
+
+
+def test_unpaired_groups_compares_each_sensing_with_the_plain_policy():
+    """Two sensings of one variant on the plain policy's seeds are paired; a run on other seeds is not."""
+    import pandas as pd
+
+    from socnav.experiments.uncertainty_report import _unpaired_groups
+
+    def rows(variant, sensing, seeds):
+        return [{"estimator": "mc", "perturbation": "heading_noise", "strength": 1.0, "repeat": 0,
+                 "variant": variant, "sensing": sensing, "seed": seed} for seed in seeds]
+
+    paired = pd.DataFrame(rows("none", "perceived", [0, 1, 2]) + rows("paper", "perceived", [0, 1, 2])
+                          + rows("paper", "true", [2, 1, 0]))
+    assert _unpaired_groups(paired) == 0
+    shifted = pd.DataFrame(rows("none", "perceived", [0, 1, 2]) + rows("paper", "perceived", [0, 1, 2])
+                           + rows("paper", "true", [0, 1, 3]))
+    assert _unpaired_groups(shifted) == 1

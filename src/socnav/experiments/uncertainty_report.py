@@ -768,10 +768,15 @@ def _unpaired_groups(safety: pd.DataFrame) -> int:
         return 0
     keys = ["estimator", "perturbation", "strength", "repeat"]
     mismatches = 0
+    # each sensing of a variant is its own run of the episodes: compare each with the plain policy's seeds
+    variant_keys = ["variant", "sensing"] if "sensing" in safety else ["variant"]
     for _, group in safety.groupby(keys, sort=False):
-        seeds = {variant: sorted(g["seed"].tolist()) for variant, g in group.groupby("variant")}
-        reference = seeds.get("none")
-        mismatches += sum(1 for v, s in seeds.items() if v != "none" and reference is not None and s != reference)
+        plain = group[group["variant"] == "none"]
+        if plain.empty:
+            continue
+        reference = sorted(plain["seed"].tolist())
+        for _, runs in group[group["variant"] != "none"].groupby(variant_keys):
+            mismatches += sorted(runs["seed"].tolist()) != reference
     return mismatches
 
 
