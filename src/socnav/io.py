@@ -107,3 +107,17 @@ def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
             yield True
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def save_figure(figure, out_base: Path) -> list[Path]:
+    """Write a matplotlib figure as `out_base`.png (150 dpi) and .svg, each atomically, then close it."""
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for suffix in (".png", ".svg"):
+        path = Path(out_base).with_suffix(suffix)
+        with atomic_path(path) as temporary:
+            figure.savefig(temporary, format=suffix[1:], dpi=150)
+        paths.append(path)
+    plt.close(figure)
+    return paths

@@ -33,7 +33,7 @@ import pandas as pd
 
 from socnav.experiments.runner import read_plan, unit_dir, unit_states
 from socnav.experiments.spec import Unit
-from socnav.io import atomic_path, read_table, write_table_atomic, write_text_atomic
+from socnav.io import read_table, save_figure, write_table_atomic, write_text_atomic
 
 __all__ = [
     "ReportContext", "SECTIONS", "aggregate_frame", "build_report", "comparison_frame", "plot_aggregate",
@@ -434,14 +434,7 @@ def plot_aggregate(aggregate: pd.DataFrame, comparisons: pd.DataFrame, out_base:
     right.set_xlabel("probability of improvement, 95 % CI")
     right.grid(alpha=0.3, axis="x")
     figure.tight_layout()
-    paths = []
-    for suffix in (".png", ".svg"):
-        path = out_base.with_suffix(suffix)
-        with atomic_path(path) as temporary:
-            figure.savefig(temporary, format=suffix[1:], dpi=150)
-        paths.append(path)
-    plt.close(figure)
-    return paths
+    return save_figure(figure, out_base)
 
 
 @register_section("table1", "table1_ci")
@@ -573,14 +566,7 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
     if handles:
         figure.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), frameon=False)
     figure.tight_layout(rect=(0, 0.1 if handles else 0, 1, 1))
-    paths = []
-    for suffix in (".png", ".svg"):
-        path = out_base.with_suffix(suffix)
-        with atomic_path(path) as temporary:
-            figure.savefig(temporary, format=suffix[1:], dpi=150)
-        paths.append(path)
-    plt.close(figure)
-    return paths
+    return save_figure(figure, out_base)
 
 
 def _steps_label(value: float, _position: Any = None) -> str:

@@ -49,7 +49,7 @@ import pandas as pd
 from socnav.experiments.perturbations import PAPER_GRIDS, PERTURBATION_FIELDS, strength_zero
 from socnav.experiments.report import ReportContext, register_section
 from socnav.experiments.runner import unit_dir
-from socnav.io import atomic_path, read_table, write_table_atomic, write_text_atomic
+from socnav.io import read_table, save_figure, write_table_atomic, write_text_atomic
 
 __all__ = [
     "KIND", "cost_frame", "cost_markdown", "plot_feature_collisions", "plot_uncertainty_vs_strength",
@@ -257,17 +257,6 @@ def _pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def _save_figure(figure: Any, out_base: Path) -> list[Path]:
-    paths = []
-    for suffix in (".png", ".svg"):
-        path = out_base.with_suffix(suffix)
-        with atomic_path(path) as temporary:
-            figure.savefig(temporary, format=suffix[1:], dpi=150)
-        paths.append(path)
-    _pyplot().close(figure)
-    return paths
 
 
 def _grid(n_panels: int, columns: int = 3, width: float = 4.4, height: float = 3.4) -> tuple[Any, list[Any]]:
@@ -515,7 +504,7 @@ def plot_uncertainty_vs_strength(curves: pd.DataFrame, out_base: Path) -> list[P
     figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 4), frameon=False)
     legend_inches = 0.25 * math.ceil(len(handles) / 4) + 0.15
     figure.tight_layout(rect=(0, min(0.5, legend_inches / figure.get_figheight()), 1, 1))
-    return _save_figure(figure, out_base)
+    return save_figure(figure, out_base)
 
 
 @register_section(KIND, "uncertainty_vs_strength")
@@ -583,7 +572,7 @@ def plot_feature_collisions(critical: pd.DataFrame, out_base: Path) -> list[Path
             if c == 0:
                 axis.set_ylabel(f"{estimator_label(estimator)}\nwindowed feature uncertainty")
     figure.tight_layout()
-    return _save_figure(figure, out_base)
+    return save_figure(figure, out_base)
 
 
 CRITICAL_SUMMARY_COLUMNS = ["estimator", "perturbation", "collisions", "episodes", "median_before_collision",
