@@ -351,6 +351,76 @@ def test_lead_demands_that_the_rule_fire_before_the_last_steps():
         calibrate(records, lead=4)
 
 
+def typed_records():
+    """Two perturbation types and a budget that affords one uncertainty condition: u_ep flags all 8 collisions of
+    type a and none of type b; u_feat flags 4 of type a and both of type b (hand-built, so the optimum is known).
+    Unperturbed episodes 0 and 1 end with 4 steps of high u_ep and of high u_feat, approaching like the
+    collisions: each condition costs at least 1 of 800 steps (the last, if c_prox is tightened to it)."""
+    rng = np.random.default_rng(1)
+    rows = []
+
+    def episode(eid, perturbed, collided, group, ep_high=False, feat_high=False):
+        n = 40
+        gap = np.linspace(5.0, 0.1, n)
+        ep, feat = rng.uniform(0, 0.02, n), rng.uniform(0, 0.1, n)
+        if ep_high:
+            ep[-4:] = 0.3
+        if feat_high:
+            feat[-4:] = 0.6
+        for step in range(n):
+            rows.append({"episode": eid, "step": step, "perturbed": perturbed, "u_ep_heading": ep[step],
+                         "u_feat": feat[step], "gap": gap[step], "relative_speed": 0.5,
+                         "previous_gap": gap[step - 1] if step else np.nan, "collided": collided,
+                         "collision_step": n - 1 if collided else np.nan, "group": group})
+
+    for k in range(20):
+        episode(k, False, False, "", ep_high=k == 0, feat_high=k == 1)
+    for k in range(8):
+        episode(100 + k, True, True, "a", ep_high=True, feat_high=k < 4)
+    for k in range(2):
+        episode(200 + k, True, True, "b", feat_high=True)
+    return pd.DataFrame(rows)
+
+
+def test_calibration_maximises_the_worst_perturbation_type():
+    records = typed_records()
+    budget = 1 / 800
+    result = calibrate(records, false_activation_budget=budget)
+    # u_feat: type a 4/8, type b 2/2 (worst 0.5, mean 0.75); u_ep: 8/8 and 0/2 (worst 0) -- u_feat wins
+    assert math.isinf(result.thresholds.lambda_ep) and result.thresholds.lambda_feat < 0.6
+    assert result.worst_type_fraction == 0.5 and result.prevented_fraction == 0.75
+    score = evaluate_thresholds(records, result.thresholds)
+    assert score["worst_type_fraction"] == 0.5 and score["prevented_fraction"] == 0.75
+    assert score["false_activation_rate"] <= budget
+    # the same records without types: pooled counts prefer u_ep (8 of 10 collisions against 6 of 10)
+    pooled = calibrate(records.drop(columns="group"), false_activation_budget=budget)
+    assert math.isinf(pooled.thresholds.lambda_feat) and pooled.thresholds.lambda_ep < 0.3
+    assert pooled.prevented_fraction == 0.8 and pooled.worst_type_fraction == 0.8
+
+
+def test_select_by_rollouts_ranks_the_worst_type_first(monkeypatch):
+    import socnav.safety.calibration as calibration
+
+    # measured collisions per candidate (None = the plain policy): candidate 0 has the higher mean, 1 the
+    # higher worst type, 2 the same worst type as 1 with a lower mean
+    measured = {None: {"a": 10, "b": 4}, 0: {"a": 0, "b": 4}, 1: {"a": 6, "b": 2}, 2: {"a": 8, "b": 2}}
+    candidates = [Thresholds.create(lambda_ep=x, lambda_feat=math.inf, lambda_prox=1.0, beta1=0.0)
+                  for x in (0.1, 0.2, 0.3)]
+
+    def fake_scores(thresholds, *args, **kwargs):
+        key = None if thresholds is None else candidates.index(thresholds)
+        return {"collisions": measured[key], "false_activation_rate": 0.01, "false_activation_se": 0.0,
+                "false_activation_steps": 10, "unperturbed_steps": 100_000}
+
+    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    runs = [CalibrationRun(None, True, 1, 0, "a"), CalibrationRun(None, True, 1, 1, "b"),
+            CalibrationRun(None, False, 1, 2)]
+    chosen, table = select_by_rollouts(candidates, None, None, runs, false_activation_budget=0.05)
+    assert table["prevented_worst"].tolist() == pytest.approx([0.0, 0.4, 0.2])
+    assert table["prevented_fraction"].tolist() == pytest.approx([0.5, 0.45, 0.35])
+    assert chosen == candidates[1] and table["chosen"].tolist() == [False, True, False]
+
+
 def test_select_by_rollouts_maximises_measured_prevention_within_the_budget():
     risky = load_config({"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False})
     runs = [CalibrationRun(risky, True, 6, 11), CalibrationRun(risky, False, 4, 40)]

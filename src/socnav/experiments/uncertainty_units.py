@@ -94,8 +94,9 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     fires at the very step of the contact, too late for the fallback when humans close fast, so candidates that
     must fire 1 or 2 steps earlier compete too. (2) `socnav.safety.select_by_rollouts` replays the same
     calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
-    (mean over the perturbation types) among those whose false-activation rate is within `budget` at
-    `confidence` (one-sided upper bound), both MEASURED in those rollouts.
+    (the worst perturbation type, then the mean over types) among those whose false-activation rate is within
+    `budget` at `confidence` (one-sided upper bound), both MEASURED in those rollouts. Both stages score per
+    perturbation type, worst type first (`socnav.safety.calibration`): no type is traded for another.
 
     `progress(done, total)`: episodes played so far and in all (the total shrinks once the number of distinct
     candidates is known; it starts at the most there can be).
@@ -128,7 +129,7 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
 
     parts = [collect_records(policy, estimator, run.config, episodes, seed=run.seed, perturbed=run.perturbed,
                              window=window, n_envs=n_envs, episode_offset=index * episodes, progress=advance,
-                             sensing=sensing)
+                             sensing=sensing).assign(group=run.group)
              for index, run in enumerate(runs)]
     records = pd.concat(parts, ignore_index=True)
     common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
@@ -152,6 +153,7 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                     candidates.append(candidate)
                     proxies.append({"lead": lead, "proxy_budget": share * budget,
                                     "proxy_prevented_fraction": result.prevented_fraction,
+                                    "proxy_worst_type_fraction": result.worst_type_fraction,
                                     "proxy_false_activation_rate": result.false_activation_rate})
     played["total"] = per_pass * (2 + len(candidates))
     thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
@@ -161,6 +163,7 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     chosen = table[table["chosen"]]
     report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
               "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
+              "prevented_worst": float(chosen["prevented_worst"].iloc[0]) if len(chosen) else 0.0,
               "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
               "false_activation_upper": float(chosen["false_activation_upper"].iloc[0]) if len(chosen) else 0.0,
               "candidates": table.to_dict(orient="records"), **common}

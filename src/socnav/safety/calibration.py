@@ -16,6 +16,7 @@
 ``collided``        per episode (repeated on its rows): the episode ended in a collision
 ``collision_step``  per episode: the ``step`` whose action led to the collision (its last step); NaN if none
 ``closing_speed``   optional: needed for ``proximity="closing-speed"``
+``group``           optional: the perturbation type of a perturbed episode (its collisions are scored per type)
 ==================  ==========================================================================================
 
 :func:`collect_records` produces this frame from rollouts.
@@ -30,10 +31,19 @@ steps of UNPERTURBED episodes where the rule fires -- being at most ``false_acti
 lowest activation rate, then to the least eager rule (larger ``lambda_ep``, larger ``lambda_feat``, smaller
 ``lambda_prox``, smaller ``beta1``). ``inf`` for an uncertainty threshold means that condition is switched off.
 
+**Per perturbation type, worst type first.** With a ``group`` column (the perturbation type of each perturbed
+episode), the flagged fraction is computed per type and rules are ranked by the WORST type's fraction, then by the
+mean over types (then as above). Pooled counts let the type with the most collisions decide (e.g. more humans,
+hundreds of collisions, over faster humans, a dozen), and even an equal-weight mean trades one type for another: in
+Table 3 two rules with the same mean (71 %) prevented 98.6 % / 22 % and 13 % / 94 % of the observation-noise /
+faster-humans collisions. A safety layer is judged by the perturbation it handles worst, so the calibration
+maximises that (max-min) and uses the mean only to break ties.
+
 The proxy is optimistic (the cautious controller may still collide, or cause a later collision) and the records
 come from the plain policy's trajectories. :func:`select_by_rollouts` is therefore the second stage: it replays the
 calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy candidates (e.g. one per proximity
-reading and lead) and keeps the one that prevents the most collisions (mean over perturbation types) among those
+reading and lead) and keeps the one that prevents the most collisions (worst perturbation type, then the mean
+over types) among those
 whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5).
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
@@ -78,7 +88,8 @@ GRID_KEYS = ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")
 class CalibrationResult:
     """The chosen thresholds and their proxy scores on the calibration records.
 
-    ``prevented_fraction``: fraction of perturbed-episode collisions flagged within ``lookback`` steps (proxy);
+    ``prevented_fraction``: fraction of perturbed-episode collisions flagged within ``lookback`` steps (proxy;
+    with a ``group`` column the mean of the per-type fractions, ``worst_type_fraction`` their minimum);
     ``false_activation_rate``: fraction of unperturbed steps where the rule fires; ``frontier``: for every
     evaluated ``(beta1, lambda_prox)``, its best feasible ``(lambda_ep, lambda_feat)`` and scores.
     """
@@ -92,6 +103,7 @@ class CalibrationResult:
     false_activation_budget: float
     frontier: pd.DataFrame = field(repr=False)
     lead: int = 0
+    worst_type_fraction: float = float("nan")
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -163,6 +175,27 @@ def _bins(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
     return np.searchsorted(thresholds, values, side="left")
 
 
+def _collision_types(records: pd.DataFrame, perturbed: np.ndarray, episode_codes: np.ndarray,
+                     window_index: np.ndarray, collision_code: dict[int, int]) -> tuple[np.ndarray, list[int]]:
+    """Perturbation type index of each collision episode with window rows (in ``collision_code`` order) and the
+    number of collision episodes per type, all collisions counted; one type if ``records`` has no ``group``."""
+    collided_rows = perturbed & records["collided"].to_numpy(bool)
+    if "group" in records:
+        labels = records["group"].astype(str).to_numpy()
+    else:
+        labels = np.full(len(records), "perturbed", dtype=object)
+    episode_type = dict(zip(episode_codes[collided_rows], labels[collided_rows]))
+    types = sorted(set(episode_type.values()))
+    index = {name: i for i, name in enumerate(types)}
+    counts = [0] * len(types)
+    for name in episode_type.values():
+        counts[index[name]] += 1
+    of_window = np.zeros(len(collision_code), dtype=np.int64)
+    for code, position in collision_code.items():
+        of_window[position] = index[episode_type[code]]
+    return of_window, counts
+
+
 def _not_firing(k_ep: np.ndarray, k_feat: np.ndarray, n_ep: int, n_feat: int) -> np.ndarray:
     """(n_ep, n_feat) count of items with neither condition holding at (lambda_ep[a], lambda_feat[b])."""
     histogram = np.zeros((n_ep + 1, n_feat + 1), dtype=np.int64)
@@ -174,8 +207,9 @@ def _not_firing(k_ep: np.ndarray, k_feat: np.ndarray, n_ep: int, n_feat: int) ->
 
 def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback: int = 4,
                         lead: int = 0) -> dict[str, float]:
-    """The calibration proxy of given thresholds on records (via the rule itself): ``prevented_fraction``,
-    ``false_activation_rate``, ``n_collisions``, ``n_unperturbed_steps``."""
+    """The calibration proxy of given thresholds on records (via the rule itself): ``prevented_fraction`` (the mean
+    of the per-type fractions with a ``group`` column), ``worst_type_fraction``, ``false_activation_rate``,
+    ``n_collisions``, ``n_unperturbed_steps``."""
     _check_lead(lookback, lead)
     records = _validate(records)
     fire = rule_conditions(records["u_ep_heading"], records["u_feat"], records["gap"],
@@ -183,10 +217,17 @@ def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback:
     window = _window_rows(records, lookback, lead)
     perturbed = records["perturbed"].to_numpy(bool)
     collisions = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
-    flagged = records.loc[window & fire, "episode"].unique()
+    flagged = set(records.loc[window & fire, "episode"].unique())
+    types = (records.loc[perturbed, ["episode", "group"]].drop_duplicates("episode").set_index("episode")["group"]
+             if "group" in records else pd.Series("perturbed", index=collisions))
+    per_type: dict[str, list[bool]] = {}
+    for episode in collisions:
+        per_type.setdefault(str(types[episode]), []).append(episode in flagged)
+    fractions = [float(np.mean(hits)) for hits in per_type.values()]
     unperturbed = ~perturbed
     return {
-        "prevented_fraction": len(flagged) / len(collisions) if len(collisions) else float("nan"),
+        "prevented_fraction": float(np.mean(fractions)) if fractions else float("nan"),
+        "worst_type_fraction": float(np.min(fractions)) if fractions else float("nan"),
         "false_activation_rate": float(fire[unperturbed].mean()) if unperturbed.any() else float("nan"),
         "n_collisions": int(len(collisions)),
         "n_unperturbed_steps": int(unperturbed.sum()),
@@ -258,6 +299,8 @@ def calibrate(
     window_episode = np.array([collision_code[c] for c in episode_codes[window_index]], dtype=np.int64)
     n_window_episodes = len(collision_code)
     # Collision episodes without rows in their window can never be flagged: they count as not flagged.
+    type_of_window_episode, type_collisions = _collision_types(records, perturbed, episode_codes, window_index,
+                                                               collision_code)
 
     # Order in which ties are broken: larger lambda_ep and lambda_feat first (least eager).
     ep_rank = np.arange(n_ep)[::-1][:, None] * np.ones((1, n_feat), dtype=np.int64)
@@ -286,24 +329,30 @@ def calibrate(
             max_feat = np.zeros(n_window_episodes, dtype=np.int64)
             np.maximum.at(max_ep, window_episode[gated_window], k_ep[window_index][gated_window])
             np.maximum.at(max_feat, window_episode[gated_window], k_feat[window_index][gated_window])
-            unflagged = _not_firing(max_ep, max_feat, n_ep, n_feat) + (n_collisions - n_window_episodes)
-            prevented = (n_collisions - unflagged) / n_collisions
+            # flagged fraction per perturbation type (one type without a `group` column)
+            per_type = np.stack([
+                1.0 - (_not_firing(max_ep[type_of_window_episode == t], max_feat[type_of_window_episode == t],
+                                   n_ep, n_feat) + (n_type - np.sum(type_of_window_episode == t))) / n_type
+                for t, n_type in enumerate(type_collisions)])
+            worst, prevented = per_type.min(axis=0), per_type.mean(axis=0)
             feasible = false_rate <= false_activation_budget + 1e-12
             if not feasible.any():
                 continue
-            # Best feasible (a, b) for this (beta, lambda_prox): max prevented, min false rate, least eager.
-            keys = np.lexsort((feat_rank[feasible], ep_rank[feasible], false_rate[feasible], -prevented[feasible]))
+            # Best feasible (a, b) for this (beta, lambda_prox): worst type, mean, min false rate, least eager.
+            keys = np.lexsort((feat_rank[feasible], ep_rank[feasible], false_rate[feasible], -prevented[feasible],
+                               -worst[feasible]))
             a, b = np.argwhere(feasible)[keys[0]]
             row = {"beta1": float(beta), "lambda_prox": float(lam_prox), "lambda_ep": float(lambda_ep[a]),
                    "lambda_feat": float(lambda_feat[b]), "prevented_fraction": float(prevented[a, b]),
-                   "false_activation_rate": float(false_rate[a, b])}
+                   "worst_type_fraction": float(worst[a, b]), "false_activation_rate": float(false_rate[a, b])}
             frontier_rows.append(row)
-            candidate = (-row["prevented_fraction"], row["false_activation_rate"], -row["lambda_ep"],
-                         -row["lambda_feat"], row["lambda_prox"], row["beta1"])
+            candidate = (-row["worst_type_fraction"], -row["prevented_fraction"], row["false_activation_rate"],
+                         -row["lambda_ep"], -row["lambda_feat"], row["lambda_prox"], row["beta1"])
             if best is None or candidate < best[0]:
                 best = (candidate, row)
     frontier = pd.DataFrame(frontier_rows, columns=["beta1", "lambda_prox", "lambda_ep", "lambda_feat",
-                                                    "prevented_fraction", "false_activation_rate"])
+                                                    "prevented_fraction", "worst_type_fraction",
+                                                    "false_activation_rate"])
     if best is None:  # only possible with an explicit grid without inf and a budget too small
         raise ValueError("no candidate thresholds meet the false-activation budget; add inf to grid['lambda_ep'] "
                          "and grid['lambda_feat'] or raise the budget")
@@ -320,6 +369,7 @@ def calibrate(
         false_activation_budget=false_activation_budget,
         frontier=frontier,
         lead=lead,
+        worst_type_fraction=row["worst_type_fraction"],
     )
 
 
@@ -532,12 +582,14 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
 
     Per perturbation type (``CalibrationRun.group``) with plain-policy collisions, prevented fraction =
     (plain collisions - safe collisions) / plain collisions on the same episode seeds (a rule that causes
-    collisions scores lower); the score is the MEAN over those types, so that every type counts equally, as in
-    Table 3 (pooled counts would let the type with the most collisions decide). Ties go to the lower
+    collisions scores lower); candidates are ranked by the WORST type's fraction (``prevented_worst``), then by the
+    MEAN over types (``prevented_fraction``), so that no perturbation type is traded for another (pooled counts
+    would let the type with the most collisions decide; see the module docstring). Further ties go to the lower
     false-activation rate, then to the earlier candidate. If no candidate meets the budget, thresholds that never
     fire are returned (the layer is then off). Deterministic given a deterministic policy and a seeded estimator.
 
-    :return: ``(thresholds, table)``: one row per candidate with ``prevented_fraction`` (the score), one
+    :return: ``(thresholds, table)``: one row per candidate with ``prevented_worst`` and ``prevented_fraction``
+        (the score, lexicographically), one
         ``prevented_<group>`` column per type, ``false_activation_rate``, ``false_activation_upper`` and ``chosen``.
     """
     if not candidates:
@@ -555,6 +607,7 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
         rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": sum(plain.values()),
                      "safe_collisions": sum(scores["collisions"].values()),
                      "prevented_fraction": float(np.mean(list(per_group.values()))) if groups else float("nan"),
+                     "prevented_worst": float(np.min(list(per_group.values()))) if groups else float("nan"),
                      **{f"prevented_{group}": value for group, value in per_group.items()},
                      "false_activation_rate": scores["false_activation_rate"],
                      # A rule that cannot fire has no false activation to be uncertain about.
@@ -565,8 +618,8 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     table["chosen"] = False
     if not feasible.any() or not groups:
         return Thresholds.never(), table
-    ranked = table[feasible].sort_values(["prevented_fraction", "false_activation_rate", "candidate"],
-                                         ascending=[False, True, True])
+    ranked = table[feasible].sort_values(["prevented_worst", "prevented_fraction", "false_activation_rate",
+                                          "candidate"], ascending=[False, False, True, True])
     best = int(ranked.index[0])
     table.loc[best, "chosen"] = True
     return candidates[best], table
