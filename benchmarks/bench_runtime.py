@@ -46,7 +46,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 import socnav  # noqa: E402
-from socnav.envs.controllers import OrcaController  # noqa: E402
+from socnav.controllers import OrcaController  # noqa: E402
 from socnav.runtime import SafeNavigator  # noqa: E402
 from socnav.safety import SafePolicy, Thresholds  # noqa: E402
 from socnav.sim.observation import observe_robot, robot_command  # noqa: E402

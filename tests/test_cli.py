@@ -1,6 +1,6 @@
-import json
 """The `socnav` command line, driven through typer's runner: results, files and clear errors."""
 
+import json
 import pandas as pd
 from typer.testing import CliRunner
 
@@ -11,7 +11,7 @@ runner = CliRunner()
 
 def test_evaluate_prints_metrics_and_writes_records(tmp_path):
     out = tmp_path / "records.parquet"
-    result = runner.invoke(app, ["evaluate", "--policy", "orca", "--scenario", "position_swap", "--episodes", "6",
+    result = runner.invoke(app, ["evaluate", "--controller", "orca", "--scenario", "position_swap", "--episodes", "6",
                                  "--seed", "3", "--out", str(out)])
     assert result.exit_code == 0, result.output
     for header in ("Goal %", "Col. %", "TO %", "PV", "Return"):
@@ -22,8 +22,9 @@ def test_evaluate_prints_metrics_and_writes_records(tmp_path):
 
 
 def test_evaluate_rejects_bad_input_clearly(tmp_path):
-    result = runner.invoke(app, ["evaluate", "--policy", "teleport"])
-    assert result.exit_code == 2 and "allowed: orca, straight" in result.output
+    result = runner.invoke(app, ["evaluate", "--controller", "teleport"])
+    assert result.exit_code == 2 and "--controller 'teleport'" in result.output
+    assert "allowed: orca, straight" in result.output
     result = runner.invoke(app, ["evaluate", "--scenario", "maze", "--episodes", "1"])
     assert result.exit_code == 2 and "scenario" in result.output and "allowed" in result.output
     result = runner.invoke(app, ["evaluate", "--episodes", "1", "--out", str(tmp_path / "x.txt")])
@@ -49,16 +50,29 @@ def test_demo_writes_tables_and_animation(tmp_path):
 def test_calibrate_writes_a_threshold_file_that_animate_uses(tmp_path):
     out = tmp_path / "mc.yaml"
     result = runner.invoke(app, ["calibrate", "--model", "pretrained", "--episodes", "2", "--k", "4",
-                                 "--out", str(out)])
+                                 "--false-activation-budget", "0.1", "--out", str(out)])
     assert result.exit_code == 0, result.output
     from socnav.safety import load_thresholds
 
     thresholds = load_thresholds(out)
     report = json.loads(out.with_suffix(".report.json").read_text())
+    assert report["false_activation_budget"] == 0.1
     assert report["proximity_searched"] == ["abs-relative-speed", "closing-speed"]
-    if report["n_collisions"]:  # candidates replayed; the chosen one is the file's
-        chosen = [c for c in report["candidates"] if c["chosen"]]
-        assert not chosen or chosen[0]["proximity"] == thresholds.proximity
+    # The calibration episodes hold collisions, so candidates were replayed and exactly one was chosen: the file's.
+    assert report["n_collisions"] > 0 and report["candidates"], "nothing to calibrate on: the test would be vacuous"
+    assert all(c["plain_collisions"] == report["n_collisions"] for c in report["candidates"])
+    assert {c["proximity"] for c in report["candidates"]} <= set(report["proximity_searched"])
+    (chosen,) = [c for c in report["candidates"] if c["chosen"]]
+    fields = thresholds.model_dump()
+    assert {name: chosen[name] for name in fields} == fields == report["thresholds"]
+    assert thresholds != type(thresholds).never()
+    assert chosen["false_activation_upper"] <= report["false_activation_budget"]
+    for name in ("prevented_fraction", "prevented_worst", "false_activation_rate", "false_activation_upper"):
+        assert report[name] == chosen[name]
+    # No candidate within the budget prevents more collisions (worst perturbation type first, then the mean).
+    feasible = [c for c in report["candidates"] if c["false_activation_upper"] <= report["false_activation_budget"]]
+    best = max((c["prevented_worst"], c["prevented_fraction"]) for c in feasible)
+    assert (chosen["prevented_worst"], chosen["prevented_fraction"]) == best
     gif = tmp_path / "episode.gif"
     result = runner.invoke(app, ["animate", "--model", "pretrained", "--k", "4", "--perturb", "observation_noise=0.5",
                                  "--safety", str(out), "--out", str(gif)])
@@ -77,3 +91,18 @@ def test_uncertainty_commands_reject_bad_input_clearly(tmp_path):
     assert code == 2 and "at least 2" in output
     code, output = run("animate", "--model", "pretrained", "--perturb", "wind=3")
     assert code == 2 and "wind" in output and "Traceback" not in output
+
+
+def test_renamed_options_keep_their_old_names_as_hidden_deprecated_aliases(tmp_path):
+    """`evaluate --policy` is now `--controller` (`--model` takes trained policies), `calibrate --budget` is now
+    `--false-activation-budget` (`socnav run --budget` names an experiment's compute budget)."""
+    out = tmp_path / "records.csv"
+    result = runner.invoke(app, ["evaluate", "--policy", "straight", "--scenario", "position_swap", "--episodes", "2",
+                                 "--out", str(out)])
+    assert result.exit_code == 0 and "--policy is deprecated: use --controller" in result.output, result.output
+    assert "straight" in result.output and len(pd.read_csv(out)) == 2
+    result = runner.invoke(app, ["calibrate", "--budget", "0.1", "--out", str(tmp_path / "bad.txt")])
+    assert "--budget is deprecated: use --false-activation-budget" in result.output
+    assert result.exit_code == 2 and "--out must be a .yaml or .json" in result.output  # then the usual checks
+    for command, old in (("evaluate", "--policy"), ("calibrate", "--budget")):
+        assert old not in runner.invoke(app, [command, "--help"]).output

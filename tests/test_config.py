@@ -25,7 +25,7 @@ def test_yaml_round_trip(tmp_path):
     "data, field, hint",
     [
         ({"scenaro": "random"}, "scenaro", "did you mean scenario?"),
-        ({"zzzz": 1}, "zzzz", "allowed fields here: scenario, n_humans"),
+        ({"zzzz": 1}, "zzzz", "allowed fields: scenario, n_humans"),
         ({"scenario": "corridor"}, "scenario", "allowed: circle_crossing"),
         ({"time_step": "fast"}, "time_step", "valid number"),
         ({"time_step": -1}, "time_step", "greater than or equal to 0.01"),
@@ -130,7 +130,7 @@ def test_non_finite_numbers_in_a_yaml_file_are_rejected(tmp_path):
     ],
 )
 def test_absurd_magnitudes_are_rejected_naming_the_field(data, field):
-    bound = "(Input should be (less|greater) than|Value error, bounds must lie in)"
+    bound = "(Input should be (less|greater) than|bounds must lie in)"
     with pytest.raises(ConfigError, match=field.replace(".", r"\.") + ": " + bound):
         load_config(data)
 
@@ -229,3 +229,70 @@ def test_error_messages_stay_short_for_huge_inputs():
     with pytest.raises(ConfigError) as error:
         load_config({"scenario": "x" * 1_000_000, "n_humans": list(range(100_000))})
     assert "scenario" in str(error.value) and "n_humans" in str(error.value) and len(str(error.value)) < 3000
+
+
+# ---- the pieces every socnav config shares (one base, one reader, one merge, one error formatter) ----
+
+def test_every_config_model_uses_the_one_strict_base():
+    from socnav.config import StrictModel
+    from socnav.experiments.spec import Budget, Evaluation, Experiment, Grid, Safety, Study
+    from socnav.rl.presets import AlgoConfig
+    from socnav.safety.rule import Thresholds
+
+    for model in (EnvConfig, AlgoConfig, Thresholds, Experiment, Grid, Evaluation, Study, Safety, Budget):
+        assert issubclass(model, StrictModel), model
+
+
+def test_a_validated_config_passes_through_load_config_as_an_equal_copy():
+    config = load_config({"scenario": "position_swap", "n_humans": [1, 3]})
+    again = load_config(config)
+    assert again == config and again is not config and again.reward is not config.reward
+    assert load_config(config, n_humans=2).n_humans == 2  # overrides are validated as before
+
+
+def test_deep_merge_merges_nested_mappings_without_touching_its_inputs():
+    from socnav.config import deep_merge
+
+    base = {"reward": {"goal": 1.0, "time": 0.5}, "scenario": "random"}
+    merged = deep_merge(base, {"reward": {"goal": 2.0}, "n_humans": 3})
+    assert merged == {"reward": {"goal": 2.0, "time": 0.5}, "scenario": "random", "n_humans": 3}
+    assert base == {"reward": {"goal": 1.0, "time": 0.5}, "scenario": "random"}
+
+
+def test_read_mapping_file_names_the_file_and_reads_json_only_when_asked(tmp_path):
+    from socnav.config import read_mapping_file
+
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing but a comment\n")
+    assert read_mapping_file(empty, "config") == {}
+    with pytest.raises(ConfigError, match=r"^preset file not found: .*missing\.yaml"):
+        read_mapping_file(tmp_path / "missing.yaml", "preset")
+    data = tmp_path / "t.json"
+    data.write_text('{"lambda_ep": Infinity}')
+    assert read_mapping_file(data, "thresholds", allow_json=True) == {"lambda_ep": float("inf")}
+    with pytest.raises(ValueError, match=r"^thresholds file .*t\.json is not valid JSON"):
+        data.write_text("{oops")
+        read_mapping_file(data, "thresholds", ValueError, allow_json=True)
+
+
+def test_the_one_formatter_names_path_problem_allowed_values_and_value():
+    from pydantic import ValidationError
+
+    from socnav.config import format_validation_error
+    from socnav.experiments.spec import Experiment
+
+    with pytest.raises(ValidationError) as error:
+        Experiment.model_validate({"name": "x", "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"],
+                                                         "seeds": 1},
+                                   "evaluation": {"scenarios": ["random"], "initial_heading": 1},
+                                   "study": {"kk": 3}, "budgets": {"quick": {"seedz": 2}}})
+    lines = format_validation_error(error.value, "invalid experiment (x.yaml):", Experiment).splitlines()
+    assert lines[0] == "invalid experiment (x.yaml):"
+    assert "  - grid.timesteps: required field is missing (required here: algorithms, train_scenarios, seeds, " \
+           "timesteps)" in lines
+    assert any(line.startswith("  - evaluation.initial_heading: unknown field; allowed fields: scenarios, episodes")
+               for line in lines)
+    assert any(line.startswith("  - study.kk: unknown field; allowed fields: estimators, perturbations, k")
+               and line.endswith("did you mean k? (got 3)") for line in lines)  # through Optional[Study]
+    assert "  - budgets.quick.seedz: unknown field; did you mean seeds? (got 2)" in lines  # through dict[str, Budget]
+    assert not any("Value error" in line for line in lines)

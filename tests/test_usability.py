@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _extras import require
 from typer.testing import CliRunner
 
 import socnav
@@ -97,10 +98,10 @@ def test_default_record_files_are_unique_per_policy_world_seed_and_episodes(tmp_
         (tmp_path / directory).mkdir()
         shutil.copy(pretrained_path(), tmp_path / directory / "model.zip")
     invocations = [
-        (["--policy", "straight", "--scenario", "circle_crossing", "--episodes", "3"], 3),
-        (["--policy", "straight", "--config", REPO / "configs/env/circle_crossing_invisible.yaml",
+        (["--controller", "straight", "--scenario", "circle_crossing", "--episodes", "3"], 3),
+        (["--controller", "straight", "--config", REPO / "configs/env/circle_crossing_invisible.yaml",
           "--episodes", "4"], 4),
-        (["--policy", "straight", "--scenario", "circle_crossing", "--episodes", "5"], 5),
+        (["--controller", "straight", "--scenario", "circle_crossing", "--episodes", "5"], 5),
         (["--model", "a/model.zip", "--episodes", "2"], 2),
         (["--model", "b/model.zip", "--episodes", "2"], 2),
     ]
@@ -153,12 +154,12 @@ def test_evaluate_perturbation_and_safety_layer(tmp_path):
     share = 100 * safe["fallback_steps"].sum() / safe["length"].sum()
     assert f"{share:.1f} │" in output  # the fallback-activation column
 
-    code, output = run("evaluate", "--policy", "orca", "--safety", "mc", "--episodes", "1")
+    code, output = run("evaluate", "--controller", "orca", "--safety", "mc", "--episodes", "1")
     assert code == 2 and "--model" in output
 
 
 def test_evaluate_table_has_nav_time_and_says_what_pv_counts(tmp_path):
-    code, output = run("evaluate", "--policy", "orca", "--scenario", "position_swap", "--episodes", "5",
+    code, output = run("evaluate", "--controller", "orca", "--scenario", "position_swap", "--episodes", "5",
                        "--out", tmp_path / "r.csv")
     assert code == 0, output
     records = pd.read_csv(tmp_path / "r.csv")
@@ -186,7 +187,7 @@ def test_install_hint_keeps_the_extra(monkeypatch):
 
 
 def test_tune_continued_study_explores_and_refuses_other_settings(tmp_path):
-    optuna = pytest.importorskip("optuna", reason="Optuna is an optional extra")
+    optuna = require("optuna")
     storage = f"sqlite:///{tmp_path / 'tune.db'}"
     common = ["tune", "--algo", "ppo", "--scenario", "position_swap", "--n-envs", "1", "--eval-episodes", "1",
               "--storage", storage, "--out", tmp_path / "trials"]

@@ -13,7 +13,7 @@ import argparse
 
 import socnav
 from socnav.envs.rollout import rollout_episodes
-from socnav.experiments.perturbations import perturbation_override
+from socnav.envs.perturbations import perturbation_override
 from socnav.safety import SafePolicy, Thresholds
 from socnav.uncertainty import MCDropoutEstimator
 

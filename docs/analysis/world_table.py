@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 import socnav
-from socnav.envs.controllers import make_controller
+from socnav.controllers import make_controller
 from socnav.envs.rollout import rollout_episodes, summarize
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "random", "position_swap")

@@ -6,24 +6,25 @@ Every command validates its options up front and reports bad input as one clear 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from socnav._console import console, fail
 from socnav.config import ConfigError, EnvConfig, describe_world, load_config
+from socnav.experiments.cli import register as add_experiment_commands
 from socnav.sim.scenarios import scenario_names
 
 if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --help` stays fast
     import pandas as pd
 
+    from socnav.rl.training import TrainResult
+
 # Plain click help: typer's rich help panels label every flag (and --help itself) with a `<bool>` type.
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__.splitlines()[0], rich_markup_mode=None)
-# Tables keep their words whole when the output is piped (Rich falls back to 80 columns without a terminal).
-console = Console(width=None if Console().is_terminal else 160)
 
 
 def _version(value: bool) -> None:
@@ -34,18 +35,24 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+def _deprecated_alias(old: str, new: str) -> Callable[[Any], Any]:
+    """Callback of a hidden option kept under its old name: warns when it is used and passes its value on (the
+    command takes it as the value of `new`)."""
+
+    def warn(value: Any) -> Any:
+        if value is not None:
+            console.print(f"[yellow]warning:[/] {old} is deprecated: use {new}", highlight=False)
+        return value
+
+    return warn
+
+
 @app.callback()
 def _main(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                  help="print the version and exit"),
 ) -> None:
     """Uncertainty-aware social robot navigation: simulate, train, evaluate, calibrate, run experiments."""
-
-
-def _fail(message: str) -> None:
-    # Escaped: messages hold brackets (`pip install -e ".[video]"`, `[min, max]`) that Rich would take for markup.
-    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
-    raise typer.Exit(code=2)
 
 
 def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
@@ -55,7 +62,7 @@ def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
     try:
         check_env_count(n_envs, env_config, "--n-envs")
     except ConfigError as exc:
-        _fail(str(exc))
+        fail(str(exc))
 
 
 def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
@@ -81,7 +88,7 @@ def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: 
             message += f"\n  at most {most} humans are supported (max_humans <= {most})"
         elif needed and max_humans is None:
             message += f"\n  from the command line: --max-humans {needed.group(1)}"
-        _fail(message)
+        fail(message)
         raise  # unreachable, keeps type checkers happy
 
 
@@ -140,32 +147,32 @@ def _yaml(option: str, text: Optional[str] = None, path: Optional[Path] = None) 
     try:
         return read_yaml_file(path) if path is not None else safe_load_yaml(text or "")
     except yaml.YAMLError as exc:
-        _fail(f"{option} {path if path is not None else repr(text)} {' '.join(yaml_problem(exc).split())}")
+        fail(f"{option} {path if path is not None else repr(text)} {' '.join(yaml_problem(exc).split())}")
 
 
 def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str]) -> dict[str, Any]:
     """Hyperparameter overrides from a YAML file, then `--set key=value` pairs (values parsed as YAML)."""
-    from socnav.rl.presets import ALGOS, resolve_config
+    from socnav.rl.presets import ALGOS, describe_override_error, resolve_config
 
     if algo not in ALGOS:
-        _fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
+        fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
     overrides: dict[str, Any] = {}
     if algo_config is not None:
         if not algo_config.is_file():
-            _fail(f"--algo-config: no such file {algo_config}")
+            fail(f"--algo-config: no such file {algo_config}")
         loaded = _yaml("--algo-config", path=algo_config) or {}
         if not isinstance(loaded, dict):
-            _fail(f"--algo-config {algo_config} must hold a mapping of hyperparameters")
+            fail(f"--algo-config {algo_config} must hold a mapping of hyperparameters")
         overrides.update(loaded)
     for setting in settings:
         key, sep, value = setting.partition("=")
         if not sep or not key:
-            _fail(f"--set expects key=value, got {setting!r}")
+            fail(f"--set expects key=value, got {setting!r}")
         overrides[key.strip()] = _yaml("--set", value)
     try:
         resolve_config(algo, overrides)
     except ValueError as exc:
-        _fail(" ".join(str(exc).split()))
+        fail(" ".join(describe_override_error(algo, exc).split()))
     return overrides
 
 
@@ -193,74 +200,67 @@ def train(
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
     from socnav.rl.training import (
-        CheckpointError, RunDirectoryBusy, TrainingInterrupted, move_run_aside, read_run_info,
+        CheckpointError, RunDirectoryBusy, TrainingInterrupted, finished_result, move_run_aside, read_run_info,
     )
+    from socnav.rl.training import resume as resume_run
     from socnav.rl.training import train as train_run
 
     if resume is not None:
         if not resume.is_dir():
-            _fail(f"--resume {resume}: no such run directory")
+            fail(f"--resume {resume}: no such run directory")
         try:
             asked = read_run_info(resume)
             env_config = load_config(asked.env_config)
         except ConfigError as exc:
-            _fail(f"--resume {resume}: {exc}")
+            fail(f"--resume {resume}: {exc}")
         algo, seed, timesteps, n_envs, overrides = asked.algo, asked.seed, asked.timesteps, asked.n_envs, asked.overrides
-        eval_every, eval_episodes, out = asked.eval_every, asked.eval_episodes, resume
-        if _report_if_complete(resume):
+        out = resume
+        finished = finished_result(resume)
+        if finished is not None:
+            _report_complete(resume, algo, timesteps, finished)
             return
     else:
         env_config = _env_config(scenario, config, n_humans, max_humans)
         overrides = _algo_overrides(algo, algo_config, settings)
         out = out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}"
         if out.exists() and not out.is_dir():
-            _fail(f"--out {out} is an existing file; name a run directory")
+            fail(f"--out {out} is an existing file; name a run directory")
         if out.is_dir() and any(out.iterdir()):
             if not force:
-                _fail(f"--out {out} already holds files (an earlier run?); continue it with --resume {out}, or pass "
-                      f"--force to move it aside to {out}.old-<timestamp> and start afresh")
+                fail(f"--out {out} already holds files (an earlier run?); continue it with --resume {out}, or pass "
+                     f"--force to move it aside to {out}.old-<timestamp> and start afresh")
             try:
                 console.print(f"moved the existing {out} aside to {move_run_aside(out)}")
             except (RunDirectoryBusy, OSError) as exc:
-                _fail(f"--force: {exc}")
+                fail(f"--force: {exc}")
     _check_n_envs(n_envs, env_config)
     console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}")
     try:
-        result = train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
-                           eval_every=eval_every, eval_episodes=eval_episodes, resume=resume is not None,
-                           progress=True)
+        if resume is not None:
+            result = resume_run(resume, progress=True)
+        else:
+            result = train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
+                               eval_every=eval_every, eval_episodes=eval_episodes, progress=True)
     except TrainingInterrupted as exc:
-        console.print(f"[bold red]error:[/] {exc}")
-        raise typer.Exit(code=1)
+        fail(str(exc), code=1)
     except CheckpointError as exc:
-        _fail(f"--resume {out}: {exc}")
+        fail(f"--resume {out}: {exc}")
     except (RunDirectoryBusy, OSError) as exc:
-        _fail(str(exc))
+        fail(str(exc))
     console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
                                 f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
     _explain_rounding(timesteps, result.timesteps, algo, overrides, n_envs)
     console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
 
 
-def _report_if_complete(run_dir: Path) -> bool:
+def _report_complete(run_dir: Path, algo: str, asked: int, result: TrainResult) -> None:
     """`train --resume` of a run that already finished: say so and show its result instead of training again."""
-    import json
-
-    try:
-        info = json.loads((run_dir / "run.json").read_text())
-    except (OSError, ValueError):
-        return False
-    if info.get("status") != "complete" or not (run_dir / "model.zip").is_file():
-        return False
-    console.print(f"the run in {escape(str(run_dir))} is already complete ({info.get('num_timesteps', 0):,} steps "
-                  f"trained for the {info.get('timesteps', 0):,} asked): nothing to resume. Its final validation:",
+    console.print(f"the run in {escape(str(run_dir))} is already complete ({result.timesteps:,} steps "
+                  f"trained for the {asked:,} asked): nothing to resume. Its final validation:", highlight=False)
+    if "goal_pct" in result.final_eval:
+        console.print(metrics_table([(f"{algo} (validation)", result.final_eval)], f"{result.timesteps:,} steps"))
+    console.print(f"model: {escape(str(result.model_path))}  (train longer: a new run with more --timesteps)",
                   highlight=False)
-    if isinstance(info.get("final_eval"), dict) and "goal_pct" in info["final_eval"]:
-        console.print(metrics_table([(f"{info.get('algo', '?')} (validation)", info["final_eval"])],
-                                    f"{info.get('num_timesteps', 0):,} steps"))
-    console.print(f"model: {escape(str(run_dir / 'model.zip'))}  (train longer: a new run with more --timesteps)",
-                  highlight=False)
-    return True
 
 
 def _explain_rounding(asked: int, trained: int, algo: str, overrides: dict[str, Any], n_envs: int) -> None:
@@ -288,8 +288,8 @@ def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
     for policy in policies:
         observed = policy.observation_space["humans"].shape[0]
         if observed != env_config.max_humans:
-            _fail(f"the model observes max_humans={observed} but the env config has "
-                  f"max_humans={env_config.max_humans}; set max_humans in --config to match")
+            fail(f"the model observes max_humans={observed} but the env config has "
+                 f"max_humans={env_config.max_humans}; set max_humans in --config to match")
 
 
 def _load_learned_policy(model: str) -> Any:
@@ -303,7 +303,7 @@ def _load_learned_policy(model: str) -> Any:
     try:
         return load_policy(model)
     except PolicyLoadError as exc:
-        _fail(str(exc))
+        fail(str(exc))
 
 
 def _model_label(model: str) -> str:
@@ -327,7 +327,11 @@ def _default_records_path(label: str, config: EnvConfig, seed: int, episodes: in
 
 @app.command()
 def evaluate(
-    policy: str = typer.Option("orca", help="baseline controller: orca | straight (ignored with --model)"),
+    controller: str = typer.Option("orca", help="non-learned baseline controller: orca | straight (ignored with "
+                                                "--model, which evaluates a trained policy)"),
+    policy: Optional[str] = typer.Option(None, "--policy", hidden=True,
+                                         callback=_deprecated_alias("--policy", "--controller"),
+                                         help="deprecated name of --controller"),
     model: Optional[str] = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
@@ -355,17 +359,18 @@ def evaluate(
                                                   "to the policy, world, seed and episodes under runs/evaluate)"),
 ) -> None:
     """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return; records to a file."""
-    from socnav.envs.controllers import CONTROLLERS, make_controller
+    from socnav.controllers import CONTROLLERS, make_controller
     from socnav.envs.rollout import summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
 
-    if model is None and policy not in CONTROLLERS:
-        _fail(f"--policy {policy!r} is not known; allowed: {', '.join(CONTROLLERS)}")
+    controller = policy if policy is not None else controller
+    if model is None and controller not in CONTROLLERS:
+        fail(f"--controller {controller!r} is not known; allowed: {', '.join(CONTROLLERS)}")
     if out is not None and out.suffix not in TABLE_FORMATS:
-        _fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
+        fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
     if safety is not None and model is None and members is None:
-        _fail("--safety needs a learned policy: --model PATH (or --model pretrained), or --estimator ensemble "
-              "--members GLOB")
+        fail("--safety needs a learned policy: --model PATH (or --model pretrained), or --estimator ensemble "
+             "--members GLOB")
     actor: Any = None
     if model is not None:
         actor = _load_learned_policy(model)
@@ -380,7 +385,7 @@ def evaluate(
         base, origin = stored, "the model's training world" + (", changed by the options" if changed else "")
     env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base), perturb)
     console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
-    name = _model_label(model) if model is not None else policy
+    name = _model_label(model) if model is not None else controller
     observer = None
     if safety is not None:
         from socnav.safety import FallbackCounter, SafePolicy
@@ -394,7 +399,7 @@ def evaluate(
     elif actor is not None:
         _check_observation_size([actor], env_config)
     else:
-        actor = make_controller(policy, env_config)
+        actor = make_controller(controller, env_config)
     out = out or _default_records_path(name, env_config, seed, episodes,
                                        {"stochastic": stochastic, "k": k, "estimator": estimator,
                                         "members": members, "sensing": sensing})
@@ -425,11 +430,11 @@ def _load_thresholds_option(safety: str, sensing: Optional[str] = None) -> Any:
     try:
         thresholds = load_thresholds(safety)
     except (ThresholdsError, OSError) as exc:
-        _fail(f"--safety: {exc}")
+        fail(f"--safety: {exc}")
     if sensing is None:
         return thresholds
     if sensing not in SENSING_CHOICES:
-        _fail(f"--sensing {sensing!r} is not known; allowed: {', '.join(SENSING_CHOICES)}")
+        fail(f"--sensing {sensing!r} is not known; allowed: {', '.join(SENSING_CHOICES)}")
     return Thresholds.create(thresholds.model_dump(), sensing=sensing)
 
 
@@ -441,7 +446,7 @@ def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
     try:
         return load_config(env_config, perturbation={**env_config.perturbation.model_dump(), **perturbation})
     except ConfigError as exc:
-        _fail(str(exc))
+        fail(str(exc))
         raise
 
 
@@ -453,12 +458,11 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
     from socnav.uncertainty import ESTIMATOR_KINDS, make_estimator
 
     if kind not in ESTIMATOR_KINDS:
-        _fail(f"--estimator {kind!r} is not known; allowed: {', '.join(ESTIMATOR_KINDS)}")
+        fail(f"--estimator {kind!r} is not known; allowed: {', '.join(ESTIMATOR_KINDS)}")
     if kind == "mc":
         if model is None:
-            _fail("--estimator mc needs --model PATH (or --model pretrained)")
-        from socnav.experiments.uncertainty_units import MC_SEED
-        from socnav.uncertainty import MCDropoutEstimator
+            fail("--estimator mc needs --model PATH (or --model pretrained)")
+        from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
         policy = _load_learned_policy(model)
         _check_observation_size([policy], env_config)
@@ -466,10 +470,10 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
         # and the same animation, instead of drawing from torch's unseeded global RNG.
         return policy, MCDropoutEstimator(policy, k=k, seed=MC_SEED)
     if members is None:
-        _fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
+        fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
     paths = sorted(glob.glob(members))
     if len(paths) < 2:
-        _fail(f"--members {members!r} matches {len(paths)} policy file(s); an ensemble needs at least 2")
+        fail(f"--members {members!r} matches {len(paths)} policy file(s); an ensemble needs at least 2")
     policies = [_load_learned_policy(path) for path in paths]
     policy = _load_learned_policy(model) if model is not None else policies[0]
     _check_observation_size([policy, *policies], env_config)
@@ -481,7 +485,7 @@ def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
     for setting in settings:
         key, sep, value = setting.partition("=")
         if not sep or not key:
-            _fail(f"--perturb expects key=value (e.g. observation_noise=0.6), got {setting!r}")
+            fail(f"--perturb expects key=value (e.g. observation_noise=0.6), got {setting!r}")
         perturbation[key.strip()] = _yaml("--perturb", value)
     return perturbation
 
@@ -510,7 +514,7 @@ def animate(
     from socnav.experiments.animate import animate_episode
 
     if out.suffix not in (".gif", ".mp4"):
-        _fail(f"--out must end in .gif or .mp4, got {out.name!r}")
+        fail(f"--out must end in .gif or .mp4, got {out.name!r}")
     env_config = _perturbed_config(_single_agent_env_config(scenario, config, n_humans, max_humans), perturb)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     thresholds = None if safety is None else _load_thresholds_option(safety, sensing)
@@ -555,7 +559,12 @@ def calibrate(
     max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
-    budget: float = typer.Option(0.05, min=0.0, max=1.0, help="allowed false-activation rate (unperturbed steps)"),
+    false_activation_budget: float = typer.Option(
+        0.05, min=0.0, max=1.0, help="allowed false-activation rate: the share of unperturbed steps on which the "
+                                     "fallback may act (the experiment's safety.false_activation_budget)"),
+    budget: Optional[float] = typer.Option(None, "--budget", min=0.0, max=1.0, hidden=True,
+                                           callback=_deprecated_alias("--budget", "--false-activation-budget"),
+                                           help="deprecated name of --false-activation-budget"),
     proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
     sensing: str = typer.Option("perceived", help="what the proximity terms and fallback read: perceived (the "
                                                   "noisy observation) | true (the simulator's state)"),
@@ -566,28 +575,28 @@ def calibrate(
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
     import json
 
-    from socnav.experiments.uncertainty_units import calibrate_thresholds
     from socnav.io import write_text_atomic
-    from socnav.safety import PROXIMITY_VARIANTS, save_thresholds
+    from socnav.safety import PROXIMITY_VARIANTS, calibrate_thresholds, save_thresholds
 
+    false_activation_budget = budget if budget is not None else false_activation_budget
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
-        _fail(f"--proximity {proximity!r} is not known; allowed: both, {', '.join(PROXIMITY_VARIANTS)}")
+        fail(f"--proximity {proximity!r} is not known; allowed: both, {', '.join(PROXIMITY_VARIANTS)}")
     if sensing not in ("perceived", "true"):
-        _fail(f"--sensing {sensing!r} is not known; allowed: perceived, true")
+        fail(f"--sensing {sensing!r} is not known; allowed: perceived, true")
     if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
-        _fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
+        fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
     env_config = _single_agent_env_config(scenario, config, n_humans, max_humans)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     with _progress() as progress:
         task = progress.add_task("calibration episodes (collect, then replay each candidate)", total=None)
         thresholds, report = calibrate_thresholds(
-            policy, uncertainty, env_config.model_dump(mode="json"), episodes, budget, proximity,
+            policy, uncertainty, env_config.model_dump(mode="json"), episodes, false_activation_budget, proximity,
             confidence=confidence, progress=lambda done, total: progress.update(task, completed=done, total=total),
             sensing=sensing)
     save_thresholds(thresholds, out)
     write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
     console.print(calibration_table(thresholds, report, f"calibrated thresholds ({estimator}, false-activation "
-                                                        f"budget {budget:.0%})"))
+                                                        f"budget {false_activation_budget:.0%})"))
     console.print("prevented: share of the plain policy's calibration collisions prevented in the replayed episodes "
                   "(mean over perturbation types); false act.: share of unperturbed steps where the fallback acted "
                   f"(≤ its one-sided {confidence:.0%} upper bound); every candidate in "
@@ -612,11 +621,11 @@ def convert(
     from socnav.rl.persistence import PolicyLoadError
 
     if to_sb3.suffix != ".zip":
-        _fail(f"--to-sb3 must be a .zip path, got {to_sb3.name!r}")
+        fail(f"--to-sb3 must be a .zip path, got {to_sb3.name!r}")
     try:
         sb3_model = convert_to_sb3(model, n_envs=1)
     except PolicyLoadError as exc:
-        _fail(str(exc))
+        fail(str(exc))
         return
     to_sb3.parent.mkdir(parents=True, exist_ok=True)
     sb3_model.save(to_sb3)
@@ -634,7 +643,7 @@ def demo(
 ) -> None:
     """Baselines in every scenario, an ODV-PPO-Drop policy, then that policy under heading noise with and without
     the safety layer: metrics and animations (GIF)."""
-    from socnav.envs.controllers import make_controller
+    from socnav.controllers import make_controller
     from socnav.envs.rollout import summarize
     from socnav.experiments import demo as safety
     from socnav.experiments.animate import animate_episode
@@ -662,8 +671,7 @@ def demo(
         try:
             result = train_run(world, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
         except TrainingInterrupted as exc:
-            console.print(f"[bold red]error:[/] {escape(str(exc))}")
-            raise typer.Exit(code=1)
+            fail(str(exc), code=1)
         model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
     else:
         model_path, label = "pretrained", "odv-ppo-drop (pretrained)"
@@ -721,12 +729,11 @@ def export(
     try:
         path = export_onnx(policy, out, thresholds=thresholds, k=k, p_test=p_test, window=window, with_value=value)
     except (ExportError, ThresholdsError, OSError) as exc:
-        _fail(str(exc))
+        fail(str(exc))
     console.print(f"navigator: {path}  (run it with socnav.runtime.SafeNavigator.load({str(path)!r}))")
 
 
-from socnav.experiments.cli import register as _register_experiments  # noqa: E402
-_register_experiments(app)  # socnav run / report / tune
+add_experiment_commands(app)  # socnav run / report / tune, listed after the commands above
 
 
 def main() -> None:

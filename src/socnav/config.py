@@ -1,6 +1,5 @@
-"""Validated configuration of the simulated world and the environment (SPEC sections 1 and 2).
-
-One pydantic model, loadable from a dict or a YAML file; unknown or out-of-range fields raise `ConfigError` naming the field.
+"""Validated configuration of the simulated world (SPEC sections 1-2) and what every socnav config shares: the strict
+base model, the bounded YAML reader, the deep merge and the one formatter of validation errors.
 """
 
 from __future__ import annotations
@@ -88,12 +87,44 @@ def safe_load_yaml(text: str) -> Any:
         raise YAMLTooLargeError("nested too deeply") from None
 
 
+def _read_bounded_text(path: Path) -> str:
+    """The text of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
+    size = path.stat().st_size
+    if size > YAML_MAX_BYTES:
+        raise YAMLTooLargeError(f"{size:,} bytes; socnav reads files of at most {YAML_MAX_BYTES:,}")
+    return path.read_text()
+
+
 def read_yaml_file(path: Path) -> Any:
     """`safe_load_yaml` of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
-    size = Path(path).stat().st_size
-    if size > YAML_MAX_BYTES:
-        raise YAMLTooLargeError(f"{size:,} bytes; socnav reads YAML files of at most {YAML_MAX_BYTES:,}")
-    return safe_load_yaml(Path(path).read_text())
+    return safe_load_yaml(_read_bounded_text(Path(path)))
+
+
+def read_mapping_file(path: str | Path, what: str, error: type[Exception] = ConfigError,
+                      allow_json: bool = False) -> dict[str, Any]:
+    """The mapping of fields a YAML file holds (an empty file is an empty mapping), read with the bounded loader;
+    with `allow_json` a ``.json`` file is read as JSON (which writes inf as ``Infinity``, unlike YAML).
+
+    :raises error: naming the file: '<what> file not found: PATH', '<what> file PATH is not valid YAML: ...'
+        (or '... is refused: ...' for an oversized input), '<what> file PATH must hold a mapping of fields, got list'.
+    """
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{what} file not found: {path}")
+    try:
+        data = (json.loads(_read_bounded_text(path)) if allow_json and path.suffix == ".json"
+                else read_yaml_file(path))
+    except json.JSONDecodeError as exc:
+        raise error(f"{what} file {path} is not valid JSON: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{what} file {path} {yaml_problem(exc)}") from None
+    if data is None:  # an empty file (or only comments)
+        return {}
+    if not isinstance(data, dict):
+        raise error(f"{what} file {path} must hold a mapping of fields, got {type(data).__name__}")
+    return data
 
 
 def yaml_problem(error: yaml.YAMLError) -> str:
@@ -120,6 +151,92 @@ class StrictModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+
+# ------------------------------------------------------------------------------------------- validation errors
+
+#: Fields that were renamed: an old name in a file gets "renamed: write <new name>" instead of "unknown field".
+RENAMED_FIELDS: dict[str, str] = {"dropout_p": "p_train"}  # the paper's (and SPEC's) name
+
+#: Allowed names are listed in full up to this many; a longer list is only worth reading when nothing is close.
+_SHORT_LIST = 8
+
+
+def unknown_field_message(name: str, allowed: Sequence[str]) -> str:
+    """'unknown field; allowed fields: a, b, c; did you mean b?' (difflib's closest allowed names). A long list of
+    allowed names is left out when a close one exists (not what a user with a typo wants to read)."""
+    import difflib
+
+    allowed = list(allowed)
+    if RENAMED_FIELDS.get(name) in allowed:
+        return f"renamed: write {RENAMED_FIELDS[name]} ({name} is its old name)"
+    close = difflib.get_close_matches(name, allowed, n=3, cutoff=0.6)
+    hint = f"did you mean {' or '.join(close)}?"
+    if close and len(allowed) > _SHORT_LIST:
+        return f"unknown field; {hint}"
+    listing = f"unknown field; allowed fields: {', '.join(allowed)}"
+    return f"{listing}; {hint}" if close else listing
+
+
+def format_validation_error(error: ValidationError, headline: str, model: type[BaseModel]) -> str:
+    """socnav's one message for a pydantic error of `model`: `headline`, then a line per problem naming the field
+    path, what is wrong with the allowed values, and the bad value (capped: see `short_repr`)::
+
+        invalid socnav config (env.yaml):
+          - reward.gaol: unknown field; allowed fields: goal, collision, ...; did you mean goal?
+          - time_step: Input should be less than or equal to 1 (got 5)
+    """
+    lines = [headline]
+    for item in error.errors():
+        loc = tuple(item["loc"])
+        parent = _model_at(model, loc[:-1])
+        if item["type"] == "extra_forbidden":
+            message = (unknown_field_message(str(loc[-1]), list(parent.model_fields)) if parent is not None
+                       else "unknown field")
+        elif item["type"] == "missing":
+            required = [name for name, info in parent.model_fields.items() if info.is_required()] if parent else []
+            message = "required field is missing" + (f" (required here: {', '.join(required)})" if required else "")
+        else:
+            message = item["msg"].removeprefix("Value error, ")
+        got = "" if item["type"] == "missing" else f" (got {short_repr(item.get('input'))})"
+        lines.append(f"  - {'.'.join(str(part) for part in loc) or '<root>'}: {message}{got}")
+    return "\n".join(lines)
+
+
+def _model_at(model: type[BaseModel], loc: Sequence[Any]) -> type[BaseModel] | None:
+    """The model holding the fields at `loc` inside `model` (through nested models, Optional and dict values)."""
+    import types
+    import typing
+
+    def plain(annotation: Any) -> Any:  # Optional[X] -> X
+        if typing.get_origin(annotation) in (Union, types.UnionType):
+            members = [arg for arg in typing.get_args(annotation) if arg is not type(None)]
+            return members[0] if len(members) == 1 else annotation
+        return annotation
+
+    current: Any = model
+    for part in loc:
+        if isinstance(current, type) and issubclass(current, BaseModel):
+            info = current.model_fields.get(str(part))
+            current = None if info is None else plain(info.annotation)
+        elif typing.get_origin(current) is dict:  # `part` is a key, e.g. budgets.<name>
+            current = plain(typing.get_args(current)[1])
+        else:
+            return None
+    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
+
+
+def deep_merge(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    """`base` updated with `extra`, nested mappings merged key by key (neither input is modified)."""
+    merged = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+# ------------------------------------------------------------------------------------------------ the env config
 
 class _Strict(StrictModel):
     model_config = ConfigDict(validate_assignment=True, frozen=False)
@@ -295,39 +412,6 @@ class EnvConfig(_Strict):
 ConfigLike = Union[EnvConfig, Mapping[str, Any], str, Path, None]
 
 
-def unknown_field_message(name: str, allowed: Sequence[str]) -> str:
-    """'unknown field; did you mean n_humans?' (difflib's closest allowed names), or the allowed names when none
-    is close (a short list in full; a long one is not what a user with a typo wants to read)."""
-    import difflib
-
-    close = difflib.get_close_matches(name, list(allowed), n=3, cutoff=0.6)
-    if close:
-        return f"unknown field; did you mean {' or '.join(close)}?"
-    return f"unknown field; allowed fields here: {', '.join(allowed)}"
-
-
-def _format_validation_error(error: ValidationError, source: str) -> str:
-    lines = [f"invalid socnav config ({source}):"]
-    for item in error.errors():
-        field = ".".join(str(p) for p in item["loc"]) or "<root>"
-        message = item["msg"]
-        if item["type"] == "extra_forbidden":
-            parent = _model_at(EnvConfig, item["loc"][:-1])
-            message = (unknown_field_message(str(item["loc"][-1]), list(parent.model_fields))
-                       if parent is not None else "unknown field")
-        lines.append(f"  - {field}: {message} (got {short_repr(item.get('input'))})")
-    return "\n".join(lines)
-
-
-def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:
-    for name in path:
-        field = model.model_fields.get(str(name))
-        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
-            return None
-        model = field.annotation
-    return model
-
-
 def load_config(config: ConfigLike = None, **overrides: Any) -> EnvConfig:
     """Build a validated `EnvConfig` from a config object, a (partial) dict, a YAML path or None (defaults).
 
@@ -335,32 +419,26 @@ def load_config(config: ConfigLike = None, **overrides: Any) -> EnvConfig:
     """
     source = "defaults"
     if isinstance(config, EnvConfig):
+        if not overrides:  # validated already (assignments too): a copy, not a second validation
+            return config.model_copy(deep=True)
         data: dict[str, Any] = config.model_dump()
         source = "EnvConfig"
     elif config is None:
         data = {}
     elif isinstance(config, (str, Path)):
-        path = Path(config)
-        if not path.is_file():
-            raise ConfigError(f"config file not found: {path}")
-        try:
-            data = read_yaml_file(path) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path} {yaml_problem(exc)}") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"config file {path} must hold a mapping of fields, got {type(data).__name__}")
+        data = read_mapping_file(config, "config")
         data = data.get("env", data) if "env" in data and isinstance(data["env"], dict) else data
-        source = str(path)
+        source = str(Path(config))
     elif isinstance(config, Mapping):
         data = dict(config)
         source = "dict"
     else:
         raise ConfigError(f"config must be an EnvConfig, a dict, a YAML path or None, got {type(config).__name__}")
-    data = _deep_merge(data, overrides)
+    data = deep_merge(data, overrides)
     try:
         return EnvConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_validation_error(exc, source)) from None
+        raise ConfigError(format_validation_error(exc, f"invalid socnav config ({source}):", EnvConfig)) from None
 
 
 def perturbation_text(config: EnvConfig) -> str:
@@ -381,13 +459,3 @@ def describe_world(config: EnvConfig, with_perturbation: bool = True) -> str:
     if with_perturbation and perturbed:
         parts.append(f"perturbed: {perturbed}")
     return ", ".join(parts)
-
-
-def _deep_merge(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
-    merged = dict(base)
-    for key, value in extra.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
-            merged[key] = _deep_merge(dict(merged[key]), value)
-        else:
-            merged[key] = value
-    return merged

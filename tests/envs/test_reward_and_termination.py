@@ -12,7 +12,8 @@ from socnav.sim.world import OUTCOME_COLLISION, OUTCOME_GOAL, OUTCOME_TIMEOUT, C
 
 
 def staged_world(robot, robot_goal, humans=(), reward=None, **config):
-    """One environment: robot at `robot` heading to `robot_goal`; humans as (position, goal, r_prox, cooperation)."""
+    """One environment: robot at `robot` heading to `robot_goal`; humans as (position, goal, r_prox, cooperation)
+    or (position, goal, r_prox, cooperation, v_pref); v_pref is 1 m/s for the robot and by default for humans."""
     # Staged humans are attentive and see all around (attention is tested in tests/sim/test_attention.py).
     cfg = load_config({"scenario": "circle_crossing", "n_humans": max(len(humans), 0), "reward": reward or {},
                        "human_fov_deg": 360, **config})
@@ -20,9 +21,9 @@ def staged_world(robot, robot_goal, humans=(), reward=None, **config):
     state = InitialState.empty(1, world.n_slots)
     state.positions[0, 0], state.goals[0, 0] = robot, robot_goal
     state.radii[0, 0], state.preferred_speeds[0, 0], state.active[0, 0] = 0.3, 1.0, True
-    for k, (position, goal, personal_space, cooperation) in enumerate(humans, start=1):
+    for k, (position, goal, personal_space, cooperation, *v_pref) in enumerate(humans, start=1):
         state.positions[0, k], state.goals[0, k] = position, goal
-        state.radii[0, k], state.preferred_speeds[0, k], state.active[0, k] = 0.3, 1.0, True
+        state.radii[0, k], state.preferred_speeds[0, k], state.active[0, k] = 0.3, (v_pref or [1.0])[0], True
         state.personal_space_radii[0, k], state.cooperation[0, k] = personal_space, cooperation
     offset = np.subtract(robot_goal, robot)
     state.robot_heading[0] = math.atan2(offset[1], offset[0])
@@ -84,6 +85,34 @@ def test_disturbance_term_equals_orca_with_and_without_robot():
     assert abs(expected) > 1e-3, "the staged robot must actually disturb the human"
     result = world.step(np.array([[-1.0, 0.0]]))
     assert result.reward[0] == pytest.approx(expected)
+
+
+def test_disturbance_is_relative_to_the_humans_preferred_speed_hand_computed():
+    # Head-on, everything at rest: a human (v_pref 0.5 m/s, cooperation c = 0.5) walks straight at a robot that
+    # stands still, centres d = 2 m apart. The human sees the robot bigger by its personal space:
+    # R = 0.3 + 0.3 + 0.4 = 1 m. RVO2 with both velocities zero: u = (d - R) / tau along the axis (tau = 5 s), the
+    # human may close in at no more than c (d - R) / tau = 0.1 m/s; without the robot it walks at its 0.5 m/s.
+    # Disturbance (SPEC section 2): |v_i - v_i^0| / v_pref,i = (0.5 - 0.1) / 0.5 = 0.8 (0.4 if not divided by v_pref).
+    weight = 2.0
+    world = staged_world((0.0, 0.0), (0.0, 6.0), [((2.0, 0.0), (-6.0, 0.0), 0.4, 0.5, 0.5)],
+                         reward={"time": 0.0, "progress": 0.0, "personal_space": 0.0, "disturbance": weight})
+    result = world.step(np.array([[-1.0, 0.0]]))  # speed 0: the robot stays put
+    assert world.velocities[0, 1] == pytest.approx([-0.1, 0.0], abs=1e-12), "the hand computation's ORCA velocity"
+    assert world.disturbance[0] == pytest.approx(0.8, rel=1e-12)
+    assert result.reward[0] == pytest.approx(-weight * 0.8, rel=1e-12)
+
+
+def test_min_gap_includes_the_closest_approach_between_two_steps():
+    # A human walks past a robot that stands still, 1 m to its side, at 1 m/s (it ignores the robot): in the 0.25 s
+    # step from x = 0.125 to x = -0.125 it is closest at x = 0, mid-step. Gap there: 1 - 0.6 = 0.4 m; at both
+    # ends of the step: sqrt(0.125^2 + 1) - 0.6 = 0.4078 m.
+    world = staged_world((0.0, 0.0), (0.0, -9.0), [((0.125, 1.0), (-10.0, 1.0), 0.3, 0.5)], robot_visible=False,
+                         reward=NO_SOCIAL)
+    result = world.step(np.array([[-1.0, 0.0]]))
+    assert world.positions[0, 1] == pytest.approx([-0.125, 1.0], abs=1e-12)
+    assert result.nearest_gap[0] == pytest.approx(math.hypot(0.125, 1.0) - 0.6, abs=1e-12)
+    assert world.min_gap[0] == pytest.approx(0.4, abs=1e-12)
+    assert world.episode_summary(0, int(result.outcome[0]))["min_gap"] == pytest.approx(0.4, abs=1e-12)
 
 
 def test_goal_collision_and_timeout():

@@ -21,7 +21,8 @@ import yaml
 # A plain import, not importorskip: Ray is in the `test` extra, so a missing Ray fails this module.
 from ray.cluster_utils import Cluster
 
-from socnav.experiments.runner import read_plan, run_experiment, unit_dir, unit_state
+from socnav.experiments.registry import unit_dir
+from socnav.experiments.runner import read_plan, run_experiment, unit_state
 from socnav.experiments.spec import load_experiment, plan_units
 
 EPISODES = 48  # long enough that a unit is still running when its node is killed, even on a loaded machine

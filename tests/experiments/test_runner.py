@@ -16,14 +16,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from _extras import require
 from typer.testing import CliRunner
 
 from socnav.cli import app
 from socnav.experiments.report import build_report
-from socnav.experiments.runner import (
-    EXECUTORS, ExecutorResult, RunnerError, _file_lock, _unit_lock_path, read_plan, run_experiment, unit_dir,
-    unit_states,
-)
+from socnav.experiments.registry import EXECUTORS, ExecutorResult, unit_dir
+from socnav.experiments.runner import RunnerError, _file_lock, _unit_lock_path, read_plan, run_experiment, unit_states
 from socnav.experiments.spec import PLANNERS, Unit, load_experiment, plan_units
 from socnav.io import read_table
 
@@ -76,7 +75,7 @@ def test_local_backend_end_to_end(local_run):
 
 
 def test_ray_backend_end_to_end(tmp_path):
-    ray = pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'socnav[ray]')")
+    ray = require("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
     try:
         experiment = load_experiment(SMOKE, "quick")
@@ -253,7 +252,7 @@ def test_busy_or_foreign_run_directory_is_refused(tmp_path):
 
 
 def test_tune_runs_trials_and_writes_a_preset(tmp_path):
-    optuna = pytest.importorskip("optuna", reason="Optuna is an optional extra (pip install 'socnav[tune]')")
+    optuna = require("optuna")
     storage = f"sqlite:///{tmp_path / 'tune.db'}"
     preset = tmp_path / "preset.yaml"
     result = runner.invoke(app, [

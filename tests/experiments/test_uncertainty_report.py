@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from socnav.experiments.report import SECTIONS, build_report
+from socnav.experiments.registry import SECTIONS
+from socnav.experiments.report import build_report
 from socnav.io import write_table_atomic
 
 # ------------------------------------------------------------------------------------------------ study records

@@ -45,3 +45,34 @@ def test_absurd_hyperparameters_are_refused_by_name(overrides, field, hint):
 def test_presets_still_validate():
     for algo in ALGOS:
         assert resolve_config(algo) == resolve_config(algo, {})
+
+
+def test_renamed_dropout_key_points_to_p_train():
+    with pytest.raises(ValueError, match=r"'dropout_p'.*renamed p_train.*write p_train"):
+        resolve_config("ppo-drop", {"dropout_p": 0.1})
+
+
+def test_override_errors_read_through_the_one_formatter():
+    from socnav.rl.presets import describe_override_error
+
+    with pytest.raises(ValueError) as error:  # pydantic's ValidationError, unchanged for Python callers
+        resolve_config("ppo", {"p_train": 1.5, "net_arch_pi": [64, True]})
+    lines = describe_override_error("ppo", error.value).splitlines()
+    assert lines[0] == "invalid hyperparameters for algo 'ppo':"
+    assert "  - p_train: Input should be less than 1 (got 1.5)" in lines
+    assert "  - net_arch_pi.1: Input should be a valid integer (got True)" in lines
+    with pytest.raises(ValueError) as error:
+        resolve_config("ppo", {"lr": 1e-3})
+    assert describe_override_error("ppo", error.value) == str(error.value)  # socnav's own message as it is
+
+
+def test_make_model_takes_an_already_resolved_config():
+    import socnav
+    from socnav.rl.presets import make_model
+
+    env = socnav.make_vec_env({"scenario": "position_swap", "n_humans": 1}, n_envs=2)
+    config = resolve_config("ppo-drop", {"n_steps": 64})
+    model = make_model("ppo-drop", env, seed=0, algo_config=config)
+    assert model.n_steps == 64 and model.algo_config == config.model_dump(mode="json")
+    with pytest.raises(ValueError, match="not both"):
+        make_model("ppo-drop", env, seed=0, overrides={"n_steps": 64}, algo_config=config)

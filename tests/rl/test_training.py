@@ -124,6 +124,20 @@ def test_train_writes_run_directory_and_loadable_model(tmp_path):
     policy = load_policy(result.model_path)
     assert policy.socnav_metadata["timesteps"] == 1024
     assert th.isfinite(policy.feature_range[0]).all()  # tracked during the rollouts
+    # eval.csv's values: every row is a distribution over the 3 validation episodes, and the last row (the final
+    # model) is what an independent evaluation of the saved policy on the validation seeds gives.
+    from socnav.envs.rollout import rollout_episodes, summarize
+    from socnav.rl.training import VALIDATION_SEED_BASE
+
+    assert list(evals[["goal_pct", "collision_pct", "timeout_pct"]].sum(axis=1)) == pytest.approx([100.0, 100.0])
+    records = rollout_episodes(policy, ENV, 3, seed=VALIDATION_SEED_BASE)
+    assert list(records["seed"]) == [VALIDATION_SEED_BASE + k for k in range(3)]
+    expected = summarize(records)
+    final = evals.iloc[-1]
+    for column in ("episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean", "return_std"):
+        assert final[column] == pytest.approx(expected[column], rel=1e-12, abs=1e-12), column
+        assert result.final_eval[column] == expected[column], column
+    assert expected["return_std"] > 0.0, "three identical episodes would not tell seeds apart"
 
 
 def test_nan_stops_training_naming_step_and_tensor(tmp_path, monkeypatch):

@@ -158,7 +158,8 @@ def test_planted_pickle_in_a_checkpoint_is_refused_on_resume_with_nothing_execut
 
 
 def test_rerun_of_a_sweep_never_executes_a_planted_checkpoint(tmp_path):
-    from socnav.experiments.runner import execute_unit, unit_dir
+    from socnav.experiments.registry import unit_dir
+    from socnav.experiments.runner import execute_unit
     from socnav.experiments.spec import Unit
 
     params = {"env": ENV, "algo": "odv-ppo", "seed": 0, "timesteps": TOTAL, "n_envs": 2, "overrides": SMALL,
@@ -274,7 +275,8 @@ def test_temporaries_of_a_killed_training_are_removed_on_the_next_start(run_copy
 def test_temporaries_of_a_killed_sweep_are_removed_on_the_next_run(tmp_path, monkeypatch):
     import yaml
 
-    from socnav.experiments.runner import EXECUTORS, ExecutorResult, run_experiment
+    from socnav.experiments.registry import EXECUTORS, ExecutorResult
+    from socnav.experiments.runner import run_experiment
     from socnav.experiments.spec import PLANNERS, Unit, load_experiment
 
     def fine(root, unit, directory) -> ExecutorResult:

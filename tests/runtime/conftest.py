@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from socnav.config import load_config
-from socnav.envs.controllers import OrcaController
+from socnav.controllers import OrcaController
 from socnav.sim.scenarios import scenario_names
 from socnav.sim.world import CrowdWorld
 

@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from socnav.config import load_config
-from socnav.envs.controllers import OrcaController, StraightController
+from socnav.controllers import OrcaController, StraightController
 from socnav.envs.rollout import rollout_episodes
 from socnav.safety import (
     THRESHOLD_PRESETS,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from socnav.config import load_config
-from socnav.envs.controllers import StraightController
+from socnav.controllers import StraightController
 from socnav.envs.rollout import rollout_episodes
 from socnav.safety import (
     CautiousController, SafePolicy, Thresholds, ThresholdsError, collect_records, load_thresholds, nearest_human,
@@ -171,7 +171,7 @@ def test_sensing_is_a_validated_threshold_field_that_files_keep(tmp_path):
 
 
 def test_calibrated_thresholds_carry_the_sensing_they_were_calibrated_with():
-    from socnav.experiments.uncertainty_units import calibrate_thresholds
+    from socnav.safety import calibrate_thresholds
 
     env = {"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False}
     config = load_config(env)

@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from socnav.config import load_config
-from socnav.envs.controllers import OrcaController
+from socnav.controllers import OrcaController
 from socnav.envs.rollout import rollout_episodes
 from socnav.sim.scenarios import InitialState
 from socnav.sim.world import CrowdWorld

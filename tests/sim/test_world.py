@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from socnav.config import load_config
-from socnav.envs.controllers import OrcaController
+from socnav.controllers import OrcaController
 from socnav.envs.rollout import rollout_episodes
 from socnav.sim.scenarios import get_scenario, scenario_names
 from socnav.sim.world import CrowdWorld

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 
 import socnav
-from socnav.envs.controllers import StraightController
+from socnav.controllers import StraightController
 from socnav.rl import make_model
 from socnav.uncertainty import MCDropoutEstimator
 from socnav.uncertainty.recording import UNCERTAINTY_COLUMNS, critical_steps, record_uncertainty

@@ -9,6 +9,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from _extras import require
 from matplotlib.colors import to_rgb
 
 from socnav.viz import HumanViewer, SceneFrame, SceneRenderer, save_animation
@@ -175,19 +176,35 @@ def test_mp4_without_ffmpeg_says_what_to_install(tmp_path, monkeypatch):
 
 
 def test_mp4_round_trip(tmp_path):
-    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    imageio_ffmpeg = require("imageio_ffmpeg")
     path = save_animation(_distinct_frames(4, size=48), tmp_path / "out.mp4", fps=4)
     n_frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(path))
     assert n_frames == 4 and seconds == pytest.approx(1.0)
     assert [p.name for p in tmp_path.iterdir()] == ["out.mp4"]
 
 
-def test_human_viewer_runs_headless(monkeypatch):
+def test_human_viewer_shows_each_frame_pixel_for_pixel_headless(monkeypatch):
     import matplotlib
+    import matplotlib.pyplot as plt
 
     monkeypatch.setitem(matplotlib.rcParams, "backend", "Agg")  # never open a window in tests
-    viewer = HumanViewer()
-    for frame in _distinct_frames(2):
+    # Distinct pixels everywhere (not flat colours), so a shifted, scaled or stale picture would show.
+    frames = [np.random.default_rng(seed).integers(0, 256, (48, 64, 3), dtype=np.uint8) for seed in range(2)]
+    viewer = HumanViewer(title="socnav test viewer")
+    windows = []
+    for frame in frames:
         viewer.show(frame)
+        assert plt.get_figlabels().count("socnav test viewer") == 1
+        figure = plt.figure("socnav test viewer")  # the viewer's window, looked up by its title
+        figure.canvas.draw()
+        shown = np.asarray(figure.canvas.buffer_rgba())[..., :3]
+        np.testing.assert_array_equal(shown, frame)  # the whole window is the frame, at its own size
+        windows.append(figure.number)
+    assert windows[0] == windows[1], "later frames update the same window"
     viewer.close()
+    assert not plt.fignum_exists(windows[0]) and "socnav test viewer" not in plt.get_figlabels()
     viewer.close()  # idempotent
+    viewer.show(frames[0])  # a closed viewer opens a new window on the next frame
+    assert "socnav test viewer" in plt.get_figlabels()
+    viewer.close()
+    assert "socnav test viewer" not in plt.get_figlabels()

@@ -12,8 +12,8 @@ import gymnasium as gym
 import numpy as np
 
 from socnav.config import ConfigError, ConfigLike, EnvConfig, load_config
-from socnav.envs.spaces import action_space, observation_space
-from socnav.sim.world import OUTCOME_NAMES, CrowdWorld, StepResult
+from socnav.envs.spaces import ACTION_NAMES, action_space, observation_space
+from socnav.sim.world import OUTCOME_GOAL, OUTCOME_NAMES, CrowdWorld, StepResult
 
 
 class ActionError(ValueError):
@@ -28,9 +28,11 @@ def check_actions(actions: Any, n_envs: int, label: str = "environment") -> np.n
     (SB3 clips a Box policy's actions the same way before they reach the environment).
     """
     array = np.asarray(actions, dtype=np.float64)
-    if array.size != 2 * n_envs:
-        raise ActionError(f"expected {n_envs} action(s) of 2 values (speed, heading change), got shape {array.shape}")
-    array = array.reshape(n_envs, 2)
+    n_values = len(ACTION_NAMES)  # speed, heading change
+    if array.size != n_values * n_envs:
+        raise ActionError(f"expected {n_envs} action(s) of {n_values} values (speed, heading change), got shape "
+                          f"{array.shape}")
+    array = array.reshape(n_envs, n_values)
     bad = np.flatnonzero(np.isnan(array).any(axis=1))
     if bad.size:
         env = int(bad[0])
@@ -92,7 +94,7 @@ def step_infos(world: CrowdWorld, result: StepResult) -> list[dict[str, Any]]:
         summary = world.episode_summary(env, outcome)
         info = infos[env]
         info["outcome"] = OUTCOME_NAMES[outcome]
-        info["is_success"] = outcome == 1
+        info["is_success"] = outcome == OUTCOME_GOAL
         # "r" and "l" make SB3 log rollout/ep_rew_mean and ep_len_mean as with its Monitor wrapper.
         info["episode"] = {"r": summary["return"], "l": summary["length"], "t": summary["duration"], **summary}
     return infos
@@ -119,7 +121,142 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
 
 
 class SocialNavEnv(gym.Env):
-    """A robot among socially individual ORCA humans. Observation: Dict; action: Box [-1, 1]^2 (speed, heading change)."""
+    """A unicycle robot crossing a crowd of reactive, socially individual humans (SPEC sections 1 and 2).
+
+    ## Description
+
+    The robot (agent 0) drives to its goal on a 2-D open plane among humans who walk to their own goals with ORCA
+    (exact RVO2 semantics, van den Berg et al. 2011) and react to the robot as individuals: each keeps its personal
+    space `r_prox` free of the robot, takes its own share of the avoidance (cooperation), and may be inattentive to
+    the robot or notice it only inside its view cone. None of this is observable, so the task is the POMDP of paper
+    eq. (1); the reward is the socially integrated reward of Flögel et al. (IROS 2024) that the paper trains
+    with. One `SocialNavEnv` is one environment of a `socnav.sim.world.CrowdWorld`; `socnav.make_vec_env` steps
+    many of them in one batched call with identical episodes.
+
+    ## Action Space
+
+    `Box(-1, 1, (2,), float32)`; out-of-range values (+-inf included) are clipped to [-1, 1], NaN is refused:
+
+    | Num | Action    | Maps to                                                       |
+    |-----|-----------|---------------------------------------------------------------|
+    | 0   | `speed`   | `v = v_pref (a0 + 1) / 2` m/s, in `[0, v_pref]`               |
+    | 1   | `heading` | heading change `dtheta = max_heading_change * a1` (pi/6 rad)  |
+
+    The robot then moves as a unicycle: `theta <- wrap(theta + dtheta)`, `p <- p + v [cos theta, sin theta] dt`.
+    Action noise (`perturbation.heading_noise`, `perturbation.speed_noise`) perturbs `v` and `dtheta` before the move.
+
+    ## Observation Space
+
+    A `Dict` of float32 arrays in the robot-centric, goal-aligned frame (x-axis from the robot to its goal):
+
+    `robot`, `Box(-inf, inf, (5,))`:
+
+    | Num | Feature           | Meaning                                                      | Unit |
+    |-----|-------------------|--------------------------------------------------------------|------|
+    | 0   | `goal_distance`   | distance from the robot's centre to its goal                 | m    |
+    | 1   | `goal_heading`    | robot heading relative to the goal direction, in [-pi, pi)   | rad  |
+    | 2   | `speed`           | current speed                                                | m/s  |
+    | 3   | `preferred_speed` | the robot's preferred (maximum) speed `v_pref`               | m/s  |
+    | 4   | `radius`          | the robot's radius                                           | m    |
+
+    `humans`, `Box(-inf, inf, (max_humans, 7))`: one row per human, rows sorted by gap with the closest LAST (an
+    LSTM reads it last), zero padding after the real rows; with more than `max_humans` humans the closest are kept:
+
+    | Num | Feature           | Meaning                                                      | Unit |
+    |-----|-------------------|--------------------------------------------------------------|------|
+    | 0   | `rel_x`           | human minus robot position, along the goal direction         | m    |
+    | 1   | `rel_y`           | human minus robot position, across the goal direction        | m    |
+    | 2   | `rel_vx`          | human minus robot velocity, along the goal direction         | m/s  |
+    | 3   | `rel_vy`          | human minus robot velocity, across the goal direction        | m/s  |
+    | 4   | `radius`          | the human's radius                                           | m    |
+    | 5   | `combined_radius` | human radius + robot radius                                  | m    |
+    | 6   | `gap`             | centre distance - combined radius (negative: bodies overlap) | m    |
+
+    `humans_mask`, `Box(0, 1, (max_humans,))`: 1 for the rows that are real humans, 0 for padding.
+
+    No hidden state of the humans (goal, `v_pref`, `r_prox`, cooperation, attention) appears in the observation.
+    `perturbation.observation_noise` adds N(0, s^2) to every real element (neither padding nor the mask).
+
+    ## Rewards
+
+    The socially integrated reward (SPEC section 2), every step; it is defined in one place,
+    `socnav.sim.world._score`, with the weights of `config.reward` (`socnav.config.RewardConfig`):
+
+        r_t = - w_time dt + w_prog (d_goal(t-1) - d_goal(t))
+              - sum over humans i with gap_i < r_prox,i        of w_prox (1 - gap_i / r_prox,i)
+              - sum over humans i within social_radius         of w_dist |v_i - v_i^0| / v_pref,i
+              + w_goal [goal reached] - w_col [collision]
+
+    `gap_i` is the distance between the bodies; `v_i^0` is the velocity ORCA would have given human i this step had
+    the robot not been there (how far the robot pushed that person off their way); the disturbance counts the
+    humans within `social_radius` at the start of the step. Every weight can be switched off with 0:
+
+    | Symbol    | Config field                   | Default | Term                                           |
+    |-----------|--------------------------------|---------|------------------------------------------------|
+    | `w_goal`  | `reward.goal`                  | 5.0     | reaching the goal                              |
+    | `w_col`   | `reward.collision`             | 5.0     | a collision                                    |
+    | `w_time`  | `reward.time`                  | 0.5     | per second of episode                          |
+    | `w_prog`  | `reward.progress`              | 1.0     | per metre of progress (potential-based)        |
+    | `w_prox`  | `reward.personal_space`        | 0.5     | per intruded personal space                    |
+    | `w_dist`  | `reward.disturbance`           | 0.25    | per unit of relative disturbance               |
+    |           | `reward.social_radius`         | 3.0     | metres (gap) within which humans score         |
+
+    ## Starting State
+
+    Each reset draws an episode from the scenario (`config.scenario`) with the environment's own generator:
+
+    - `position_swap`: the robot and one human on a circle of radius `circle_radius` (7 m) at independent uniform
+      angles, each heading to its own antipode;
+    - `circle_crossing`: `n_humans` (5) humans at uniform angles on the circle (+- `circle_jitter`), goals at their
+      antipodes; the robot on one of four fixed diameters;
+    - `circle_interaction`: the robot crosses the circle and each of 1-3 humans is placed to reach the centre when
+      the robot does;
+    - `random`: starts and goals uniform in a `square_size` (14 m) square; humans draw a new goal on arrival.
+
+    Every agent's `v_pref ~ U[preferred_speed]` (0.5-1.0 m/s); every human's `r_prox ~ U[personal_space]`
+    (0.3-0.7 m) and cooperation `~ U[cooperation]` (0.25-0.5), and it is inattentive with probability
+    `inattentive_share`. All velocities start at zero; the robot's heading is uniform (`initial_heading="random"`)
+    or points at its goal (`"goal"`).
+
+    ## Episode End
+
+    Checked after every step, the first that applies (`info["outcome"]`; codes `socnav.sim.world.OUTCOME_*`):
+
+    1. Termination, `"collision"` (`OUTCOME_COLLISION`): the robot's body overlaps a human's at any moment of the
+       step (the swept gap is negative).
+    2. Termination, `"goal"` (`OUTCOME_GOAL`): the robot's centre is within `goal_tolerance` (0.3 m) of its goal;
+       `info["is_success"]` is True.
+    3. Truncation, `"timeout"` (`OUTCOME_TIMEOUT`): `t > timeout_factor |start - goal| / v_pref + timeout_margin`
+       (2 |start - goal| / v_pref + 10 s).
+
+    Every step's `info` holds `time`, `nearest_gap`, `nearest_relative_speed` and `intrusions`; the last step's also
+    `outcome`, `is_success` and `episode` (return `r`, length `l`, time `t`, path length, minimum gap, intrusion
+    steps and events, disturbance).
+
+    ## Arguments
+
+    ```python
+    import gymnasium as gym
+    import socnav
+
+    env = gym.make("socnav/CircleCrossing-v0", n_humans=3, render_mode="rgb_array")
+    env = socnav.make_env({"scenario": "random", "perturbation": {"heading_noise": 0.4}})
+    ```
+
+    | Parameter     | Type                                 | Default | Description                                     |
+    |---------------|--------------------------------------|---------|-------------------------------------------------|
+    | `config`      | `EnvConfig`, dict, YAML path or None | `None`  | the world; missing fields take their defaults   |
+    | `render_mode` | `"rgb_array"`, `"human"` or None     | `None`  | frames: agents, goals, personal spaces, trails  |
+    | `**overrides` | config fields                        |         | e.g. `n_humans=3` (`gymnasium.make`'s kwargs)   |
+
+    `reset(seed=s)` makes the episode a function of `s` alone: environment i of a VecEnv seeded with `s` plays the
+    episodes of this environment seeded with `s + i`.
+
+    ## Version History
+
+    * v0: initial release (`socnav/PositionSwap-v0`, `socnav/CircleCrossing-v0`, `socnav/CircleInteraction-v0`,
+      `socnav/Random-v0`).
+    """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 4}
 
@@ -175,16 +312,20 @@ class SocialNavEnv(gym.Env):
         """The current scene as a `socnav.viz.SceneFrame` (positions, goals, personal spaces, trail)."""
         return scene_frame(self.world, 0, self._trail[-40:], caption=caption, **extra)
 
-    def render(self):
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
-            return None
+    def render_frame(self, caption: str = "") -> np.ndarray:
+        """The current scene as an rgb array with `caption` written on it, whatever the `render_mode`."""
         from socnav.viz.render import SceneRenderer
 
         if self._renderer is None:
             self._renderer = SceneRenderer(extent=self.config.circle_radius + 1.5
                                            if self.config.scenario != "random" else self.config.square_size / 2 + 1.5)
-        image = self._renderer.render(self.scene_frame())
+        return self._renderer.render(self.scene_frame(caption=caption))
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'.")
+            return None
+        image = self.render_frame()
         if self.render_mode == "rgb_array":
             return image
         from socnav.viz import HumanViewer

@@ -30,7 +30,10 @@ class StepObserver(Protocol):
 
     def on_step(self, observation: dict[str, np.ndarray], actions: np.ndarray, result: Any,
                 episodes: np.ndarray) -> None:
-        """`episodes[e]` is the episode environment e played this step (-1: none, its result is to be ignored)."""
+        """`episodes[e]` is the episode environment e played this step (-1: none, its result is to be ignored).
+
+        Called after the world stepped and before ended episodes are reset and announced, so the policy's record
+        of this step (e.g. `SafePolicy.last_uncertainty`) is still the one of the action in `actions`."""
 
     def on_episode_start(self, envs: np.ndarray) -> None:
         """Environments `envs` start a new episode (called before their first observation is used)."""
@@ -121,17 +124,17 @@ def record_episode(
     """Play one episode (seed `seed`, as episode 0 of `rollout_episodes`) and return its rgb frames and summary."""
     from socnav.envs.env import SocialNavEnv
 
-    env = SocialNavEnv(config, render_mode="rgb_array")
+    env = SocialNavEnv(config)
     observation, _ = env.reset(seed=seed)
-    frames = [env.render()]
+    frames = [env.render_frame()]
     summary: dict[str, Any] = {}
     for _ in range(max_frames):
         action, _ = policy.predict(observation, deterministic=deterministic)
         observation, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             summary = info["episode"]
-            frames.append(env._renderer.render(env.scene_frame(caption=f"{summary['outcome']}")))
+            frames.append(env.render_frame(caption=str(summary["outcome"])))
             break
-        frames.append(env.render())
+        frames.append(env.render_frame())
     env.close()
     return frames, summary

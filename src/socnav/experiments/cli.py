@@ -10,20 +10,11 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.console import Console
-from rich.markup import escape
 
+from socnav._console import console, fail
 from socnav.extras import install_hint
 
-console = Console(soft_wrap=True)
-
 __all__ = ["register"]
-
-
-def _fail(message: str, code: int = 2) -> None:
-    # Escaped: messages hold brackets (`pip install -e ".[tune]"`, `[min, max]`) that Rich would take for markup.
-    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
-    raise typer.Exit(code=code)
 
 
 class _ProgressReporter:
@@ -95,14 +86,14 @@ def run(
     from socnav.experiments.spec import ExperimentError, load_experiment, plan_units
 
     if backend not in ("local", "ray"):
-        _fail(f"--backend {backend!r} is not known; allowed: local, ray")
+        fail(f"--backend {backend!r} is not known; allowed: local, ray")
     if address is not None and backend != "ray":
-        _fail("--address is for --backend ray")
+        fail("--address is for --backend ray")
     try:
         resolved = load_experiment(experiment, budget)
         units = plan_units(resolved)
     except ExperimentError as exc:
-        _fail(str(exc))
+        fail(str(exc))
         return
     root = out or Path("runs") / (resolved.name + (f"-{resolved.budget}" if resolved.budget else ""))
     n_train = sum(unit.kind == "train" for unit in units)
@@ -117,7 +108,7 @@ def run(
         try:
             import ray  # noqa: F401
         except ImportError:
-            _fail(f"--backend ray needs Ray: {install_hint('ray')}")
+            fail(f"--backend ray needs Ray: {install_hint('ray')}")
     reporter = _ProgressReporter()
     started = time.perf_counter()
     try:
@@ -125,7 +116,7 @@ def run(
                                  retries=retries, source=experiment, reporter=reporter)
     except RunnerError as exc:
         reporter.stop()
-        _fail(str(exc))
+        fail(str(exc))
         return
     except KeyboardInterrupt:
         reporter.stop()
@@ -152,11 +143,11 @@ def report(
     from socnav.experiments.runner import RunnerError
 
     if not results_dir.is_dir():
-        _fail(f"no such run directory: {results_dir}")
+        fail(f"no such run directory: {results_dir}")
     try:
         page = build_report(results_dir, out)
     except (RunnerError, ValueError) as exc:
-        _fail(str(exc))
+        fail(str(exc))
         return
     console.print(f"report: {page}", highlight=False)
     for name in sorted(p.name for p in page.parent.iterdir() if p.is_file() and p.name != page.name):
@@ -190,23 +181,23 @@ def tune(
     from socnav.rl.presets import ALGOS
 
     if algo not in ALGOS:
-        _fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
+        fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
     from socnav.experiments.tune import METRICS, tune as run_tune, write_preset as save_preset
 
     if metric not in METRICS:
-        _fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")
+        fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")
     overrides: dict[str, Any] = {"scenario": scenario}
     if n_humans is not None:
         overrides["n_humans"] = n_humans
     try:
         env_config = load_config(config, **overrides)
     except ConfigError as exc:
-        _fail(str(exc))
+        fail(str(exc))
         return
     try:
         import optuna
     except ImportError:
-        _fail(f"socnav tune needs Optuna: {install_hint('tune')}")
+        fail(f"socnav tune needs Optuna: {install_hint('tune')}")
         return
     optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -222,7 +213,7 @@ def tune(
                           out_dir=out, n_envs=n_envs, eval_every=eval_every, eval_episodes=eval_episodes,
                           seed=seed, metric=metric, timeout=timeout, on_trial=on_trial)
     except (RuntimeError, ValueError) as exc:
-        _fail(str(exc), code=1)
+        fail(str(exc), code=1)
         return
     table = Table(title=f"best of study {result.study_name!r}: trial #{result.best_trial}, "
                         f"{metric} = {result.best_value:.4f}")

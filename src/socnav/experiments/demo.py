@@ -52,7 +52,7 @@ class SafetyDemo:
 
 
 def _safe_policy(policy: Any, config: EnvConfig) -> Any:
-    from socnav.experiments.uncertainty_units import MC_SEED
+    from socnav.uncertainty import MC_SEED
     from socnav.safety import SafePolicy
     from socnav.uncertainty import MCDropoutEstimator
 
@@ -112,7 +112,7 @@ def animate_saved_episode(policy: Any, config: EnvConfig, episode_seed: int, out
                           policy_label: str) -> tuple[Path, Path]:
     """The episode `episode_seed` without the safety layer (a collision) and with it (saved), as two GIFs."""
     from socnav.experiments.animate import animate_episode
-    from socnav.experiments.uncertainty_units import MC_SEED
+    from socnav.uncertainty import MC_SEED
     from socnav.uncertainty import MCDropoutEstimator
 
     without, _ = animate_episode(policy, None, config, out_dir / f"safety_off_seed{episode_seed}.gif",

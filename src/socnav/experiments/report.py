@@ -1,10 +1,11 @@
 """Reports of finished (or partly finished) experiments: tables as Markdown + CSV, figures as PNG + SVG, and one
 Markdown page, ``report.md``, that holds them.
 
-The page is assembled from *sections* registered per experiment kind (``@register_section("table1", ...)``): each
-section gets a :class:`ReportContext` (the run directory, its resolved experiment, the finished units and their
-records), writes its own files into the report directory and returns its Markdown. Later experiments (uncertainty
-vs perturbation, prevented collisions) add their sections for their own kinds without touching this module.
+The page is assembled from *sections* registered per experiment kind (``@register_section("table1", ...)``,
+:mod:`socnav.experiments.registry`): each section gets a :class:`~socnav.experiments.registry.ReportContext` (the run
+directory, its resolved experiment, the finished units and their records), writes its own files into the report
+directory and returns its Markdown. This module holds the table1 kind's sections; the uncertainty kind's are in
+:mod:`socnav.experiments.uncertainty_report`, imported here so that a report knows every kind.
 
 Table 1 metrics, per (training scenario, algorithm, evaluation scenario), each the mean over seeds of the per-seed
 value computed from that seed's test episodes:
@@ -24,21 +25,21 @@ difference of mean goal rates and probability of improvement with stratified boo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterable
 
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.runner import read_plan, unit_dir, unit_states
-from socnav.experiments.spec import Unit
-from socnav.io import read_table, save_figure, write_table_atomic, write_text_atomic
+# The sections of the `uncertainty` kind register on import.
+from socnav.experiments import uncertainty_report  # noqa: F401
+from socnav.experiments.registry import SECTIONS, ReportContext, register_section
+from socnav.experiments.runner import read_plan, unit_states
+from socnav.io import save_figure, write_table_atomic, write_text_atomic
 
 __all__ = [
-    "ReportContext", "SECTIONS", "aggregate_frame", "build_report", "comparison_frame", "plot_aggregate",
-    "register_section", "table1_ci_frame", "table1_ci_markdown", "table1_frame", "table1_markdown",
-    "table1_seed_frame", "training_curve_frame", "plot_training_curves",
+    "aggregate_frame", "build_report", "comparison_frame", "plot_aggregate", "table1_ci_frame", "table1_ci_markdown",
+    "table1_frame", "table1_markdown", "table1_seed_frame", "training_curve_frame", "plot_training_curves",
 ]
 
 ALGO_LABELS = {"ppo": "PPO", "ppo-drop": "PPO-Drop", "odv-ppo-noloss": "ODV-PPO no Loss", "odv-ppo": "ODV-PPO",
@@ -60,65 +61,8 @@ def scenario_label(name: str) -> str:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Context and section registry
+# The page
 # --------------------------------------------------------------------------------------------------------------
-
-@dataclass
-class ReportContext:
-    """What a section sees: the run directory, its resolved experiment, its units and which of them are done."""
-
-    results_dir: Path
-    out_dir: Path
-    experiment: dict[str, Any]
-    units: list[Unit]
-    states: dict[str, str]
-    _cache: dict[str, Any] = field(default_factory=dict)
-
-    def done(self, kind: str | None = None) -> list[Unit]:
-        return [u for u in self.units if self.states[u.id] == "done" and (kind is None or u.kind == kind)]
-
-    def missing(self, kind: str | None = None) -> list[Unit]:
-        return [u for u in self.units if self.states[u.id] != "done" and (kind is None or u.kind == kind)]
-
-    def episode_records(self) -> pd.DataFrame:
-        """All finished evaluation units' per-episode records (with train_scenario, algo, train_seed, eval_scenario)."""
-        if "episodes" not in self._cache:
-            frames = [read_table(unit_dir(self.results_dir, u) / "episodes.parquet") for u in self.done("eval")]
-            self._cache["episodes"] = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(
-                columns=["train_scenario", "algo", "train_seed", "eval_scenario", "episode", "outcome", "return",
-                         "intrusion_events"])
-        return self._cache["episodes"]
-
-    def training_curves(self) -> pd.DataFrame:
-        """All finished training units' curve.csv rows with train_scenario, algo and seed columns."""
-        if "curves" not in self._cache:
-            frames = []
-            for unit in self.done("train"):
-                curve = read_table(unit_dir(self.results_dir, unit) / "curve.csv")
-                curve.insert(0, "seed", unit.params["seed"])
-                curve.insert(0, "algo", unit.params["algo"])
-                curve.insert(0, "train_scenario", unit.params["train_scenario"])
-                frames.append(curve)
-            self._cache["curves"] = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(
-                columns=["train_scenario", "algo", "seed", "timesteps", "ep_rew_mean"])
-        return self._cache["curves"]
-
-
-Section = Callable[[ReportContext], str]
-#: experiment kind -> [(section name, function writing its files and returning its Markdown)], in page order.
-SECTIONS: dict[str, list[tuple[str, Section]]] = {}
-
-
-def register_section(kind: str, name: str) -> Callable[[Section], Section]:
-    """Decorator adding a report section for experiments of `kind` (sections appear in registration order)."""
-
-    def decorate(function: Section) -> Section:
-        sections = SECTIONS.setdefault(kind, [])
-        sections[:] = [(n, f) for n, f in sections if n != name] + [(name, function)]
-        return function
-
-    return decorate
-
 
 def build_report(results_dir: str | Path, out_dir: str | Path | None = None) -> Path:
     """Write every section of the run directory's experiment kind and ``report.md``; returns report.md's path."""
@@ -129,7 +73,7 @@ def build_report(results_dir: str | Path, out_dir: str | Path | None = None) -> 
     context = ReportContext(results_dir, out_dir, experiment, units, unit_states(results_dir, units))
     kind = experiment.get("kind", "table1")
     if kind not in SECTIONS:
-        raise ValueError(f"no report sections for experiment kind {kind!r}; known kinds: {', '.join(SECTIONS)}")
+        raise ValueError(f"no report sections for experiment kind {kind!r}; known kinds: {', '.join(sorted(SECTIONS))}")
     parts = [_header(context)]
     for _, section in SECTIONS[kind]:
         parts.append(section(context).strip())
@@ -698,5 +642,3 @@ def paper_comparison_section(context: ReportContext) -> str:
     lines += ["", "Data: [table1_vs_paper.csv](table1_vs_paper.csv)."]
     return "\n".join(lines)
 
-
-from socnav.experiments import uncertainty_report  # noqa: E402,F401

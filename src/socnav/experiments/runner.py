@@ -25,27 +25,31 @@ so a sweep killed at any moment and run again ends with each unit's results exac
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
-import math
 import os
 import shutil
 import socket
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
+# The executors of the `uncertainty` kind register on import: here, so that every process running units (pool and
+# Ray workers too) knows them.
+from socnav.experiments import uncertainty_units  # noqa: F401
+from socnav.experiments.registry import (
+    EXECUTORS, RESUMABLE, ExecutorResult, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
+)
 from socnav.experiments.spec import Experiment, Unit, plan_units
 from socnav.extras import install_hint
 from socnav.io import file_lock as _file_lock
 from socnav.io import remove_stale_temporaries, write_text_atomic
 
 __all__ = [
-    "EXECUTORS", "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir",
-    "read_plan", "register_executor", "run_experiment", "unit_dir", "unit_state", "unit_states",
+    "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir", "read_plan",
+    "run_experiment", "unit_state", "unit_states",
 ]
 
 DONE_FILE = "done.json"
@@ -61,18 +65,6 @@ class RunnerError(RuntimeError):
 # --------------------------------------------------------------------------------------------------------------
 # Files and markers
 # --------------------------------------------------------------------------------------------------------------
-
-def unit_dir(root: Path, unit: Unit | str) -> Path:
-    return Path(root) / (unit if isinstance(unit, str) else unit.id)
-
-
-def file_digest(path: Path) -> dict[str, Any]:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return {"size": path.stat().st_size, "sha256": digest.hexdigest()}
-
 
 def _read_json(path: Path) -> Any:
     try:
@@ -92,20 +84,7 @@ def mark_done(root: Path, unit: Unit, outputs: list[str], inputs: dict[str, dict
         "inputs": inputs or {}, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": socket.gethostname(),
         **(extra or {}),
     }
-    return write_text_atomic(directory / DONE_FILE, json.dumps(_json_safe(marker), indent=2, sort_keys=True))
-
-
-def _json_safe(value: Any) -> Any:
-    """Strict JSON: NaN / infinities become null, numpy scalars plain numbers."""
-    if isinstance(value, dict):
-        return {str(key): _json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(item) for item in value]
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
+    return write_text_atomic(directory / DONE_FILE, json.dumps(json_safe(marker), indent=2, sort_keys=True))
 
 
 def _marker(root: Path, unit_id: str) -> dict[str, Any] | None:
@@ -149,32 +128,8 @@ def unit_states(root: Path, units: list[Unit]) -> dict[str, UnitState]:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Executors: what a unit kind does (later experiments register their own)
+# Executors of the table1 kind: training and evaluation units
 # --------------------------------------------------------------------------------------------------------------
-
-@dataclass
-class ExecutorResult:
-    outputs: list[str]
-    inputs: dict[str, dict[str, Any]] = field(default_factory=dict)
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-Executor = Callable[[Path, Unit, Path], ExecutorResult]  # (run root, unit, unit directory) -> result
-#: unit kind -> function doing the unit's work in its (prepared) directory.
-EXECUTORS: dict[str, Executor] = {}
-#: unit kind -> function(unit directory) telling whether a partial unit may be continued (else it is wiped).
-RESUMABLE: dict[str, Callable[[Path], bool]] = {}
-
-
-def register_executor(kind: str, resumable: Callable[[Path], bool] | None = None) -> Callable[[Executor], Executor]:
-    def decorate(function: Executor) -> Executor:
-        EXECUTORS[kind] = function
-        if resumable is not None:
-            RESUMABLE[kind] = resumable
-        return function
-
-    return decorate
-
 
 def _sound_checkpoint(directory: Path) -> bool:
     """Whether `train(resume=True)` can continue the training unit in `directory` (or start it: no checkpoint yet):
@@ -184,18 +139,12 @@ def _sound_checkpoint(directory: Path) -> bool:
     return can_resume(directory)
 
 
-def _single_threaded_torch() -> None:
-    import torch
-
-    torch.set_num_threads(1)  # units run side by side, one per core
-
-
 @register_executor("train", resumable=_sound_checkpoint)
 def _execute_train(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     from socnav.rl.training import train
 
     p = unit.params
-    _single_threaded_torch()
+    single_threaded_torch()
     # resume=True: a kept partial unit passed _sound_checkpoint, so train continues from its checkpoint (or starts
     # afresh when there is none) and never discards one.
     result = train(p["env"], p["algo"], p["seed"], p["timesteps"], directory, n_envs=p["n_envs"],
@@ -213,7 +162,7 @@ def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     from socnav.rl.persistence import load_policy
 
     p = unit.params
-    _single_threaded_torch()
+    single_threaded_torch()
     (train_id,) = unit.deps
     model = unit_dir(root, train_id) / "model.zip"
     model_digest = file_digest(model)
@@ -225,7 +174,7 @@ def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     records.insert(0, "algo", p["algo"])
     records.insert(0, "train_scenario", p["train_scenario"])
     write_table_atomic(records, directory / "episodes.parquet")
-    write_text_atomic(directory / "summary.json", json.dumps(_json_safe(summary), indent=2, sort_keys=True))
+    write_text_atomic(directory / "summary.json", json.dumps(json_safe(summary), indent=2, sort_keys=True))
     return ExecutorResult(["episodes.parquet", "summary.json"], inputs={f"{train_id}/model.zip": model_digest})
 
 
@@ -256,7 +205,7 @@ def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
             if state == "done":
                 return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
             if unit.kind not in EXECUTORS:
-                raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(EXECUTORS)}")
+                raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}")
             _prepare_unit_dir(run_root, unit, state)
             result = EXECUTORS[unit.kind](run_root, unit, directory)
             elapsed = time.perf_counter() - started
@@ -585,7 +534,3 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
         backend.close(cancel=cancelled)
     ordered = {unit.id: outcomes[unit.id] for unit in by_id.values() if unit.id in outcomes}
     return RunSummary(root, ordered)
-
-
-# The executors of the other experiment kinds register themselves on import (also in pool / Ray workers).
-from socnav.experiments import uncertainty_units  # noqa: E402,F401

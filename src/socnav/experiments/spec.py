@@ -39,11 +39,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
-import yaml
-from pydantic import BaseModel, Field, StrictInt, ValidationError, field_validator
+from pydantic import Field, StrictInt, ValidationError, field_validator
 
-from socnav.config import (ConfigError, StrictModel, load_config, read_yaml_file, short_repr, unknown_field_message,
-                           yaml_problem)
+from socnav.config import (ConfigError, StrictModel, deep_merge, format_validation_error, load_config,
+                           read_mapping_file, short_repr)
 
 __all__ = [
     "Budget", "Evaluation", "Experiment", "ExperimentError", "Grid", "PLANNERS", "Unit", "load_experiment",
@@ -55,10 +54,6 @@ SPEC_VERSION = 1
 
 class ExperimentError(ConfigError):
     """An experiment file is wrong; the message names the file, the field and what is allowed."""
-
-
-class _Strict(StrictModel):
-    """Unknown fields rejected, floats finite, counts strict integers (socnav.config.StrictModel)."""
 
 
 #: Training seeds stay below socnav.rl.training.MAX_SEED (2**28: their environments' seeds stay in [2**40, 2**41));
@@ -110,7 +105,7 @@ def _seed_list(value: Seeds) -> list[int]:
     return seeds
 
 
-class Grid(_Strict):
+class Grid(StrictModel):
     """What is trained: every algorithm on every training scenario with every seed."""
 
     algorithms: list[str] = Field(description="preset names (socnav.rl.ALGOS)")
@@ -151,7 +146,7 @@ class Grid(_Strict):
         return value
 
 
-class Evaluation(_Strict):
+class Evaluation(StrictModel):
     """How every trained policy is tested: `episodes` episodes (seeds `seed`, `seed`+1, ...) in each scenario."""
 
     scenarios: list[str] = Field(description="registered scenario names")
@@ -168,7 +163,7 @@ class Evaluation(_Strict):
 
 
 def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
-    from socnav.experiments.perturbations import PERTURBATION_FIELDS
+    from socnav.envs.perturbations import PERTURBATION_FIELDS
 
     for name, strengths in value.items():
         if name not in PERTURBATION_FIELDS:
@@ -179,7 +174,7 @@ def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
 
 
 def _paper_grids() -> dict[str, list[float]]:
-    from socnav.experiments.perturbations import PAPER_GRIDS
+    from socnav.envs.perturbations import PAPER_GRIDS
 
     return {name: list(values) for name, values in PAPER_GRIDS.items()}
 
@@ -187,12 +182,13 @@ def _paper_grids() -> dict[str, list[float]]:
 Estimator = Literal["mc", "ensemble"]
 
 
-class Study(_Strict):
+class Study(StrictModel):
     """The perturbation study (paper Table 2): per estimator and perturbation, episodes at every strength with the
     uncertainty estimated at every step. All policies of `grid` form the ensemble; seed `mc_seed` acts (for both
     estimators, so they see identical episodes) and is the MC-dropout policy."""
 
-    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
+    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
+                                        description="uncertainty estimators studied")
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
                                                   description="perturbation -> strengths, sigma(0) first")
     k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
@@ -207,21 +203,25 @@ class Study(_Strict):
         return _perturbation_grid(value)
 
 
-class Safety(_Strict):
+class Safety(StrictModel):
     """The safety evaluation (paper Table 3): per estimator and perturbation, the same episodes without the safety
     layer, with the paper's thresholds and (if `calibrate`) with thresholds calibrated on disjoint perturbations
     and seeds, each with every `sensing` (one calibration per estimator and sensing); `repeats` independent blocks
     of `evaluation.episodes` episodes give mean +- std."""
 
-    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"])
-    perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids)
-    repeats: StrictInt = Field(3, ge=1, le=MAX_SAMPLES)
+    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
+                                        description="uncertainty estimators driving the safety layer")
+    perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
+                                                  description="perturbation -> strengths, sigma(0) first")
+    repeats: StrictInt = Field(3, ge=1, le=MAX_SAMPLES,
+                               description="independent blocks of evaluation.episodes episodes (mean +- std)")
     thresholds: dict[str, str] = Field(default_factory=lambda: {"mc": "mc", "ensemble": "ensemble"},
                                        description="estimator -> paper preset name or threshold file")
-    calibrate: bool = True
+    calibrate: bool = Field(True, description="also evaluate thresholds calibrated on disjoint episodes")
     calibration_episodes: StrictInt = Field(40, ge=1, le=MAX_EPISODES,
                                             description="episodes per calibration configuration")
-    false_activation_budget: float = Field(0.05, ge=0, le=1)
+    false_activation_budget: float = Field(0.05, ge=0, le=1, description="share of unperturbed steps on which the "
+                                           "calibrated fallback may act (`socnav calibrate --false-activation-budget`)")
     proximity: Literal["abs-relative-speed", "closing-speed"] = Field(
         "abs-relative-speed", description="c_prox reading for the paper's threshold sets")
     calibration_proximity: Literal["both", "abs-relative-speed", "closing-speed"] = Field(
@@ -230,9 +230,10 @@ class Safety(_Strict):
         default_factory=lambda: ["perceived"],
         description="what c_prox, c_ap and the fallback read: perceived (the noisy observation) and/or true (the "
                     "simulator's state); each one is calibrated and evaluated (a single value is a list of one)")
-    k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES)
-    window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES)
-    mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT)
+    k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
+    window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES, description="steps of the windowed uncertainty")
+    mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT,
+                               description="training seed of the acting / MC-dropout policy")
 
     @field_validator("perturbations")
     @classmethod
@@ -253,26 +254,29 @@ class Safety(_Strict):
         return values
 
 
-class Budget(_Strict):
-    """A named budget: any field given replaces the grid's / evaluation's value; `overrides` merges."""
+class Budget(StrictModel):
+    """A named budget (`socnav run --budget NAME`): any field given replaces the value named in its description;
+    `overrides` merges."""
 
     description: str = ""
-    seeds: Optional[Seeds] = None
-    timesteps: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS)
-    n_envs: Optional[StrictInt] = Field(None, gt=0)
-    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS)
-    validation_episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES)
+    seeds: Optional[Seeds] = Field(None, description="grid.seeds: an int n (seeds 0..n-1) or a list of seeds")
+    timesteps: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.timesteps")
+    n_envs: Optional[StrictInt] = Field(None, gt=0, description="grid.n_envs")
+    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.eval_every")
+    validation_episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES,
+                                                     description="grid.validation_episodes")
     episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES,
-                                          description="evaluation episodes per policy and scenario")
-    eval_n_envs: Optional[StrictInt] = Field(None, gt=0)
-    algorithms: Optional[list[str]] = None
-    train_scenarios: Optional[list[str]] = None
-    eval_scenarios: Optional[list[str]] = None
-    overrides: Optional[dict[str, Any]] = None
-    study_perturbations: Optional[dict[str, list[float]]] = None
-    safety_perturbations: Optional[dict[str, list[float]]] = None
-    repeats: Optional[StrictInt] = Field(None, ge=1, le=MAX_SAMPLES)
-    calibration_episodes: Optional[StrictInt] = Field(None, ge=1, le=MAX_EPISODES)
+                                          description="evaluation.episodes: episodes per policy and scenario")
+    eval_n_envs: Optional[StrictInt] = Field(None, gt=0, description="evaluation.n_envs")
+    algorithms: Optional[list[str]] = Field(None, description="grid.algorithms")
+    train_scenarios: Optional[list[str]] = Field(None, description="grid.train_scenarios")
+    eval_scenarios: Optional[list[str]] = Field(None, description="evaluation.scenarios")
+    overrides: Optional[dict[str, Any]] = Field(None, description="merged into grid.overrides")
+    study_perturbations: Optional[dict[str, list[float]]] = Field(None, description="study.perturbations")
+    safety_perturbations: Optional[dict[str, list[float]]] = Field(None, description="safety.perturbations")
+    repeats: Optional[StrictInt] = Field(None, ge=1, le=MAX_SAMPLES, description="safety.repeats")
+    calibration_episodes: Optional[StrictInt] = Field(None, ge=1, le=MAX_EPISODES,
+                                                      description="safety.calibration_episodes")
 
     @field_validator("study_perturbations", "safety_perturbations")
     @classmethod
@@ -295,7 +299,7 @@ class Budget(_Strict):
         return None if value is None else _check_names(value, _scenarios(), "scenario")
 
 
-class Experiment(_Strict):
+class Experiment(StrictModel):
     """A validated experiment file. After `resolve_budget`, `budget` names the budget that was applied."""
 
     name: str = Field(description="letters, digits, '.', '_' or '-'")
@@ -335,7 +339,7 @@ class Experiment(_Strict):
     # ---- derived values ----
     def env_config(self, scenario: str) -> dict[str, Any]:
         """The (partial) env config of `scenario` in this experiment: env, then scenario_env[scenario]."""
-        return _merge({**self.env, "scenario": scenario}, self.scenario_env.get(scenario, {}))
+        return deep_merge({**self.env, "scenario": scenario}, self.scenario_env.get(scenario, {}))
 
     def algo_overrides(self, algo: str) -> dict[str, Any]:
         """Hyperparameter overrides of `algo`: grid.overrides, then grid.algo_overrides[algo] (inlined)."""
@@ -348,67 +352,16 @@ class Experiment(_Strict):
         return self.model_dump(mode="json")
 
 
-def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
-    merged = dict(base)
-    for key, value in extra.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = _merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
-
-
 # --------------------------------------------------------------------------------------------------------------
 # Loading and validation
 # --------------------------------------------------------------------------------------------------------------
-
-def _format_error(error: ValidationError, source: str) -> str:
-    lines = [f"invalid experiment ({source}):"]
-    for item in error.errors():
-        loc = tuple(item["loc"])
-        where = ".".join(str(part) for part in loc) or "<root>"
-        message = item["msg"].removeprefix("Value error, ")
-        if item["type"] == "extra_forbidden":
-            model = _model_at(loc[:-1])
-            message = (unknown_field_message(str(loc[-1]), list(model.model_fields)) if model is not None
-                       else "unknown field")
-        elif item["type"] == "missing":
-            message = "required field is missing"
-        got = "" if item["type"] == "missing" else f" (got {short_repr(item.get('input'))})"
-        lines.append(f"  - {where}: {message}{got}")
-    return "\n".join(lines)
-
-
-def _model_at(loc: tuple) -> type[BaseModel] | None:
-    model: type[BaseModel] = Experiment
-    for index, part in enumerate(loc):
-        if model is Experiment and part == "budgets":
-            return Budget if len(loc) == index + 2 else None
-        info = model.model_fields.get(str(part))
-        if info is None or not (isinstance(info.annotation, type) and issubclass(info.annotation, BaseModel)):
-            return None
-        model = info.annotation
-    return model
-
-
-def _read_yaml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ExperimentError(f"experiment file not found: {path}")
-    try:
-        data = read_yaml_file(path)
-    except yaml.YAMLError as exc:
-        raise ExperimentError(f"experiment file {path} {yaml_problem(exc)}") from None
-    if not isinstance(data, dict):
-        raise ExperimentError(f"experiment file {path} must hold a mapping of fields, got {type(data).__name__}")
-    return data
-
 
 def parse_experiment(data: dict[str, Any], source: str = "dict", base_dir: Path | None = None) -> Experiment:
     """Validate an experiment mapping (no budget applied): schema, env configs, hyperparameter overrides."""
     try:
         experiment = Experiment.model_validate(data)
     except ValidationError as exc:
-        raise ExperimentError(_format_error(exc, source)) from None
+        raise ExperimentError(format_validation_error(exc, f"invalid experiment ({source}):", Experiment)) from None
     if experiment.budget is not None:
         raise ExperimentError(f"invalid experiment ({source}):\n  - budget: set by --budget, not in the file")
     experiment = _inline_presets(experiment, source, base_dir)
@@ -424,7 +377,7 @@ def load_experiment(path: str | Path, budget: str | None = None) -> Experiment:
     :raises ExperimentError: the message names the file, the field and the allowed values.
     """
     path = Path(path)
-    experiment = parse_experiment(_read_yaml(path), str(path), path.parent)
+    experiment = parse_experiment(read_mapping_file(path, "experiment", ExperimentError), str(path), path.parent)
     return resolve_budget(experiment, budget)
 
 
@@ -436,18 +389,11 @@ def _inline_presets(experiment: Experiment, source: str, base_dir: Path | None) 
             preset = Path(value)
             if not preset.is_absolute() and base_dir is not None:
                 preset = base_dir / preset
-            if not preset.is_file():
-                raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
-                                      f"preset file not found: {preset}")
             try:
-                loaded = read_yaml_file(preset) or {}
-            except yaml.YAMLError as exc:
+                value = read_mapping_file(preset, "preset", ExperimentError)
+            except ExperimentError as exc:
                 raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
-                                      f"preset file {preset} {yaml_problem(exc)}") from None
-            if not isinstance(loaded, dict):
-                raise ExperimentError(f"invalid experiment ({source}):\n  - grid.algo_overrides.{algo}: "
-                                      f"{preset} must hold a mapping of hyperparameters")
-            value = loaded
+                                      f"{exc}") from None
         inlined[algo] = dict(value)
     grid = experiment.grid.model_copy(update={"algo_overrides": inlined})
     return experiment.model_copy(update={"grid": grid})
@@ -457,8 +403,8 @@ def _check_consistency(experiment: Experiment, source: str) -> None:
     """Env configs, environment counts and hyperparameters of every unit are valid, and every policy fits every
     evaluation env."""
     from socnav.envs.env import check_env_count
-    from socnav.experiments.perturbations import perturbed_config
-    from socnav.rl.presets import resolve_config
+    from socnav.envs.perturbations import perturbed_config
+    from socnav.rl.presets import describe_override_error, resolve_config
 
     max_humans: dict[str, int] = {}
     for scenario in dict.fromkeys(experiment.grid.train_scenarios + experiment.evaluation.scenarios):
@@ -493,7 +439,7 @@ def _check_consistency(experiment: Experiment, source: str) -> None:
         try:
             resolve_config(algo, experiment.algo_overrides(algo))
         except ValueError as exc:
-            message = " ".join(str(exc).split())
+            message = " ".join(describe_override_error(algo, exc).split())
             raise ExperimentError(
                 f"invalid experiment ({source}): grid.overrides / grid.algo_overrides.{algo}: {message}"
             ) from None

@@ -92,6 +92,8 @@ def _ensure_sqlite_dir(storage: str) -> None:
 
 @dataclass
 class TuneResult:
+    """The best trial of a study so far: its `metric` value and hyperparameters, and the study's trial counts."""
+
     study_name: str
     storage: str
     best_value: float
@@ -129,7 +131,6 @@ def tune(
     """
     optuna = _optuna()
     from socnav.rl.presets import resolve_config
-    from socnav.rl.training import TrainingInterrupted, train
 
     if metric not in METRICS:
         raise ValueError(f"unknown metric {metric!r}; allowed: {', '.join(METRICS)}")
@@ -140,22 +141,67 @@ def tune(
     study_name = study_name or f"{algo}_{env_config.scenario}"
     out_dir = Path(out_dir) if out_dir is not None else Path("runs") / "tune" / study_name
     eval_every = eval_every or max(1, timesteps // 5)
+    settings = {"algo": algo, "env_config": env_config.model_dump(mode="json"), "timesteps": timesteps,
+                "metric": metric, "n_envs": n_envs, "eval_every": eval_every, "eval_episodes": eval_episodes,
+                "seed": seed}
+    study = _open_study(optuna, study_name, storage, metric, n_startup_trials, settings)
+    objective = _Objective(env_config, algo, seed, timesteps, out_dir, n_envs, eval_every, eval_episodes, metric)
+    callbacks = [on_trial] if on_trial is not None else None
+    study.optimize(objective, n_trials=trials, timeout=timeout, callbacks=callbacks, gc_after_trial=True)
+    return _best_result(study, storage, metric, n_envs)
+
+
+def _open_study(optuna: Any, study_name: str, storage: str, metric: str, n_startup_trials: int,
+                settings: dict[str, Any]) -> Any:
+    """The study `study_name` in `storage`, created or continued (only with the `settings` it was created with),
+    with median pruning and a sampler whose seed moves on with the trials already in it."""
     _ensure_sqlite_dir(storage)
     study = optuna.create_study(
         study_name=study_name, storage=storage, load_if_exists=True, direction=METRICS[metric],
         pruner=optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0),
     )
-    _check_settings(study, {"algo": algo, "env_config": env_config.model_dump(mode="json"),
-                            "timesteps": timesteps, "metric": metric, "n_envs": n_envs, "eval_every": eval_every,
-                            "eval_episodes": eval_episodes, "seed": seed})
+    _check_settings(study, settings)
     # A sampler seeded by `seed` alone would replay the same parameters each time the study is continued (trial
     # n + k = trial k): the seed moves on with the trials already in the study, so new trials explore and a
     # continued study is still reproducible.
-    study.sampler = optuna.samplers.TPESampler(seed=seed + len(study.trials))
+    study.sampler = optuna.samplers.TPESampler(seed=settings["seed"] + len(study.trials))
+    return study
 
-    def objective(trial: Any) -> float:
-        params = sample_params(trial, n_envs)
-        run_dir = out_dir / f"trial_{trial.number}"
+
+@dataclass(frozen=True)
+class _Objective:
+    """One trial: train with sampled hyperparameters in ``out_dir/trial_<n>``, report every periodic validation to
+    Optuna (which may prune the trial), return the final validation `metric` (NaN for a failed training)."""
+
+    env_config: Any
+    algo: str
+    seed: int
+    timesteps: int
+    out_dir: Path
+    n_envs: int
+    eval_every: int
+    eval_episodes: int
+    metric: str
+
+    def __call__(self, trial: Any) -> float:
+        from socnav.rl.training import TrainingInterrupted, train
+
+        params = sample_params(trial, self.n_envs)
+        run_dir = self.out_dir / f"trial_{trial.number}"
+        try:
+            result = train(self.env_config, self.algo, self.seed, self.timesteps, run_dir, n_envs=self.n_envs,
+                           overrides=params, eval_every=self.eval_every, eval_episodes=self.eval_episodes,
+                           progress=self._validation_reporter(trial, run_dir), tensorboard=False)
+        except TrainingInterrupted as exc:
+            trial.set_user_attr("error", str(exc))
+            return float("nan")  # Optuna records the trial as failed and goes on
+        value = float(result.final_eval[self.metric])
+        trial.set_user_attr("final_eval", {k: float(v) for k, v in result.final_eval.items()})
+        return value if math.isfinite(value) else float("nan")
+
+    def _validation_reporter(self, trial: Any, run_dir: Path) -> Callable[[int, float | None], None]:
+        """A `train` progress callback that reports the validations new in ``run_dir/eval.csv`` and prunes."""
+        optuna = _optuna()
         evals = run_dir / "eval.csv"
         reported: set[int] = set()
 
@@ -169,37 +215,30 @@ def tune(
                 return
             for row in rows.itertuples(index=False):
                 step = int(row.timesteps)
-                if step in reported or step >= timesteps:
+                if step in reported or step >= self.timesteps:
                     continue
                 reported.add(step)
-                trial.report(float(getattr(row, metric)), step)
+                value = getattr(row, self.metric)
+                trial.report(float(value), step)
                 if trial.should_prune():
-                    raise optuna.TrialPruned(f"pruned at {step} timesteps ({metric}={getattr(row, metric):.3f})")
+                    raise optuna.TrialPruned(f"pruned at {step} timesteps ({self.metric}={value:.3f})")
 
-        try:
-            result = train(env_config, algo, seed, timesteps, run_dir, n_envs=n_envs, overrides=params,
-                           eval_every=eval_every, eval_episodes=eval_episodes, progress=report_validations,
-                           tensorboard=False)
-        except TrainingInterrupted as exc:
-            trial.set_user_attr("error", str(exc))
-            return float("nan")  # Optuna records the trial as failed and goes on
-        value = float(result.final_eval[metric])
-        trial.set_user_attr("final_eval", {k: float(v) for k, v in result.final_eval.items()})
-        return value if math.isfinite(value) else float("nan")
+        return report_validations
 
-    callbacks = [on_trial] if on_trial is not None else None
-    study.optimize(objective, n_trials=trials, timeout=timeout, callbacks=callbacks, gc_after_trial=True)
-    states = optuna.trial.TrialState
+
+def _best_result(study: Any, storage: str, metric: str, n_envs: int) -> TuneResult:
+    """The study's best trial so far and its trial counts (RuntimeError when no trial completed yet)."""
+    states = _optuna().trial.TrialState
     counts = {name.lower(): len(study.get_trials(deepcopy=False, states=(state,)))
               for name, state in (("COMPLETE", states.COMPLETE), ("PRUNED", states.PRUNED), ("FAIL", states.FAIL))}
     try:
         best = study.best_trial
     except ValueError:
-        raise RuntimeError(f"study {study_name!r} has no completed trial yet (pruned: {counts['pruned']}, "
+        raise RuntimeError(f"study {study.study_name!r} has no completed trial yet (pruned: {counts['pruned']}, "
                            f"failed: {counts['fail']}); run more trials or longer ones") from None
     params = dict(best.params)
     params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
-    return TuneResult(study_name, storage, float(best.value), params, best.number, counts, metric)
+    return TuneResult(study.study_name, storage, float(best.value), params, best.number, counts, metric)
 
 
 def write_preset(path: str | Path, result: TuneResult, algo: str, scenario: str, timesteps: int) -> Path:

@@ -46,9 +46,8 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.perturbations import PAPER_GRIDS, PERTURBATION_FIELDS, strength_zero
-from socnav.experiments.report import ReportContext, register_section
-from socnav.experiments.runner import unit_dir
+from socnav.envs.perturbations import PAPER_GRIDS, PERTURBATION_FIELDS, strength_zero
+from socnav.experiments.registry import ReportContext, register_section, unit_dir
 from socnav.io import read_table, save_figure, write_table_atomic, write_text_atomic
 
 __all__ = [

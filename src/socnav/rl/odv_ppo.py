@@ -58,6 +58,7 @@ def variance_loss(
     return coef * per_sample.mean()  # (1/B) sum_b
 
 
+# PPO seeks the optimal policy, paper eq. (3): the largest expected return, eq. (2), over trajectories as eq. (1).
 class ODVPPO(PPO):
     """PPO with observation-dependent variance (ODV) and the variance loss of paper eq. (4).
 

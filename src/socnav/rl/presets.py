@@ -13,13 +13,14 @@ from types import MappingProxyType
 from typing import Annotated, Any, Literal
 
 import torch as th
-from pydantic import ConfigDict, Field, StrictInt, model_validator
+from pydantic import ConfigDict, Field, StrictInt, ValidationError, model_validator
 
-from socnav.config import StrictModel
+from socnav.config import RENAMED_FIELDS, StrictModel, format_validation_error
 from socnav.rl.odv_ppo import ODVPPO
 from socnav.rl.policy import ODVActorCriticPolicy
 
-__all__ = ["ALGOS", "PRESETS", "AlgoConfig", "AlgoName", "large_batch_overrides", "make_model", "policy_kwargs_for", "resolve_config"]
+__all__ = ["ALGOS", "PRESETS", "AlgoConfig", "AlgoName", "describe_override_error", "large_batch_overrides",
+           "make_model", "policy_kwargs_for", "resolve_config"]
 
 AlgoName = Literal["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]
 
@@ -121,20 +122,33 @@ def large_batch_overrides(algo: str, batch_size: int = 512) -> dict[str, Any]:
 def resolve_config(algo: str, overrides: dict[str, Any] | None = None) -> AlgoConfig:
     """The preset ``algo`` with ``overrides`` applied and validated.
 
-    :raises ValueError: unknown algo name or override key (the message lists the allowed values), or an
-        invalid value (pydantic's message).
+    :raises ValueError: unknown algo name or override key (the message lists the allowed values, or the new name
+        of a renamed key), or an invalid value (pydantic's ValidationError; `describe_override_error` words it).
     """
     if algo not in PRESETS:
         raise ValueError(f"unknown algo {algo!r}; allowed values: {', '.join(ALGOS)}")
     overrides = dict(overrides or {})
     allowed = list(AlgoConfig.model_fields)
     bad = [key for key in overrides if key not in AlgoConfig.model_fields]
+    old = next((key for key in bad if key in RENAMED_FIELDS), None)
+    if old is not None:
+        new = RENAMED_FIELDS[old]
+        raise ValueError(f"unknown override key {old!r} for algo {algo!r}: it was renamed {new} (the paper's name); "
+                         f"write {new} instead")
     if bad:
         raise ValueError(
             f"unknown override key{'s' if len(bad) > 1 else ''} {', '.join(map(repr, bad))} for algo {algo!r}; "
             f"allowed keys: {', '.join(allowed)}"
         )
     return AlgoConfig.model_validate({**PRESETS[algo].model_dump(), **overrides})
+
+
+def describe_override_error(algo: str, error: ValueError) -> str:
+    """A `resolve_config` error for a person: pydantic's through socnav's one formatter (field, bad value, allowed
+    values; `resolve_config` itself keeps raising pydantic's ValidationError), socnav's own as they are."""
+    if isinstance(error, ValidationError):
+        return format_validation_error(error, f"invalid hyperparameters for algo {algo!r}:", AlgoConfig)
+    return str(error)
 
 
 def policy_kwargs_for(cfg: AlgoConfig) -> dict[str, Any]:
@@ -160,6 +174,7 @@ def make_model(
     overrides: dict[str, Any] | None = None,
     tensorboard_log: str | None = None,
     verbose: int = 0,
+    algo_config: AlgoConfig | None = None,
 ) -> ODVPPO:
     """Build an :class:`ODVPPO` for preset ``algo`` on ``env`` (an SB3 VecEnv or Gymnasium env).
 
@@ -172,8 +187,12 @@ def make_model(
     :param overrides: ``{field: value}`` replacing preset values (fields of :class:`AlgoConfig`).
     :param tensorboard_log: TensorBoard log directory (None: no TensorBoard).
     :param verbose: SB3 verbosity.
+    :param algo_config: the config `resolve_config(algo, overrides)` already returned (a caller that validated
+        it up front passes it down instead of `overrides`, so it is not resolved twice).
     """
-    cfg = resolve_config(algo, overrides)
+    if algo_config is not None and overrides:
+        raise ValueError("make_model takes overrides or an already resolved algo_config, not both")
+    cfg = algo_config if algo_config is not None else resolve_config(algo, overrides)
     if cfg.torch_threads is not None:
         th.set_num_threads(cfg.torch_threads)
     policy_kwargs = policy_kwargs_for(cfg)

@@ -29,7 +29,6 @@ from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
-import torch as th
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from stable_baselines3.common.callbacks import BaseCallback
 
@@ -56,7 +55,7 @@ EVAL_COLUMNS = ["timesteps", "wall_time_s", "episodes", "goal_pct", "collision_p
 CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.zip$")  # the only files of checkpoints/ a run writes or deletes
 
 __all__ = ["CheckpointError", "CheckpointState", "RunDirectoryBusy", "RunInfo", "TrainResult", "TrainingInterrupted",
-           "can_resume", "move_run_aside", "read_run_info", "train", "training_env_seed"]
+           "can_resume", "finished_result", "move_run_aside", "read_run_info", "resume", "train", "training_env_seed"]
 
 
 class TrainingInterrupted(RuntimeError):
@@ -139,6 +138,21 @@ def read_run_info(out_dir: str | Path) -> RunInfo:
     except ValueError as exc:  # resolve_config: an unknown or invalid override
         raise ConfigError(f"{path}: overrides: {exc}") from None
     return info
+
+
+def finished_result(out_dir: str | Path) -> TrainResult | None:
+    """The recorded result of the training run in `out_dir` if it finished (its run.json says complete and model.zip
+    is there), None if it is still to finish or run.json is unreadable."""
+    out_dir = Path(out_dir)
+    try:
+        info = json.loads((out_dir / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if info.get("status") != "complete" or not (out_dir / "model.zip").is_file():
+        return None
+    final_eval = info.get("final_eval")
+    return TrainResult(out_dir / "model.zip", info.get("num_timesteps", 0), info.get("wall_time_s", 0.0),
+                       final_eval if isinstance(final_eval, dict) else {})
 
 
 def _read_small_file(path: Path, error: type[Exception]) -> bytes:
@@ -453,6 +467,7 @@ def train(
     if not 0 <= seed < MAX_SEED:
         raise ValueError(f"seed must lie in [0, {MAX_SEED}), got {seed}")
     out_dir = Path(out_dir)
+    # Validated once, here: an EnvConfig passes through as a copy and the resolved AlgoConfig goes down to make_model.
     env_config = load_config(config)
     algo_config = resolve_config(algo, overrides)  # validates before any work starts
     rollout_size = algo_config.n_steps * n_envs
@@ -469,38 +484,37 @@ def train(
                 "timesteps": timesteps, "n_envs": n_envs, "eval_every": eval_every, "eval_episodes": eval_episodes}
         run = _Run(out_dir, env_config, algo, algo_config, seed, timesteps, eval_every, eval_episodes)
         state = run.restore() if resume else None
-        return _train_locked(run, info, state, progress, tensorboard, verbose, overrides)
+        return _train_locked(run, info, state, progress, tensorboard, verbose)
+
+
+def resume(
+    out_dir: str | Path,
+    progress: bool | Callable[[int, float | None], None] = False,
+    tensorboard: bool = True,
+    verbose: int = 0,
+) -> TrainResult:
+    """Continue the training run in `out_dir` from its last checkpoint (or start it afresh when it has none), with
+    what its run.json asked: `train(..., resume=True)` with the run's own config, algorithm, seed and budget.
+
+    A run that already finished is evaluated and saved again without training (`finished_result` tells first).
+
+    :raises ConfigError: run.json is missing or invalid (the message names the field); else as `train`.
+    """
+    info = read_run_info(out_dir)
+    return train(info.env_config, info.algo, info.seed, info.timesteps, out_dir, n_envs=info.n_envs,
+                 overrides=info.overrides, eval_every=info.eval_every, eval_episodes=info.eval_episodes, resume=True,
+                 progress=progress, tensorboard=tensorboard, verbose=verbose)
 
 
 def _train_locked(run: _Run, info: dict[str, Any], state: CheckpointState | None,
-                  progress: bool | Callable[[int, float | None], None], tensorboard: bool, verbose: int,
-                  overrides: dict[str, Any] | None) -> TrainResult:
+                  progress: bool | Callable[[int, float | None], None], tensorboard: bool,
+                  verbose: int) -> TrainResult:
     """`train` once the run directory is locked and its checkpoint (if resuming) validated."""
-    out_dir, env_config, algo, seed, timesteps = run.out_dir, run.env_config, run.algo, run.seed, run.timesteps
-    algo_config = run.algo_config
-    bar, run.progress = _progress_display(progress, timesteps)
-    env = make_vec_env(env_config, n_envs=info["n_envs"])
-    tensorboard_log = str(out_dir / "tb") if tensorboard else None
-    if state is None:
-        # A fresh start: without `resume`, an earlier run's checkpoint left in out_dir goes, or a later `--resume`
-        # would continue *that* run under this run's run.json (with `resume` we only get here when there is none).
-        run.discard_checkpoints()
-        model = make_model(algo, env, seed, overrides=overrides, tensorboard_log=tensorboard_log, verbose=verbose)
-        env.seed(training_env_seed(seed))  # after make_model, whose set_random_seed seeded the env with `seed`
-    else:
-        try:
-            model, _ = load_checkpoint(run.checkpoint, env, tensorboard_log=tensorboard_log, verbose=verbose)
-        except BaseException:
-            env.close()
-            raise
-        # The environments restart and torch is reseeded from (seed, step), so a resumed run is reproducible from
-        # its checkpoint (it is not bit-identical to an uninterrupted run, whose environments were mid-episode)
-        # and never replays another run's training episodes.
-        env_seed, torch_seed = _resume_seeds(seed, int(model.num_timesteps))
-        model.set_random_seed(torch_seed)
-        env.seed(env_seed)  # applied at the next reset
-    remaining = timesteps - int(model.num_timesteps)
-    _write_run_json(out_dir, {**info, "status": "running"})
+    bar, run.progress = _progress_display(progress, run.timesteps)
+    env = make_vec_env(run.env_config, n_envs=info["n_envs"])
+    model = _start_model(run, state, env, str(run.out_dir / "tb") if tensorboard else None, verbose)
+    remaining = run.timesteps - int(model.num_timesteps)
+    _write_run_json(run.out_dir, {**info, "status": "running"})
 
     try:
         with bar:
@@ -508,22 +522,55 @@ def _train_locked(run: _Run, info: dict[str, Any], state: CheckpointState | None
                 model.learn(remaining, callback=_RunMonitor(run), reset_num_timesteps=state is None,
                             tb_log_name="run")
     except NonFiniteError as exc:
-        _write_run_json(out_dir, {**info, "status": "failed", "error": str(exc)})
+        _write_run_json(run.out_dir, {**info, "status": "failed", "error": str(exc)})
         raise TrainingInterrupted(
             f"training stopped: {exc}. The last good checkpoint is {run.checkpoint} (resume with --resume)."
         ) from None
     finally:
         env.close()
+    # without steps to learn (a finished run resumed) there is no logger for TensorBoard
+    return _finish(run, model, info, state, log=remaining > 0)
 
-    final_eval = run.evaluate(model, log=remaining > 0)
+
+def _start_model(run: _Run, state: CheckpointState | None, env: Any, tensorboard_log: str | None,
+                 verbose: int) -> ODVPPO:
+    """A fresh model, or the one of the checkpoint `state` names, with the training environments seeded."""
+    if state is None:
+        # A fresh start: without `resume`, an earlier run's checkpoint left in out_dir goes, or a later `--resume`
+        # would continue *that* run under this run's run.json (with `resume` we only get here when there is none).
+        run.discard_checkpoints()
+        # the config `train` resolved (and checked against a checkpoint), not a second resolution of the overrides
+        model = make_model(run.algo, env, run.seed, tensorboard_log=tensorboard_log, verbose=verbose,
+                           algo_config=run.algo_config)
+        env.seed(training_env_seed(run.seed))  # after make_model, whose set_random_seed seeded the env with `seed`
+        return model
+    try:
+        model, _ = load_checkpoint(run.checkpoint, env, tensorboard_log=tensorboard_log, verbose=verbose)
+    except BaseException:
+        env.close()
+        raise
+    # The environments restart and torch is reseeded from (seed, step), so a resumed run is reproducible from its
+    # checkpoint (it is not bit-identical to an uninterrupted run, whose environments were mid-episode) and never
+    # replays another run's training episodes.
+    env_seed, torch_seed = _resume_seeds(run.seed, int(model.num_timesteps))
+    model.set_random_seed(torch_seed)
+    env.seed(env_seed)  # applied at the next reset
+    return model
+
+
+def _finish(run: _Run, model: ODVPPO, info: dict[str, Any], state: CheckpointState | None,
+            log: bool) -> TrainResult:
+    """The final validation and checkpoint, the policy file, and run.json marked complete."""
+    final_eval = run.evaluate(model, log=log)
     run.save_checkpoint(model)
-    metadata = {"algo": algo, "algo_config": algo_config.model_dump(mode="json"),
-                "env_config": env_config.model_dump(mode="json"), "seed": seed, "timesteps": int(model.num_timesteps)}
-    model_path = save_policy(model.policy, out_dir / "model.zip", metadata)
+    metadata = {"algo": run.algo, "algo_config": run.algo_config.model_dump(mode="json"),
+                "env_config": run.env_config.model_dump(mode="json"), "seed": run.seed,
+                "timesteps": int(model.num_timesteps)}
+    model_path = save_policy(model.policy, run.out_dir / "model.zip", metadata)
     result = TrainResult(model_path, int(model.num_timesteps), run.wall_time(), final_eval,
                          resumed_from=0 if state is None else state.num_timesteps)
-    _write_run_json(out_dir, {**info, "status": "complete", "wall_time_s": result.wall_time_s,
-                              "final_eval": final_eval, "num_timesteps": result.timesteps})
+    _write_run_json(run.out_dir, {**info, "status": "complete", "wall_time_s": result.wall_time_s,
+                                  "final_eval": final_eval, "num_timesteps": result.timesteps})
     return result
 
 

@@ -63,14 +63,20 @@ import numpy as np
 import pandas as pd
 
 from socnav.config import ConfigLike, load_config
-from socnav.safety.rule import Proximity, Thresholds, _check_proximity, proximity_score, rule_conditions
+from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbed_config
+from socnav.safety.rule import (PROXIMITY_VARIANTS, Proximity, Thresholds, _check_proximity, proximity_score,
+                                rule_conditions)
 
 __all__ = [
+    "CALIBRATION_LEADS",
     "DEFAULT_BETA1_GRID",
+    "PROXY_BUDGET_SHARES",
     "RECORD_COLUMNS",
+    "CalibrationRecorder",
     "CalibrationResult",
     "CalibrationRun",
     "calibrate",
+    "calibrate_thresholds",
     "clopper_pearson_upper",
     "collect_records",
     "evaluate_thresholds",
@@ -82,6 +88,8 @@ RECORD_COLUMNS = ("episode", "step", "perturbed", "u_ep_heading", "u_feat", "gap
                   "previous_gap", "collided", "collision_step")
 DEFAULT_BETA1_GRID = (0.0, 0.25, 0.5, 1.0, 2.0)
 GRID_KEYS = ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")
+#: Per-step columns a :class:`CalibrationRecorder` keeps (the per-episode ones are added by :func:`collect_records`).
+STEP_COLUMNS = ("episode", "step", "u_ep_heading", "u_feat", "gap", "relative_speed", "closing_speed", "previous_gap")
 
 
 @dataclass(frozen=True)
@@ -176,7 +184,7 @@ def _bins(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
 
 
 def _collision_types(records: pd.DataFrame, perturbed: np.ndarray, episode_codes: np.ndarray,
-                     window_index: np.ndarray, collision_code: dict[int, int]) -> tuple[np.ndarray, list[int]]:
+                     collision_code: dict[int, int]) -> tuple[np.ndarray, list[int]]:
     """Perturbation type index of each collision episode with window rows (in ``collision_code`` order) and the
     number of collision episodes per type, all collisions counted; one type if ``records`` has no ``group``."""
     collided_rows = perturbed & records["collided"].to_numpy(bool)
@@ -234,6 +242,76 @@ def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback:
     }
 
 
+def _prox_candidates(score: np.ndarray, approaching: np.ndarray, window: np.ndarray, n_quantiles: int) -> np.ndarray:
+    """Quantile-based ``lambda_prox`` candidates from the proximity scores of rows where ``c_ap`` holds, plus one
+    just above the largest collision-window score (a gate that lets every approaching window row through)."""
+    relevant = approaching & np.isfinite(score)
+    candidates = _candidates(score[relevant], score[window & relevant], n_quantiles, False)
+    finite_window = score[window & relevant]
+    if finite_window.size:
+        top = float(finite_window.max())
+        candidates = np.unique(np.append(candidates, top + max(1e-6, 1e-6 * abs(top))))
+    return candidates[candidates >= 0]
+
+
+class _GridScorer:
+    """Scores all ``(lambda_ep, lambda_feat)`` pairs at once for one proximity gate (the rows where ``c_prox`` and
+    ``c_ap`` hold), from the rows' uncertainty bins ``k_ep``, ``k_feat`` (:func:`_bins`) and 2-D cumulative
+    histograms."""
+
+    def __init__(self, records: pd.DataFrame, perturbed: np.ndarray, window: np.ndarray, k_ep: np.ndarray,
+                 k_feat: np.ndarray, n_ep: int, n_feat: int) -> None:
+        self.k_ep, self.k_feat, self.n_ep, self.n_feat = k_ep, k_feat, n_ep, n_feat
+        self.unperturbed = ~perturbed
+        self.n_unperturbed = int(self.unperturbed.sum())
+        episode_codes = pd.factorize(records["episode"])[0]
+        self.window_index = np.flatnonzero(window)
+        collision_code = {code: i for i, code in enumerate(np.unique(episode_codes[self.window_index]))}
+        self.window_episode = np.array([collision_code[c] for c in episode_codes[self.window_index]], dtype=np.int64)
+        self.n_window_episodes = len(collision_code)
+        # Collision episodes without rows in their window can never be flagged: they count as not flagged.
+        self.type_of_window_episode, self.type_collisions = _collision_types(records, perturbed, episode_codes,
+                                                                             collision_code)
+
+    def score(self, gate: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(false_rate, worst, prevented)``, each (n_ep, n_feat): the false-activation rate and the worst type's
+        and the mean flagged fraction of the rule ``(c_ep or c_feat) and gate``."""
+        gated_unperturbed = gate & self.unperturbed
+        quiet = _not_firing(self.k_ep[gated_unperturbed], self.k_feat[gated_unperturbed], self.n_ep, self.n_feat)
+        false_rate = (int(gated_unperturbed.sum()) - quiet) / self.n_unperturbed
+        # An episode is flagged at (a, b) iff one of its gated window rows has k_ep > a or k_feat > b, i.e. iff
+        # its largest k_ep > a or its largest k_feat > b: one (max_ep, max_feat) item per episode.
+        gated_window = gate[self.window_index]
+        max_ep = np.zeros(self.n_window_episodes, dtype=np.int64)
+        max_feat = np.zeros(self.n_window_episodes, dtype=np.int64)
+        np.maximum.at(max_ep, self.window_episode[gated_window], self.k_ep[self.window_index][gated_window])
+        np.maximum.at(max_feat, self.window_episode[gated_window], self.k_feat[self.window_index][gated_window])
+        types = self.type_of_window_episode
+        per_type = np.stack([
+            1.0 - (_not_firing(max_ep[types == t], max_feat[types == t], self.n_ep, self.n_feat)
+                   + (n_type - np.sum(types == t))) / n_type
+            for t, n_type in enumerate(self.type_collisions)])
+        return false_rate, per_type.min(axis=0), per_type.mean(axis=0)
+
+
+def _best_feasible(false_rate: np.ndarray, worst: np.ndarray, prevented: np.ndarray,
+                   budget: float) -> tuple[int, int] | None:
+    """Grid index ``(a, b)`` of the best pair within the false-activation budget -- worst type's fraction, then
+    mean, then lowest false rate, then least eager (larger ``lambda_ep``, then larger ``lambda_feat``) -- or None."""
+    feasible = false_rate <= budget + 1e-12
+    if not feasible.any():
+        return None
+    a, b = np.nonzero(feasible)  # row-major, the order of the masked arrays below
+    order = np.lexsort((-b, -a, false_rate[feasible], -prevented[feasible], -worst[feasible]))
+    return int(a[order[0]]), int(b[order[0]])
+
+
+def _preference(row: Mapping[str, float]) -> tuple[float, ...]:
+    """Sort key of a frontier row, best first: worst type, mean, false rate, then the least eager rule."""
+    return (-row["worst_type_fraction"], -row["prevented_fraction"], row["false_activation_rate"],
+            -row["lambda_ep"], -row["lambda_feat"], row["lambda_prox"], row["beta1"])
+
+
 def calibrate(
     records: pd.DataFrame,
     false_activation_budget: float = 0.05,
@@ -266,13 +344,11 @@ def calibrate(
             raise ValueError(f"unknown grid keys {sorted(unknown)}; allowed: {', '.join(GRID_KEYS)}")
     records = _validate(records)
     perturbed = records["perturbed"].to_numpy(bool)
-    unperturbed = ~perturbed
-    n_unperturbed = int(unperturbed.sum())
+    n_unperturbed = int((~perturbed).sum())
     if n_unperturbed == 0:
         raise ValueError("calibration records hold no unperturbed steps: the false-activation rate is undefined")
     window = _window_rows(records, lookback, lead)
-    collision_ids = records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique()
-    n_collisions = len(collision_ids)
+    n_collisions = len(records.loc[perturbed & records["collided"].to_numpy(bool), "episode"].unique())
     if n_collisions == 0:
         raise ValueError("no collisions in the perturbed episodes of the records: nothing to calibrate for")
 
@@ -290,73 +366,34 @@ def calibrate(
     betas = _explicit(grid, "beta1")
     betas = np.asarray(DEFAULT_BETA1_GRID) if betas is None else betas
     fixed_prox = _explicit(grid, "lambda_prox")
+    scorer = _GridScorer(records, perturbed, window, _bins(u_ep, lambda_ep), _bins(u_feat, lambda_feat),
+                         len(lambda_ep), len(lambda_feat))
 
-    k_ep, k_feat = _bins(u_ep, lambda_ep), _bins(u_feat, lambda_feat)
-    n_ep, n_feat = len(lambda_ep), len(lambda_feat)
-    episode_codes = pd.factorize(records["episode"])[0]
-    window_index = np.flatnonzero(window)
-    collision_code = {code: i for i, code in enumerate(np.unique(episode_codes[window_index]))}
-    window_episode = np.array([collision_code[c] for c in episode_codes[window_index]], dtype=np.int64)
-    n_window_episodes = len(collision_code)
-    # Collision episodes without rows in their window can never be flagged: they count as not flagged.
-    type_of_window_episode, type_collisions = _collision_types(records, perturbed, episode_codes, window_index,
-                                                               collision_code)
-
-    # Order in which ties are broken: larger lambda_ep and lambda_feat first (least eager).
-    ep_rank = np.arange(n_ep)[::-1][:, None] * np.ones((1, n_feat), dtype=np.int64)
-    feat_rank = np.ones((n_ep, 1), dtype=np.int64) * np.arange(n_feat)[::-1][None, :]
-    best: tuple | None = None
+    # The frontier: per (beta1, lambda_prox), the best (lambda_ep, lambda_feat) within the budget.
     frontier_rows: list[dict[str, Any]] = []
     for beta in betas:
         score = proximity_score(gap, speed, float(beta), proximity)
-        if fixed_prox is None:
-            relevant = approaching & np.isfinite(score)
-            prox_candidates = _candidates(score[relevant], score[window & relevant], n_quantiles, False)
-            finite_window = score[window & relevant]
-            if finite_window.size:
-                top = float(finite_window.max())
-                prox_candidates = np.unique(np.append(prox_candidates, top + max(1e-6, 1e-6 * abs(top))))
-            prox_candidates = prox_candidates[prox_candidates >= 0]
-        else:
-            prox_candidates = fixed_prox
+        prox_candidates = (_prox_candidates(score, approaching, window, n_quantiles) if fixed_prox is None
+                           else fixed_prox)
         for lam_prox in prox_candidates:
             gate = approaching & np.isfinite(gap) & (score < lam_prox)
-            gated_unperturbed = gate & unperturbed
-            quiet = _not_firing(k_ep[gated_unperturbed], k_feat[gated_unperturbed], n_ep, n_feat)
-            false_rate = (int(gated_unperturbed.sum()) - quiet) / n_unperturbed
-            gated_window = gate[window_index]
-            max_ep = np.zeros(n_window_episodes, dtype=np.int64)
-            max_feat = np.zeros(n_window_episodes, dtype=np.int64)
-            np.maximum.at(max_ep, window_episode[gated_window], k_ep[window_index][gated_window])
-            np.maximum.at(max_feat, window_episode[gated_window], k_feat[window_index][gated_window])
-            # flagged fraction per perturbation type (one type without a `group` column)
-            per_type = np.stack([
-                1.0 - (_not_firing(max_ep[type_of_window_episode == t], max_feat[type_of_window_episode == t],
-                                   n_ep, n_feat) + (n_type - np.sum(type_of_window_episode == t))) / n_type
-                for t, n_type in enumerate(type_collisions)])
-            worst, prevented = per_type.min(axis=0), per_type.mean(axis=0)
-            feasible = false_rate <= false_activation_budget + 1e-12
-            if not feasible.any():
+            false_rate, worst, prevented = scorer.score(gate)
+            best = _best_feasible(false_rate, worst, prevented, false_activation_budget)
+            if best is None:
                 continue
-            # Best feasible (a, b) for this (beta, lambda_prox): worst type, mean, min false rate, least eager.
-            keys = np.lexsort((feat_rank[feasible], ep_rank[feasible], false_rate[feasible], -prevented[feasible],
-                               -worst[feasible]))
-            a, b = np.argwhere(feasible)[keys[0]]
-            row = {"beta1": float(beta), "lambda_prox": float(lam_prox), "lambda_ep": float(lambda_ep[a]),
-                   "lambda_feat": float(lambda_feat[b]), "prevented_fraction": float(prevented[a, b]),
-                   "worst_type_fraction": float(worst[a, b]), "false_activation_rate": float(false_rate[a, b])}
-            frontier_rows.append(row)
-            candidate = (-row["worst_type_fraction"], -row["prevented_fraction"], row["false_activation_rate"],
-                         -row["lambda_ep"], -row["lambda_feat"], row["lambda_prox"], row["beta1"])
-            if best is None or candidate < best[0]:
-                best = (candidate, row)
+            a, b = best
+            frontier_rows.append({"beta1": float(beta), "lambda_prox": float(lam_prox),
+                                  "lambda_ep": float(lambda_ep[a]), "lambda_feat": float(lambda_feat[b]),
+                                  "prevented_fraction": float(prevented[a, b]),
+                                  "worst_type_fraction": float(worst[a, b]),
+                                  "false_activation_rate": float(false_rate[a, b])})
     frontier = pd.DataFrame(frontier_rows, columns=["beta1", "lambda_prox", "lambda_ep", "lambda_feat",
                                                     "prevented_fraction", "worst_type_fraction",
                                                     "false_activation_rate"])
-    if best is None:  # only possible with an explicit grid without inf and a budget too small
+    if not frontier_rows:  # only possible with an explicit grid without inf and a budget too small
         raise ValueError("no candidate thresholds meet the false-activation budget; add inf to grid['lambda_ep'] "
                          "and grid['lambda_feat'] or raise the budget")
-    row = best[1]
+    row = min(frontier_rows, key=_preference)  # the first of equals, as the frontier is ordered
     thresholds = Thresholds.create(lambda_ep=row["lambda_ep"], lambda_feat=row["lambda_feat"],
                                    lambda_prox=row["lambda_prox"], beta1=row["beta1"], proximity=proximity)
     return CalibrationResult(
@@ -374,6 +411,43 @@ def calibrate(
 
 
 # ------------------------------------------------------------------------------------------------ collecting
+
+class CalibrationRecorder:
+    """Rollout observer (``socnav.envs.rollout.rollout_episodes(..., observer=...)``) keeping one calibration row
+    per step: what ``probe`` -- the :class:`~socnav.safety.SafePolicy` the rollout plays -- computed for that step's
+    action (windowed uncertainty, nearest human, previous gap), episode ids shifted by ``episode_offset``.
+
+    :meth:`frame` returns the per-step columns of the records (module docstring); the per-episode ones come from
+    the rollout's episode records (see :func:`collect_records`).
+    """
+
+    def __init__(self, probe: Any, episode_offset: int = 0) -> None:
+        self.probe = probe
+        self.episode_offset = episode_offset
+        self.steps: np.ndarray | None = None  # step index of each environment's current episode
+        self._columns: dict[str, list[np.ndarray]] = {key: [] for key in STEP_COLUMNS}
+
+    def on_episode_start(self, envs: np.ndarray) -> None:
+        if self.steps is None:  # the first call names every environment of the rollout
+            self.steps = np.zeros(len(envs), dtype=np.int64)
+        self.steps[envs] = 0
+
+    def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
+        # Called after the world stepped but before any reset: `probe.last_*` still describe this step's action.
+        live = episodes >= 0
+        probe, nearest = self.probe, self.probe.last_nearest
+        for key, values in (("episode", episodes + self.episode_offset), ("step", self.steps),
+                            ("u_ep_heading", probe.last_uncertainty["u_ep_heading"]),
+                            ("u_feat", probe.last_uncertainty["u_feat"]), ("gap", nearest.gap),
+                            ("relative_speed", nearest.relative_speed), ("closing_speed", nearest.closing_speed),
+                            ("previous_gap", probe.last_previous_gap)):
+            self._columns[key].append(np.asarray(values)[live])
+        self.steps += 1
+
+    def frame(self) -> pd.DataFrame:
+        """The recorded steps, in the order they were played (columns :data:`STEP_COLUMNS`)."""
+        return pd.DataFrame({key: np.concatenate(values) for key, values in self._columns.items()})
+
 
 def collect_records(
     policy: Any,
@@ -398,66 +472,27 @@ def collect_records(
     ``progress(n)`` is called with the number of episodes finished at each step that finishes some.
     Concatenate the frames of an unperturbed and some perturbed configs (distinct ``episode_offset``).
     """
+    from socnav.envs.rollout import rollout_episodes
     from socnav.safety.safe_policy import SafePolicy
-    from socnav.sim.world import OUTCOME_COLLISION, CrowdWorld
 
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     config = load_config(config)
     if perturbed is None:
         pert = config.perturbation
         perturbed = bool(pert.observation_noise or pert.heading_noise or pert.speed_noise
                          or pert.human_speed_factor != 1.0 or pert.total_agents is not None)
-    n_envs = max(1, min(n_envs, n_episodes))
-    world = CrowdWorld(config, n_envs)
-    for env in range(n_envs):
-        world.seed(env, seed + env)
-    world.reset()
+    # A SafePolicy whose rule never fires plays exactly `policy` and computes the rule's inputs on the way.
     probe = SafePolicy(policy, estimator, Thresholds.create(Thresholds.never().model_dump(), sensing=sensing),
-                       config, window=window, n_envs=n_envs)
-    running = np.arange(n_envs)
-    steps = np.zeros(n_envs, dtype=np.int64)
-    next_episode, n_finished = n_envs, 0
-    columns: dict[str, list[np.ndarray]] = {key: [] for key in (
-        "episode", "step", "u_ep_heading", "u_feat", "gap", "relative_speed", "closing_speed", "previous_gap")}
-    outcomes: dict[int, tuple[bool, float]] = {}
-    while n_finished < n_episodes:
-        true_observation = world.observe(noisy=False) if probe.needs_true_observation else None
-        actions, _ = probe.predict(world.observe(), deterministic=deterministic, true_observation=true_observation)
-        live = running >= 0
-        nearest = probe.last_nearest
-        assert nearest is not None
-        for key, values in (("episode", running + episode_offset), ("step", steps),
-                            ("u_ep_heading", probe.last_uncertainty["u_ep_heading"]),
-                            ("u_feat", probe.last_uncertainty["u_feat"]), ("gap", nearest.gap),
-                            ("relative_speed", nearest.relative_speed), ("closing_speed", nearest.closing_speed),
-                            ("previous_gap", probe.last_previous_gap)):
-            columns[key].append(np.asarray(values)[live])
-        result = world.step(np.asarray(actions))
-        steps += 1
-        done = np.flatnonzero(result.terminated | result.truncated)
-        for env in done:
-            if running[env] < 0:
-                continue
-            collided = int(result.outcome[env]) == OUTCOME_COLLISION
-            outcomes[int(running[env]) + episode_offset] = (collided, float(steps[env] - 1) if collided else np.nan)
-            n_finished += 1
-            if progress is not None:
-                progress(1)
-            if next_episode < n_episodes:
-                running[env] = next_episode
-                world.seed(env, seed + next_episode)
-                next_episode += 1
-            else:
-                running[env] = -1
-        if len(done):
-            world.reset(done)
-            probe.reset(done)
-            steps[done] = 0
-    frame = pd.DataFrame({key: np.concatenate(values) for key, values in columns.items()})
+                       config, window=window)
+    recorder = CalibrationRecorder(probe, episode_offset)
+    episodes = rollout_episodes(probe, config, n_episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
+                                progress=progress, observer=recorder)
+    episodes = episodes.set_index(episodes["episode"] + episode_offset)
+    collided = episodes["outcome"] == "collision"
+    frame = recorder.frame()
     frame["perturbed"] = bool(perturbed)
-    frame["collided"] = frame["episode"].map(lambda e: outcomes[e][0]).astype(bool)
-    frame["collision_step"] = frame["episode"].map(lambda e: outcomes[e][1]).astype(np.float64)
+    frame["collided"] = frame["episode"].map(collided).astype(bool)
+    # The action of an episode's last step is the one that led to its end.
+    frame["collision_step"] = frame["episode"].map((episodes["length"] - 1).where(collided)).astype(np.float64)
     ordered = [*RECORD_COLUMNS, "closing_speed"]
     return frame[ordered].sort_values(["episode", "step"], ignore_index=True)
 
@@ -623,3 +658,100 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     best = int(ranked.index[0])
     table.loc[best, "chosen"] = True
     return candidates[best], table
+
+
+# ------------------------------------------------------------------------------------------------ the workflow
+
+#: Leads searched by the calibration proxy: the rule must fire at least this many steps before the collision step.
+CALIBRATION_LEADS = (0, 1, 2)
+#: The proxy search also runs at these fractions of the budget: candidates with a margin below it.
+PROXY_BUDGET_SHARES = (1.0, 0.5)
+
+
+def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
+                         proximity: str = "both", window: int = 4, confidence: float = 0.95,
+                         progress: Callable[[int, int], None] | None = None,
+                         sensing: str = "perceived") -> tuple[Thresholds, dict[str, Any]]:
+    """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
+    `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
+
+    Two stages. (1) The proxy search (`socnav.safety.calibrate`) on per-step records of the plain policy proposes
+    one candidate per proximity variant (`proximity`: one of `PROXIMITY_VARIANTS`, or `both`), lead in
+    `CALIBRATION_LEADS` and proxy budget (`PROXY_BUDGET_SHARES` of `budget`): the proxy alone rewards a rule that
+    fires at the very step of the contact, too late for the fallback when humans close fast, so candidates that
+    must fire 1 or 2 steps earlier compete too. (2) `socnav.safety.select_by_rollouts` replays the same
+    calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
+    (the worst perturbation type, then the mean over types) among those whose false-activation rate is within
+    `budget` at `confidence` (one-sided upper bound), both MEASURED in those rollouts. Both stages score per
+    perturbation type, worst type first (`socnav.safety.calibration`): no type is traded for another.
+
+    `progress(done, total)`: episodes played so far and in all (the total shrinks once the number of distinct
+    candidates is known; it starts at the most there can be).
+
+    `sensing` (``perceived`` | ``true``, `socnav.safety.Thresholds.sensing`): what the rule's proximity terms and
+    the fallback read, in the records and the replays alike; the thresholds returned carry it.
+
+    :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
+    """
+    if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
+        raise ValueError(f"proximity must be one of: both, {', '.join(PROXIMITY_VARIANTS)}; got {proximity!r}")
+    variants = PROXIMITY_VARIANTS if proximity == "both" else (proximity,)
+    configs = [("unperturbed", load_config(env))]
+    configs += [(kind, perturbed_config(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
+                for strength in strengths]
+    n_envs = min(episodes, 40)
+    runs = [CalibrationRun(config, kind != "unperturbed", episodes, CALIBRATION_SEED + index * episodes, kind)
+            for index, (kind, config) in enumerate(configs)]
+    per_pass = episodes * len(runs)
+    most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS)
+    played = {"done": 0, "total": per_pass * (2 + most_candidates)}  # collection, plain replay, candidates
+
+    def advance(n: int) -> None:
+        played["done"] += n
+        if progress is not None:
+            progress(played["done"], played["total"])
+
+    parts = [collect_records(policy, estimator, run.config, episodes, seed=run.seed, perturbed=run.perturbed,
+                             window=window, n_envs=n_envs, episode_offset=index * episodes, progress=advance,
+                             sensing=sensing).assign(group=run.group)
+             for index, run in enumerate(runs)]
+    records = pd.concat(parts, ignore_index=True)
+    common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
+              "false_activation_budget": budget, "episodes_per_configuration": episodes,
+              "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS),
+              "proxy_budgets": [share * budget for share in PROXY_BUDGET_SHARES], "confidence": confidence,
+              "sensing": sensing}
+    if not records.loc[records["perturbed"], "collided"].any():
+        # Nothing to learn from: the layer could only cost false activations, so it is switched off.
+        thresholds = Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)
+        return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
+                            "false_activation_rate": 0.0, "n_collisions": 0,
+                            "note": "no collision in the calibration episodes: thresholds that never fire", **common}
+    candidates, proxies = [], []
+    for share in PROXY_BUDGET_SHARES:
+        for variant in variants:
+            for lead in CALIBRATION_LEADS:
+                result = calibrate(records, false_activation_budget=share * budget, proximity=variant, lead=lead)
+                candidate = Thresholds.create(result.thresholds.model_dump(), sensing=sensing)
+                if candidate not in candidates:
+                    candidates.append(candidate)
+                    proxies.append({"lead": lead, "proxy_budget": share * budget,
+                                    "proxy_prevented_fraction": result.prevented_fraction,
+                                    "proxy_worst_type_fraction": result.worst_type_fraction,
+                                    "proxy_false_activation_rate": result.false_activation_rate})
+    played["total"] = per_pass * (2 + len(candidates))
+    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
+                                           progress=advance)
+    thresholds = Thresholds.create(thresholds.model_dump(), sensing=sensing)  # also when none met the budget
+    table = pd.concat([table, pd.DataFrame(proxies)], axis=1)
+    chosen = table[table["chosen"]]
+    report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
+              "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
+              "prevented_worst": float(chosen["prevented_worst"].iloc[0]) if len(chosen) else 0.0,
+              "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
+              "false_activation_upper": float(chosen["false_activation_upper"].iloc[0]) if len(chosen) else 0.0,
+              "candidates": table.to_dict(orient="records"), **common}
+    if not len(chosen):
+        report["note"] = ("no candidate met the false-activation budget in the calibration rollouts (at the "
+                          f"{confidence:.0%} upper bound): thresholds that never fire")
+    return thresholds, report

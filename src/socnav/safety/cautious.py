@@ -6,7 +6,7 @@ robot's observation, or with ``sensing: true`` the simulator's noise-free one), 
 into ``(v, dtheta)`` within the robot's limits (``holonomic_to_unicycle``: speed in ``[0, v_pref]``, turn within
 ``max_heading_change``), i.e. an action in ``[-1, 1]^2``.
 
-It reuses :class:`socnav.envs.controllers.OrcaController` (same ORCA code as the humans). As there, the robot
+It reuses :class:`socnav.controllers.OrcaController` (same ORCA code as the humans). As there, the robot
 takes the config's ``robot_orca_share`` of the avoidance (default 1: it assumes nothing of the humans, which is the
 cautious choice when humans may not yield) and adds ``robot_orca_safety_margin`` metres to each (scaled) radius.
 """
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from socnav.config import ConfigLike, load_config
-from socnav.envs.controllers import OrcaController
+from socnav.controllers import OrcaController
 
 __all__ = ["CAUTIOUS_RADIUS_SCALE", "CautiousController"]
 

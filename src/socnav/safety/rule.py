@@ -42,7 +42,7 @@ import numpy as np
 import yaml
 from pydantic import ConfigDict, Field, ValidationError, field_validator
 
-from socnav.config import YAML_MAX_BYTES, StrictModel, YAMLTooLargeError, safe_load_yaml, short_repr, yaml_problem
+from socnav.config import StrictModel, format_validation_error, read_mapping_file
 from socnav.io import write_text_atomic
 
 __all__ = [
@@ -117,7 +117,7 @@ class Thresholds(StrictModel):
         try:
             return cls.model_validate(merged)
         except ValidationError as exc:
-            raise ThresholdsError(_format_error(exc)) from None
+            raise ThresholdsError(format_validation_error(exc, "invalid safety thresholds:", cls)) from None
 
     @classmethod
     def preset(cls, name: str, proximity: Proximity = "abs-relative-speed",
@@ -133,20 +133,6 @@ class Thresholds(StrictModel):
     def never(cls) -> "Thresholds":
         """Thresholds whose uncertainty conditions never hold: the rule never fires (a plain policy)."""
         return cls.create(lambda_ep=math.inf, lambda_feat=math.inf, lambda_prox=0.0, beta1=0.0)
-
-
-def _format_error(error: ValidationError) -> str:
-    allowed = ", ".join(Thresholds.model_fields)
-    lines = ["invalid safety thresholds:"]
-    for item in error.errors():
-        field = ".".join(str(p) for p in item["loc"]) or "<root>"
-        message = item["msg"]
-        if item["type"] == "extra_forbidden":
-            message = f"unknown field; allowed fields: {allowed}"
-        elif item["type"] == "missing":
-            message = "missing; required fields: lambda_ep, lambda_feat, lambda_prox, beta1 (optional: proximity, sensing)"
-        lines.append(f"  - {field}: {message} (got {short_repr(item.get('input'))})")
-    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------------ files
@@ -168,19 +154,9 @@ def load_thresholds(path_or_name: Union[str, Path, Mapping[str, Any], Thresholds
         raise ThresholdsError(
             f"thresholds file not found: {path} (or use a preset name: {', '.join(THRESHOLD_PRESETS)})"
         )
-    try:
-        if path.stat().st_size > YAML_MAX_BYTES:  # threshold files hold four numbers
-            raise YAMLTooLargeError(f"{path.stat().st_size:,} bytes; socnav reads files of at most {YAML_MAX_BYTES:,}")
-        text = path.read_text()
-        data = json.loads(text) if path.suffix == ".json" else safe_load_yaml(text)
-    except json.JSONDecodeError as exc:
-        raise ThresholdsError(f"thresholds file {path} is not valid JSON: {exc}") from None
-    except yaml.YAMLError as exc:
-        raise ThresholdsError(f"thresholds file {path} {yaml_problem(exc)}") from None
-    if isinstance(data, dict) and isinstance(data.get("thresholds"), dict):
+    data = read_mapping_file(path, "thresholds", ThresholdsError, allow_json=True)
+    if isinstance(data.get("thresholds"), dict):
         data = data["thresholds"]
-    if not isinstance(data, dict):
-        raise ThresholdsError(f"thresholds file {path} must hold a mapping of fields, got {type(data).__name__}")
     try:
         return Thresholds.create(data)
     except ThresholdsError as exc:
@@ -286,6 +262,7 @@ class RuleConditions:
     @property
     def p_col(self) -> np.ndarray:
         """``(c_ep or c_feat) and c_prox and c_ap`` -- where the cautious controller takes over."""
+        # paper eq. (10): P(col) = 1 iff (c_ep or c_feat) and c_prox and c_ap
         return (self.c_ep | self.c_feat) & self.c_prox & self.c_ap
 
     def as_dict(self) -> dict[str, np.ndarray]:

@@ -7,12 +7,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Any, Protocol
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from socnav.config import EnvConfig
 
 MIN_START_SEPARATION = 1.0  # metres between any two starts (and any two goals) when a scenario samples them
 
@@ -48,6 +45,24 @@ class InitialState:
         )
 
 
+class ScenarioSettings(Protocol):
+    """The values of a world's config that scenarios read; `socnav.config.EnvConfig` provides them. sim/ sees these
+    plain values and never imports the config layer (which imports sim/ for the scenario names)."""
+
+    robot_radius: float
+    human_radius: float
+    preferred_speed: tuple[float, float]  # U[min, max] m/s, every agent
+    personal_space: tuple[float, float]
+    cooperation: tuple[float, float]
+    circle_radius: float
+    circle_jitter: float
+    swap_jitter: float
+    square_size: float
+    perturbation: Any  # circle_interaction reads perturbation.human_speed_factor
+
+    def humans_range(self) -> tuple[int, int]: ...
+
+
 class Scenario(Protocol):
     """What a scenario provides. `redraw_goals` is True when humans draw a new goal on arrival."""
 
@@ -55,7 +70,7 @@ class Scenario(Protocol):
     default_humans: int | tuple[int, int]
     redraw_goals: bool
 
-    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState: ...
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState: ...
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -68,6 +83,7 @@ def register_scenario(scenario: Scenario) -> Scenario:
 
 
 def get_scenario(name: str) -> Scenario:
+    """The registered scenario `name` (KeyError listing the registered names)."""
     try:
         return _REGISTRY[name]
     except KeyError:
@@ -75,10 +91,11 @@ def get_scenario(name: str) -> Scenario:
 
 
 def scenario_names() -> list[str]:
+    """The registered scenario names, sorted."""
     return sorted(_REGISTRY)
 
 
-def n_slots(config: "EnvConfig") -> int:
+def n_slots(config: ScenarioSettings) -> int:
     """Agent slots of the simulation: the robot plus the most humans an episode of this config can have."""
     return 1 + config.humans_range()[1]
 
@@ -87,12 +104,13 @@ def n_slots(config: "EnvConfig") -> int:
 # Shared sampling steps
 
 
-def _draw_humans_count(rng: np.random.Generator, config: "EnvConfig") -> int:
+def _draw_humans_count(rng: np.random.Generator, config: ScenarioSettings) -> int:
     low, high = config.humans_range()
     return int(rng.integers(low, high + 1))
 
 
-def _fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Generator, config: "EnvConfig") -> None:
+def _fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Generator,
+                 config: ScenarioSettings) -> None:
     """Radii, preferred speeds, personal spaces and cooperation of one environment's agents."""
     agents = 1 + n_humans
     state.active[env, :agents] = True
@@ -134,7 +152,7 @@ class PositionSwap:
     default_humans: int | tuple[int, int] = 1
     redraw_goals: bool = False
 
-    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         for env in range(n_envs):
             n_humans = _draw_humans_count(rng, config)
@@ -162,7 +180,7 @@ class CircleCrossing:
     default_humans: int | tuple[int, int] = 5
     redraw_goals: bool = False
 
-    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         radius, jitter = config.circle_radius, config.circle_jitter
         for env in range(n_envs):
@@ -196,7 +214,7 @@ class CircleInteraction:
     redraw_goals: bool = False
     arrival_spread: float = 0.15  # relative spread of the humans' arrival times, so they do not all meet at once
 
-    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         radius = config.circle_radius
         for env in range(n_envs):
@@ -231,7 +249,7 @@ class RandomSquare:
     redraw_goals: bool = True
     min_goal_distance: float = 4.0
 
-    def sample(self, rng: np.random.Generator, n_envs: int, config: "EnvConfig") -> InitialState:
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         for env in range(n_envs):
             n_humans = _draw_humans_count(rng, config)
@@ -248,7 +266,7 @@ class RandomSquare:
             _face_goal(state, env)
         return state
 
-    def _point(self, rng: np.random.Generator, config: "EnvConfig", taken: list[np.ndarray]) -> np.ndarray:
+    def _point(self, rng: np.random.Generator, config: ScenarioSettings, taken: list[np.ndarray]) -> np.ndarray:
         half = config.square_size / 2
         for _ in range(MAX_TRIES):
             point = rng.uniform(-half, half, 2)
@@ -257,7 +275,7 @@ class RandomSquare:
         return point
 
     def goal_for(
-        self, rng: np.random.Generator, config: "EnvConfig", start: np.ndarray, taken: list[np.ndarray] | None = None
+        self, rng: np.random.Generator, config: ScenarioSettings, start: np.ndarray, taken: list[np.ndarray] | None = None
     ) -> np.ndarray:
         """A goal at least `min_goal_distance` from `start` (and 1 m from goals in `taken`)."""
         half = config.square_size / 2

@@ -13,6 +13,10 @@ Example::
 from socnav.uncertainty.stats import Uncertainty, ensemble_feature_uncertainty, feature_uncertainty, summarise_samples
 from socnav.uncertainty.window import WindowedUncertainty
 
+#: Seed of the MC-dropout masks of socnav's experiments and commands: a study, a calibration or an animation gives the
+#: same numbers run to run.
+MC_SEED = 0
+
 # The estimators (torch) load on first use, so that the NumPy-only parts above (and `socnav.uncertainty.stats`,
 # which the torch-free runtime imports) do not pull in torch.
 _LAZY = {
@@ -33,6 +37,7 @@ def __getattr__(name: str):
 
 __all__ = [
     "ESTIMATOR_KINDS",
+    "MC_SEED",
     "EnsembleEstimator",
     "MCDropoutEstimator",
     "Uncertainty",

@@ -184,6 +184,7 @@ def summarise_samples(mu: Any, log_std: Any, h: Any) -> tuple[np.ndarray, np.nda
 @numba.njit(cache=True)
 def _moments_kernel(mu: np.ndarray, log_std: np.ndarray,
                     h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    # paper eq. (5): u_ep, eq. (6): u_al, eq. (7): V (the feature variance per element), from the K samples
     k, batch, actions = mu.shape
     width = h.shape[2]
     mean, u_ep, u_al = np.zeros((batch, actions)), np.zeros((batch, actions)), np.zeros((batch, actions))

@@ -1,7 +1,5 @@
-"""Non-learning robot controllers that act from the observation alone: `orca` and `straight`.
-
-They are the baselines of `socnav evaluate` and, with inflated human radii, the cautious fallback of the safety layer.
-Both follow SB3's `predict(observation, deterministic=True) -> (actions, None)` so any rollout can use them.
+"""The robot's non-learned controllers: the baselines and the ORCA controller the safety layer's cautious fallback
+extends. Both (`orca`, `straight`) act from the observation alone with SB3's `predict(...) -> (actions, None)`.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The perturbation study's grids (paper section V-B): which strengths Table 2 and Table 3 sweep, and the disjoint set
-`socnav calibrate` tunes the safety thresholds on.
+"""Perturbed worlds (paper section V-B): one perturbation type at one strength as an env config, the strengths Table 2
+and Table 3 sweep, and the disjoint set `socnav calibrate` tunes the safety thresholds on.
 """
 
 from __future__ import annotations
@@ -7,6 +7,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
+from socnav.config import EnvConfig, load_config
 
 #: Perturbation type -> config field of `socnav.config.PerturbationConfig`.
 PERTURBATION_FIELDS = {
@@ -52,13 +54,11 @@ def perturbation_override(kind: str, strength: float) -> dict[str, Any]:
     return {field: float(strength)}
 
 
-def perturbed_config(env: dict[str, Any], kind: str, strength: float) -> Any:
+def perturbed_config(env: dict[str, Any], kind: str, strength: float) -> EnvConfig:
     """The validated `EnvConfig` of the (partial) env config `env` with one perturbation at one strength.
 
     :raises socnav.config.ConfigError: the strength puts a field out of its range (the message names it).
     """
-    from socnav.config import load_config
-
     perturbation = {**env.get("perturbation", {}), **perturbation_override(kind, strength)}
     return load_config({**env, "perturbation": perturbation})
 

@@ -1,0 +1,160 @@
+"""What an experiment kind plugs in -- unit executors (`socnav run`) and report sections (`socnav report`) -- and what
+they are given: the unit directories of a run, the report context, strict JSON.
+
+An executor registers with ``@register_executor("kind")``, a section with ``@register_section("kind", "name")``.
+socnav's own: `socnav.experiments.runner` holds the table1 kind's executors and imports
+`socnav.experiments.uncertainty_units` (the uncertainty kind's), so every process running units knows them all;
+`socnav.experiments.report` holds the table1 kind's sections and imports `socnav.experiments.uncertainty_report`.
+This module imports none of them: the providers import it, never the other way round.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import pandas as pd
+
+from socnav.experiments.spec import Unit
+from socnav.io import read_table
+
+__all__ = [
+    "EXECUTORS", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section", "file_digest",
+    "json_safe", "register_executor", "register_section", "single_threaded_torch", "unit_dir",
+]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The run directory, as executors and sections see it
+# --------------------------------------------------------------------------------------------------------------
+
+def unit_dir(root: Path, unit: Unit | str) -> Path:
+    """The directory of `unit` (a Unit or its id) in the run directory `root`."""
+    return Path(root) / (unit if isinstance(unit, str) else unit.id)
+
+
+def file_digest(path: Path) -> dict[str, Any]:
+    """``{"size", "sha256"}`` of a file: what completion markers record of the outputs and inputs of a unit."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return {"size": path.stat().st_size, "sha256": digest.hexdigest()}
+
+
+def json_safe(value: Any) -> Any:
+    """Strict JSON: NaN / infinities become null, numpy scalars plain numbers."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def single_threaded_torch() -> None:
+    """One torch thread: units run side by side, one per core."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Executors: what a unit kind does
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class ExecutorResult:
+    """What an executor wrote: its output files (relative to the unit directory), the digests of the inputs it read
+    (``{"<unit id>/<file>": digest}``) and extra fields for the completion marker."""
+
+    outputs: list[str]
+    inputs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+Executor = Callable[[Path, Unit, Path], ExecutorResult]  # (run root, unit, unit directory) -> result
+#: unit kind -> function doing the unit's work in its (prepared) directory.
+EXECUTORS: dict[str, Executor] = {}
+#: unit kind -> function(unit directory) telling whether a partial unit may be continued (else it is wiped).
+RESUMABLE: dict[str, Callable[[Path], bool]] = {}
+
+
+def register_executor(kind: str, resumable: Callable[[Path], bool] | None = None) -> Callable[[Executor], Executor]:
+    """Decorator making a function the executor of unit `kind`; `resumable(unit directory)` says whether a unit
+    left half-done may be continued (without it, such a unit is wiped and redone)."""
+
+    def decorate(function: Executor) -> Executor:
+        EXECUTORS[kind] = function
+        if resumable is not None:
+            RESUMABLE[kind] = resumable
+        return function
+
+    return decorate
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Report sections: what a report shows per experiment kind
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class ReportContext:
+    """What a section sees: the run directory, its resolved experiment, its units and which of them are done."""
+
+    results_dir: Path
+    out_dir: Path
+    experiment: dict[str, Any]
+    units: list[Unit]
+    states: dict[str, str]
+    _cache: dict[str, Any] = field(default_factory=dict)
+
+    def done(self, kind: str | None = None) -> list[Unit]:
+        return [u for u in self.units if self.states[u.id] == "done" and (kind is None or u.kind == kind)]
+
+    def missing(self, kind: str | None = None) -> list[Unit]:
+        return [u for u in self.units if self.states[u.id] != "done" and (kind is None or u.kind == kind)]
+
+    def episode_records(self) -> pd.DataFrame:
+        """All finished evaluation units' per-episode records (with train_scenario, algo, train_seed, eval_scenario)."""
+        if "episodes" not in self._cache:
+            frames = [read_table(unit_dir(self.results_dir, u) / "episodes.parquet") for u in self.done("eval")]
+            self._cache["episodes"] = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(
+                columns=["train_scenario", "algo", "train_seed", "eval_scenario", "episode", "outcome", "return",
+                         "intrusion_events"])
+        return self._cache["episodes"]
+
+    def training_curves(self) -> pd.DataFrame:
+        """All finished training units' curve.csv rows with train_scenario, algo and seed columns."""
+        if "curves" not in self._cache:
+            frames = []
+            for unit in self.done("train"):
+                curve = read_table(unit_dir(self.results_dir, unit) / "curve.csv")
+                curve.insert(0, "seed", unit.params["seed"])
+                curve.insert(0, "algo", unit.params["algo"])
+                curve.insert(0, "train_scenario", unit.params["train_scenario"])
+                frames.append(curve)
+            self._cache["curves"] = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(
+                columns=["train_scenario", "algo", "seed", "timesteps", "ep_rew_mean"])
+        return self._cache["curves"]
+
+
+Section = Callable[[ReportContext], str]
+#: experiment kind -> [(section name, function writing its files and returning its Markdown)], in page order.
+SECTIONS: dict[str, list[tuple[str, Section]]] = {}
+
+
+def register_section(kind: str, name: str) -> Callable[[Section], Section]:
+    """Decorator adding a report section for experiments of `kind` (sections appear in registration order)."""
+
+    def decorate(function: Section) -> Section:
+        sections = SECTIONS.setdefault(kind, [])
+        sections[:] = [(n, f) for n, f in sections if n != name] + [(name, function)]
+        return function
+
+    return decorate
