@@ -567,3 +567,45 @@ def test_threshold_yaml_files_with_non_finite_values_are_refused(tmp_path):
     with pytest.raises(ThresholdsError) as error:
         load_thresholds(path)
     assert "lambda_prox" in str(error.value) and "beta1" in str(error.value)
+
+
+def test_eager_neighbours_fire_in_more_situations_one_parameter_at_a_time():
+    from socnav.safety.calibration import eager_neighbours
+
+    closing = Thresholds.create(lambda_ep=0.25, lambda_feat=math.inf, lambda_prox=0.5, beta1=1.0,
+                                proximity="closing-speed", sensing="true")
+    moves = {tuple(sorted((k, v) for k, v in n.model_dump().items() if v != closing.model_dump()[k]))
+             for n in eager_neighbours(closing)}
+    # lambda_prox x1.5, beta1 + 0.5 s, lambda_ep x0.75; lambda_feat is off (inf) and stays off
+    assert moves == {(("lambda_prox", 0.75),), (("beta1", 1.5),), (("lambda_ep", 0.1875),)}  # exact in binary
+    assert all(n.sensing == "true" and n.proximity == "closing-speed" for n in eager_neighbours(closing))
+    # with |dv| added to the gap a larger beta1 fires less: not a neighbour; lambda_prox 0 grows by 0.1 m
+    printed = Thresholds.create(lambda_ep=math.inf, lambda_feat=0.3, lambda_prox=0.0, beta1=0.5)
+    assert sorted(n.model_dump()["lambda_prox"] for n in eager_neighbours(printed)) == [0.0, pytest.approx(0.1)]
+    assert all(n.beta1 == 0.5 for n in eager_neighbours(printed))
+
+
+def test_refinement_climbs_while_measured_rollouts_improve(monkeypatch):
+    import socnav.safety.calibration as calibration
+
+    start = Thresholds.create(lambda_ep=math.inf, lambda_feat=0.4, lambda_prox=0.5, beta1=0.0)
+    wider = start.model_copy(update={"lambda_prox": 0.75})
+    widest = start.model_copy(update={"lambda_prox": 1.125})
+    # measured collisions of type b (plain: 10): the wider rules prevent more, until the widest exceeds the budget
+    collisions = {start: 5, wider: 3, widest: 1}
+    rates = {widest: 0.2}
+
+    def fake_scores(thresholds, *args, **kwargs):
+        return {"collisions": {"b": collisions.get(thresholds, 6)}, "false_activation_rate": rates.get(thresholds, 0.01),
+                "false_activation_se": 0.0, "false_activation_steps": 10, "unperturbed_steps": 100_000}
+
+    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    runs = [CalibrationRun(None, True, 1, 0, "b"), CalibrationRun(None, False, 1, 1)]
+    table = pd.DataFrame([{**start.model_dump(), "chosen": True}]).assign(stage="proxy")
+    table.attrs["plain_collisions"] = {"b": 10}
+    chosen, refined = calibration._refine(start, table, None, None, runs, 0.05, 4, 4, 0.95, lambda n: None)
+    assert chosen == wider                                        # 70 % prevented; the widest is over budget
+    assert refined["chosen"].sum() == 1 and refined.loc[refined["chosen"], "lambda_prox"].item() == 0.75
+    assert set(refined["stage"]) == {"proxy", "refine-1", "refine-2"}
+    assert calibration._refine(Thresholds.never(), table, None, None, runs, 0.05, 4, 4, 0.95,
+                               lambda n: None)[0] == Thresholds.never()

@@ -58,7 +58,7 @@ _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # timestamps would make two saves of th
 
 __all__ = [
     "CheckpointError", "PolicyLoadError", "load_checkpoint", "load_policy", "pretrained_path", "read_checkpoint_header",
-    "save_checkpoint", "save_policy", "validation_message",
+    "save_checkpoint", "save_policy", "training_world", "validation_message",
 ]
 
 
@@ -346,6 +346,25 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     policy.set_training_mode(False)
     policy.socnav_metadata = raw_header  # type: ignore[attr-defined]  (validated above)
     return policy
+
+
+def training_world(policy: Any, scenario: str | None = None, n_humans: int | None = None,
+                   max_humans: int | None = None) -> tuple[dict[str, Any], str]:
+    """The env config a loaded policy is evaluated in unless told otherwise: the world it was trained in (its
+    ``socnav_metadata["env_config"]``), and where that world comes from in words.
+
+    `scenario`, `n_humans` and `max_humans` are the overrides the caller applies on top (``load_config(world,
+    **overrides)``); they are not applied here. A scenario other than the training one drops the stored
+    ``n_humans``, so that the new scenario starts from its own number of humans.
+
+    :returns: (the env config as a JSON dict, to build with ``load_config``; "the model's training world", with
+        ", changed by the options" when any override is given).
+    """
+    world = dict(policy.socnav_metadata["env_config"])  # a copy: the policy's metadata stays as loaded
+    if scenario is not None and scenario != world.get("scenario"):
+        world["n_humans"] = None
+    changed = scenario is not None or n_humans is not None or max_humans is not None
+    return world, "the model's training world" + (", changed by the options" if changed else "")
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from socnav.safety.calibration import (
     collect_records,
     evaluate_thresholds,
     rollout_scores,
+    save_calibration,
     select_by_rollouts,
 )
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
@@ -38,7 +39,7 @@ from socnav.safety.rule import (
     rule_conditions,
     save_thresholds,
 )
-from socnav.safety.safe_policy import FallbackCounter, SafePolicy
+from socnav.safety.safe_policy import FallbackCounter, SafePolicy, fallback_percent
 
 __all__ = [
     "CAUTIOUS_RADIUS_SCALE",
@@ -60,11 +61,13 @@ __all__ = [
     "collect_records",
     "collision_probability",
     "evaluate_thresholds",
+    "fallback_percent",
     "load_thresholds",
     "nearest_human",
     "proximity_score",
     "rollout_scores",
     "rule_conditions",
+    "save_calibration",
     "save_thresholds",
     "select_by_rollouts",
 ]

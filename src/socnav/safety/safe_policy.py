@@ -24,7 +24,7 @@ windows and the previous gap run on across episodes.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Union
+from typing import TYPE_CHECKING, Any, Mapping, Union
 
 import numpy as np
 
@@ -32,7 +32,10 @@ from socnav.config import ConfigLike, load_config
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
 from socnav.safety.rule import NearestHuman, RuleConditions, Thresholds, load_thresholds, nearest_human, rule_conditions
 
-__all__ = ["FallbackCounter", "SafePolicy"]
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = ["FallbackCounter", "SafePolicy", "fallback_percent"]
 
 SPEED, HEADING = 0, 1
 
@@ -227,3 +230,10 @@ class FallbackCounter:
     def per_episode(self, episodes: Any) -> list[int]:
         """Fallback steps of each of ``episodes`` (ids), 0 where it never acted."""
         return [self.counts.get(int(e), 0) for e in episodes]
+
+
+def fallback_percent(records: pd.DataFrame) -> float:
+    """Share of all steps of the rollout ``records`` on which the fallback drove, in percent: the
+    ``fallback_steps`` column (:meth:`FallbackCounter.per_episode`) over the ``length`` column, pooled over the
+    episodes (a long episode weighs more than a short one)."""
+    return 100.0 * float(records["fallback_steps"].sum() / records["length"].sum())
