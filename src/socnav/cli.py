@@ -5,8 +5,9 @@ Every command validates its options up front and reports bad input as one clear 
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Optional
 
 import typer
 from rich.markup import escape
@@ -99,6 +100,15 @@ def _progress() -> Progress:
     )
 
 
+@contextmanager
+def _progress_bar(label: str, total: int) -> Iterator[Callable[[int], None]]:
+    """One progress bar of `total` episodes, shown while the block runs; yields its `advance(n)` (a library step's
+    ``progress``, e.g. `socnav.experiments.demo.ProgressBar`)."""
+    with _progress() as progress:
+        task = progress.add_task(escape(label), total=total)
+        yield lambda n: progress.advance(task, n)
+
+
 #: Episodes PV is scaled to (the paper's tables: intrusion events per 200 episodes, whatever was run).
 PV_PER = 200
 
@@ -129,12 +139,9 @@ def _evaluate(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: 
               deterministic: bool = True, observer: Any = None) -> pd.DataFrame:
     from socnav.envs.rollout import rollout_episodes
 
-    with _progress() as progress:
-        task = progress.add_task(escape(label), total=episodes)
-        return rollout_episodes(
-            policy, config, episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
-            progress=lambda n: progress.advance(task, n), observer=observer,
-        )
+    with _progress_bar(label, episodes) as advance:
+        return rollout_episodes(policy, config, episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
+                                progress=advance, observer=observer)
 
 
 def _yaml(option: str, text: Optional[str] = None, path: Optional[Path] = None) -> Any:
@@ -375,20 +382,16 @@ def evaluate(
     if model is not None:
         actor = _load_learned_policy(model)
     base, origin = config, f"--config {config}" if config is not None else "defaults"
-    if actor is not None and config is None:
-        # A model is evaluated in the world it was trained in unless told otherwise; a different scenario starts
-        # from that scenario's own number of humans.
-        stored = dict(actor.socnav_metadata["env_config"])
-        if scenario is not None and scenario != stored.get("scenario"):
-            stored["n_humans"] = None
-        changed = scenario is not None or n_humans is not None or max_humans is not None
-        base, origin = stored, "the model's training world" + (", changed by the options" if changed else "")
+    if actor is not None and config is None:  # without --config, a model plays in the world it was trained in
+        from socnav.rl.persistence import training_world
+
+        base, origin = training_world(actor, scenario, n_humans, max_humans)
     env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base), perturb)
     console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
     name = _model_label(model) if model is not None else controller
     observer = None
     if safety is not None:
-        from socnav.safety import FallbackCounter, SafePolicy
+        from socnav.safety import FallbackCounter, SafePolicy, fallback_percent
 
         thresholds = _load_thresholds_option(safety, sensing)
         acting, uncertainty = _estimator(estimator or ("ensemble" if safety == "ensemble" else "mc"), model,
@@ -415,7 +418,7 @@ def evaluate(
     metrics = summarize(records, pv_per=PV_PER)
     if observer is not None:
         records["fallback_steps"] = observer.per_episode(records["episode"])
-        metrics["fallback_pct"] = 100.0 * float(records["fallback_steps"].sum() / records["length"].sum())
+        metrics["fallback_pct"] = fallback_percent(records)
     write_table_atomic(records, out)
     console.print(metrics_table([(name, metrics)],
                                 f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"))
@@ -573,10 +576,7 @@ def calibrate(
     out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
-    import json
-
-    from socnav.io import write_text_atomic
-    from socnav.safety import PROXIMITY_VARIANTS, calibrate_thresholds, save_thresholds
+    from socnav.safety import PROXIMITY_VARIANTS, calibrate_thresholds, save_calibration
 
     false_activation_budget = budget if budget is not None else false_activation_budget
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
@@ -593,14 +593,13 @@ def calibrate(
             policy, uncertainty, env_config.model_dump(mode="json"), episodes, false_activation_budget, proximity,
             confidence=confidence, progress=lambda done, total: progress.update(task, completed=done, total=total),
             sensing=sensing)
-    save_thresholds(thresholds, out)
-    write_text_atomic(out.with_suffix(".report.json"), json.dumps(report, indent=2, default=str))
+    report_path = save_calibration(thresholds, report, out)
     console.print(calibration_table(thresholds, report, f"calibrated thresholds ({estimator}, false-activation "
                                                         f"budget {false_activation_budget:.0%})"))
     console.print("prevented: share of the plain policy's calibration collisions prevented in the replayed episodes "
                   "(mean over perturbation types); false act.: share of unperturbed steps where the fallback acted "
                   f"(≤ its one-sided {confidence:.0%} upper bound); every candidate in "
-                  f"{escape(str(out.with_suffix('.report.json')))}", highlight=False)
+                  f"{escape(str(report_path))}", highlight=False)
     if report["n_collisions"] and report["n_collisions"] < FEW_COLLISIONS:
         console.print(f"[yellow]warning:[/] the prevented share rests on only {report['n_collisions']} calibration "
                       f"collision(s) (< {FEW_COLLISIONS}); it is a rough estimate: use more --episodes",
@@ -643,67 +642,49 @@ def demo(
 ) -> None:
     """Baselines in every scenario, an ODV-PPO-Drop policy, then that policy under heading noise with and without
     the safety layer: metrics and animations (GIF)."""
-    from socnav.controllers import make_controller
-    from socnav.envs.rollout import summarize
-    from socnav.experiments import demo as safety
-    from socnav.experiments.animate import animate_episode
-    from socnav.io import write_table_atomic
+    from socnav.experiments import demo as steps
 
-    rows = []
-    for scenario in scenario_names():
-        env_config = load_config({"scenario": scenario})
-        for name in ("orca", "straight"):
-            records = _evaluate(make_controller(name, env_config), env_config, episodes, seed, 32, f"{name} / {scenario}")
-            write_table_atomic(records, out / f"{name}_{scenario}.csv")
-            rows.append((f"{name} / {scenario}", summarize(records)))
+    rows = steps.baseline_rows(out, episodes, seed, progress=_progress_bar)
     console.print(metrics_table(rows, f"Baseline controllers, {episodes} episodes each (seeds {seed}..)"))
-    env_config = load_config({"scenario": "circle_crossing"})
-    gif, summary = animate_episode(make_controller("orca", env_config), None, env_config,
-                                   out / "orca_circle_crossing.gif", seed=seed, policy_label="ORCA robot")
+    gif, summary = steps.animate_baseline(out, seed)
     console.print(f"animation of one ORCA episode ({summary.get('outcome')}): {escape(str(gif))}", highlight=False)
 
     if train_steps:
         from socnav.rl.training import TrainingInterrupted
-        from socnav.rl.training import train as train_run
 
-        world = load_config({"scenario": "position_swap", "n_humans": 1})
         console.print(f"training ODV-PPO-Drop on position swap with one human for {train_steps:,} steps")
         try:
-            result = train_run(world, "odv-ppo-drop", seed, train_steps, out / "odv_ppo_drop", progress=True)
+            result = steps.train_policy(out, seed, train_steps)
         except TrainingInterrupted as exc:
             fail(str(exc), code=1)
         model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
     else:
         model_path, label = "pretrained", "odv-ppo-drop (pretrained)"
     policy = _load_learned_policy(model_path)
-    world = load_config(policy.socnav_metadata["env_config"])  # the world the policy was trained in
-    records = _evaluate(policy, world, episodes, seed, 32, f"{label} / {world.scenario}")
-    write_table_atomic(records, out / f"odv_ppo_drop_{world.scenario}.csv")
-    console.print(metrics_table([(label, summarize(records))], f"{describe_world(world)}, {episodes} episodes"))
-    gif, summary = animate_episode(policy, None, world, out / f"odv_ppo_drop_{world.scenario}.gif", seed=seed,
-                                   policy_label=label)
+    world, row = steps.learned_policy_row(policy, label, out, episodes, seed, progress=_progress_bar)
+    console.print(metrics_table([row], f"{describe_world(world)}, {episodes} episodes"))
+    gif, summary = steps.animate_learned_policy(policy, world, out, seed, label)
     console.print(f"animation of one learned-policy episode ({summary.get('outcome')}): {escape(str(gif))}",
                   highlight=False)
 
     # The point of the project: under a perturbation, the safety layer hands over to a cautious controller when
     # the policy is uncertain and a human is close.
-    console.print(f"[bold]safety layer[/]: {label} under {safety.PERTURBATION}, the same episodes without and with "
+    console.print(f"[bold]safety layer[/]: {label} under {steps.PERTURBATION}, the same episodes without and with "
                   "the layer (MC-dropout, the paper's thresholds)")
     with _progress() as progress:
         def tick(what: str, total: int) -> Any:
             task = progress.add_task(f"{what} / {world.scenario}", total=total)
             return lambda n: progress.advance(task, n)
 
-        result = safety.safety_demo(policy, world, episodes, seed, progress=tick)
-    write_table_atomic(result.plain, out / f"perturbed_{world.scenario}.csv")
-    write_table_atomic(result.safe, out / f"perturbed_{world.scenario}_safety.csv")
-    console.print(metrics_table(safety.summary_rows(result, label), f"{describe_world(result.config)}, "
-                                                                    f"{episodes} episodes"))
-    for line in safety.describe(result):
+        result = steps.safety_demo(policy, world, episodes, seed, progress=tick)
+    steps.write_safety_records(result, out)
+    console.print(metrics_table(steps.summary_rows(result, label), f"{describe_world(result.config)}, "
+                                                                   f"{episodes} episodes"))
+    for line in steps.describe(result):
         console.print(line, highlight=False)
-    saved_seed = safety.find_saved_episode(policy, result.config, result.saved) if result.saved else None
+    saved_seed = steps.find_saved_episode(policy, result.config, result.saved) if result.saved else None
     if saved_seed is not None:
-        without, with_layer = safety.animate_saved_episode(policy, result.config, saved_seed, out, label)
+        without, with_layer = steps.animate_saved_episode(policy, result.config, saved_seed, out, label)
         console.print(f"an episode the safety layer saves (seed {saved_seed}): without it {escape(str(without))}, "
                       f"with it {escape(str(with_layer))}", highlight=False)
     elif result.saved:

@@ -1,5 +1,10 @@
-"""The safety part of `socnav demo`: a learned policy under a perturbation, with and without the safety layer, on
-the same episodes; the collisions it prevents, how often its fallback drives, and an episode it saves.
+"""The steps of `socnav demo` (the command prints what they return): the baseline controllers in every scenario
+(`baseline_rows`), a learned policy in the world it was trained in (`train_policy`, `learned_policy_row`), each
+with an animation, and the safety part: the learned policy under a perturbation, with and without the safety layer,
+on the same episodes; the collisions it prevents, how often its fallback drives, and an episode it saves.
+
+Where a step takes ``progress``, it is a `ProgressBar`: ``progress(label, total)`` returns a context manager that
+shows one bar while its evaluation runs and yields the callback advanced by finished episodes.
 
 The perturbation is heading noise (the robot's turns go astray). Its strength is chosen by a quick measurement on
 screening episodes disjoint from the demo's: the strength among `STRENGTHS` at which the plain policy collides most
@@ -9,16 +14,31 @@ screening episodes disjoint from the demo's: the strength among `STRENGTHS` at w
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, ContextManager
 
 import pandas as pd
 
 from socnav.config import EnvConfig, load_config
 
-__all__ = ["PERTURBATION", "STRENGTHS", "SafetyDemo", "animate_saved_episode", "choose_strength", "describe",
-           "find_saved_episode", "safety_demo", "summary_rows"]
+if TYPE_CHECKING:
+    from socnav.rl.training import TrainResult
+
+__all__ = ["BASELINES", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar", "SafetyDemo",
+           "animate_baseline", "animate_learned_policy", "animate_saved_episode", "baseline_rows", "choose_strength",
+           "describe", "find_saved_episode", "learned_policy_row", "safety_demo", "summary_rows", "train_policy",
+           "write_safety_records"]
+
+#: ``progress(label, total)``: a context manager showing one progress bar, yielding its ``advance(n)`` callback.
+ProgressBar = Callable[[str, int], ContextManager[Callable[[int], None]]]
+#: A metrics-table row: (run name, `socnav.envs.rollout.summarize` of its records).
+Row = tuple[str, dict[str, Any]]
+
+BASELINES = ("orca", "straight")  # the non-learned controllers run in every scenario
+N_ENVS = 32  # environments stepped together in the demo's evaluations
+TRAINING_WORLD = {"scenario": "position_swap", "n_humans": 1}  # where `socnav demo --train-steps` trains a policy
 
 PERTURBATION = "heading_noise"
 STRENGTHS = (0.2, 0.4, 0.8)  # rad; above ~1 the robot rarely reaches its goal at all, with or without the layer
@@ -49,6 +69,81 @@ class SafetyDemo:
     def fallback_share(self) -> float:
         """Share of the safe episodes' steps on which the cautious controller drove."""
         return float(self.safe["fallback_steps"].sum() / self.safe["length"].sum())
+
+
+def _rollout(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int, label: str,
+             progress: ProgressBar | None) -> pd.DataFrame:
+    """`rollout_episodes` of `policy`, shown as the progress bar `label` when `progress` is given."""
+    from socnav.envs.rollout import rollout_episodes
+
+    with (progress(label, episodes) if progress is not None else nullcontext(None)) as advance:
+        return rollout_episodes(policy, config, episodes, seed=seed, n_envs=n_envs, progress=advance)
+
+
+def baseline_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
+                  progress: ProgressBar | None = None) -> list[Row]:
+    """Every `BASELINES` controller in every scenario (its default world), `episodes` episodes each from seed
+    `seed`; writes each run's records to OUT/<controller>_<scenario>.csv and returns the metrics-table rows,
+    named "<controller> / <scenario>"."""
+    from socnav.controllers import make_controller
+    from socnav.envs.rollout import summarize
+    from socnav.io import write_table_atomic
+    from socnav.sim.scenarios import scenario_names
+
+    rows = []
+    for scenario in scenario_names():
+        config = load_config({"scenario": scenario})
+        for name in BASELINES:
+            label = f"{name} / {scenario}"
+            records = _rollout(make_controller(name, config), config, episodes, seed, n_envs, label, progress)
+            write_table_atomic(records, Path(out) / f"{name}_{scenario}.csv")
+            rows.append((label, summarize(records)))
+    return rows
+
+
+def animate_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
+    """One ORCA episode (seed `seed`) of circle crossing as OUT/orca_circle_crossing.gif; returns
+    `animate_episode`'s (path, summary)."""
+    from socnav.controllers import make_controller
+    from socnav.experiments.animate import animate_episode
+
+    config = load_config({"scenario": "circle_crossing"})
+    return animate_episode(make_controller("orca", config), None, config, Path(out) / "orca_circle_crossing.gif",
+                           seed=seed, policy_label="ORCA robot")
+
+
+def train_policy(out: Path, seed: int, timesteps: int) -> TrainResult:
+    """Train a fresh ODV-PPO-Drop policy in `TRAINING_WORLD` for `timesteps` steps, the run in OUT/odv_ppo_drop
+    (with its own progress display). Raises `socnav.rl.training.TrainingInterrupted` when stopped."""
+    from socnav.rl.training import train
+
+    return train(load_config(TRAINING_WORLD), "odv-ppo-drop", seed, timesteps, Path(out) / "odv_ppo_drop",
+                 progress=True)
+
+
+def learned_policy_row(policy: Any, label: str, out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
+                       progress: ProgressBar | None = None) -> tuple[EnvConfig, Row]:
+    """`policy` in the world it was trained in (`socnav.rl.persistence.training_world`), `episodes` episodes from
+    seed `seed`; writes the records to OUT/odv_ppo_drop_<scenario>.csv and returns (that world, its metrics-table
+    row named `label`)."""
+    from socnav.envs.rollout import summarize
+    from socnav.io import write_table_atomic
+    from socnav.rl.persistence import training_world
+
+    world = load_config(training_world(policy)[0])
+    records = _rollout(policy, world, episodes, seed, n_envs, f"{label} / {world.scenario}", progress)
+    write_table_atomic(records, Path(out) / f"odv_ppo_drop_{world.scenario}.csv")
+    return world, (label, summarize(records))
+
+
+def animate_learned_policy(policy: Any, world: EnvConfig, out: Path, seed: int, label: str
+                           ) -> tuple[Path, dict[str, Any]]:
+    """One episode (seed `seed`) of `policy` in `world` as OUT/odv_ppo_drop_<scenario>.gif; returns
+    `animate_episode`'s (path, summary)."""
+    from socnav.experiments.animate import animate_episode
+
+    return animate_episode(policy, None, world, Path(out) / f"odv_ppo_drop_{world.scenario}.gif", seed=seed,
+                           policy_label=label)
 
 
 def _safe_policy(policy: Any, config: EnvConfig) -> Any:
@@ -93,6 +188,16 @@ def safety_demo(policy: Any, base: EnvConfig, episodes: int, seed: int, n_envs: 
     return SafetyDemo(config, strength, screening, plain, safe,
                       saved=[int(s) for s in plain.loc[plain_hit & ~safe_hit, "seed"]],
                       caused=[int(s) for s in plain.loc[~plain_hit & safe_hit, "seed"]])
+
+
+def write_safety_records(result: SafetyDemo, out: Path) -> tuple[Path, Path]:
+    """The safety demo's records: OUT/perturbed_<scenario>.csv (plain policy) and
+    OUT/perturbed_<scenario>_safety.csv (with the layer, `fallback_steps` included); returns both paths."""
+    from socnav.io import write_table_atomic
+
+    plain = Path(out) / f"perturbed_{result.config.scenario}.csv"
+    safe = Path(out) / f"perturbed_{result.config.scenario}_safety.csv"
+    return write_table_atomic(result.plain, plain), write_table_atomic(result.safe, safe)
 
 
 def find_saved_episode(policy: Any, config: EnvConfig, saved: list[int], tries: int = 3) -> int | None:
@@ -145,8 +250,9 @@ def describe(result: SafetyDemo) -> list[str]:
 def summary_rows(result: SafetyDemo, label: str) -> list[tuple[str, dict[str, Any]]]:
     """Metrics-table rows (`socnav.envs.rollout.summarize`) of the plain and the safe run."""
     from socnav.envs.rollout import summarize
+    from socnav.safety import fallback_percent
 
     safe = summarize(result.safe)
-    safe["fallback_pct"] = 100.0 * result.fallback_share
+    safe["fallback_pct"] = fallback_percent(result.safe)
     return [(f"{label}, no safety layer", summarize(result.plain)), (f"{label} + safety layer (mc)", safe)]
 

@@ -810,7 +810,9 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     table = pd.concat([table, pd.DataFrame(proxies)], axis=1).assign(stage="proxy")
     thresholds, table = _refine(thresholds, table, policy, estimator, runs, budget, window, n_envs, confidence,
                                 advance)
-    played["total"] = played["done"]
+    played["total"] = played["done"]  # the refinement may stop early: the bar ends full
+    if progress is not None:
+        progress(played["done"], played["total"])
     thresholds = Thresholds.create(thresholds.model_dump(), sensing=sensing)  # also when none met the budget
     chosen = table[table["chosen"]]
     report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
