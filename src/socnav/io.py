@@ -7,12 +7,14 @@ process killed in between leaves its temporary file (``.<name>.<8 random charact
 
 from __future__ import annotations
 
+import math
+
 import os
 import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import pandas as pd
 
@@ -121,3 +123,16 @@ def save_figure(figure, out_base: Path) -> list[Path]:
         paths.append(path)
     plt.close(figure)
     return paths
+
+
+def json_safe(value: Any) -> Any:
+    """Strict JSON: NaN / infinities become null, numpy scalars plain numbers."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

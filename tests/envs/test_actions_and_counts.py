@@ -107,6 +107,6 @@ def test_cli_refuses_impossible_env_counts_before_writing(tmp_path):
                                  "--out", str(out)])
     assert result.exit_code == 2 and "--n-envs=10,000,000" in result.output and "GiB" in result.output
     assert not out.exists()
-    result = runner.invoke(app, ["evaluate", "--policy", "orca", "--n-envs", "10000000", "--episodes", "10000000",
+    result = runner.invoke(app, ["evaluate", "--controller", "orca", "--n-envs", "10000000", "--episodes", "10000000",
                                  "--out", str(tmp_path / "x.csv")])
     assert result.exit_code == 2 and "--n-envs=10,000,000" in result.output

@@ -601,11 +601,48 @@ def test_refinement_climbs_while_measured_rollouts_improve(monkeypatch):
 
     monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
     runs = [CalibrationRun(None, True, 1, 0, "b"), CalibrationRun(None, False, 1, 1)]
-    table = pd.DataFrame([{**start.model_dump(), "chosen": True}]).assign(stage="proxy")
-    table.attrs["plain_collisions"] = {"b": 10}
-    chosen, refined = calibration._refine(start, table, None, None, runs, 0.05, 4, 4, 0.95, lambda n: None)
+    table = pd.DataFrame([{**start.model_dump(), "chosen": True, "candidate": 0}]).assign(stage="proxy")
+    chosen, refined = calibration._refine(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
+                                          lambda n: None)
     assert chosen == wider                                        # 70 % prevented; the widest is over budget
     assert refined["chosen"].sum() == 1 and refined.loc[refined["chosen"], "lambda_prox"].item() == 0.75
     assert set(refined["stage"]) == {"proxy", "refine-1", "refine-2"}
-    assert calibration._refine(Thresholds.never(), table, None, None, runs, 0.05, 4, 4, 0.95,
+    assert refined["candidate"].is_unique
+    assert calibration._refine(Thresholds.never(), table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
                                lambda n: None)[0] == Thresholds.never()
+    # a neighbour that only ties (same prevention, lower false activation) does not replace the current rule
+    collisions.update({wider: 5})
+    rates.update({wider: 0.001})
+    chosen, refined = calibration._refine(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
+                                          lambda n: None)
+    assert chosen == start and refined.loc[refined["chosen"], "stage"].tolist() == ["proxy"]
+
+
+def test_calibrate_thresholds_replays_the_plain_policy_once_and_fills_the_bar(monkeypatch):
+    import socnav.safety.calibration as calibration
+
+    records = typed_records()
+    plain_passes = []
+
+    def fake_collect(policy, estimator, config, n, seed=0, perturbed=None, episode_offset=0, progress=None, **kw):
+        part = records[records["perturbed"] == bool(perturbed)].drop(columns="group").assign(closing_speed=0.5)
+        part["episode"] += episode_offset * 1000
+        progress(n)
+        return part
+
+    def fake_scores(thresholds, policy, estimator, runs, window=4, n_envs=40, progress=None):
+        plain_passes.append(thresholds is None)
+        progress(sum(run.n_episodes for run in runs))
+        groups = {run.group for run in runs if run.perturbed}
+        return {"collisions": {g: 5 if thresholds is None else 2 for g in groups}, "false_activation_rate": 0.0,
+                "false_activation_se": 0.0, "false_activation_steps": 0, "unperturbed_steps": 10 ** 6}
+
+    monkeypatch.setattr(calibration, "collect_records", fake_collect)
+    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    seen = []
+    _, report = calibration.calibrate_thresholds(None, None, {"scenario": "position_swap"}, 2,
+                                                 progress=lambda done, total: seen.append((done, total)))
+    assert sum(plain_passes) == 1 and len(plain_passes) > 1      # stages 2 and 3 share one plain replay
+    assert all(done <= total for done, total in seen) and seen[-1][0] == seen[-1][1]
+    frame = pd.DataFrame(report["candidates"])
+    assert frame["candidate"].is_unique and frame["chosen"].sum() == 1

@@ -68,7 +68,9 @@ class SafetyDemo:
     @property
     def fallback_share(self) -> float:
         """Share of the safe episodes' steps on which the cautious controller drove."""
-        return float(self.safe["fallback_steps"].sum() / self.safe["length"].sum())
+        from socnav.safety import fallback_percent
+
+        return fallback_percent(self.safe) / 100.0
 
 
 def _rollout(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int, label: str,

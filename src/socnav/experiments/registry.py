@@ -19,7 +19,7 @@ from typing import Any, Callable
 import pandas as pd
 
 from socnav.experiments.spec import Unit
-from socnav.io import read_table
+from socnav.io import json_safe, read_table
 
 __all__ = [
     "EXECUTORS", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section", "file_digest",
@@ -43,19 +43,6 @@ def file_digest(path: Path) -> dict[str, Any]:
         for block in iter(lambda: stream.read(1 << 20), b""):
             digest.update(block)
     return {"size": path.stat().st_size, "sha256": digest.hexdigest()}
-
-
-def json_safe(value: Any) -> Any:
-    """Strict JSON: NaN / infinities become null, numpy scalars plain numbers."""
-    if isinstance(value, dict):
-        return {str(key): json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def single_threaded_torch() -> None:

@@ -485,7 +485,7 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
 
 @dataclass(frozen=True)
 class Unit:
-    """One unit of work: `kind` names its executor (runner.EXECUTORS), `params` is everything it needs (JSON).
+    """One unit of work: `kind` names its executor (registry.EXECUTORS), `params` is everything it needs (JSON).
 
     `id` is also the unit's directory relative to the run directory; `deps` are ids of units whose outputs it reads.
     """

@@ -44,7 +44,8 @@ come from the plain policy's trajectories. :func:`select_by_rollouts` is therefo
 calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy candidates (e.g. one per proximity
 reading and lead) and keeps the one that prevents the most collisions (worst perturbation type, then the mean
 over types) among those
-whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5).
+whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5). A third stage (``_refine`` in :func:`calibrate_thresholds`) climbs from the choice towards eager neighbours
+(:func:`eager_neighbours`), keeping a neighbour only if the replays say it prevents strictly more within the budget.
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
 of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the
@@ -617,7 +618,8 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     ``confidence``: its one-sided upper bound (:func:`false_activation_upper`: the larger of the normal bound
     ``rate + z * SE``, episodes as the independent units, and the exact Clopper-Pearson bound on the steps;
     ``confidence = 0.5`` uses the point estimate) must not exceed the budget. ``progress(n)``: n more episodes
-    replayed (``len(candidates) + 1`` passes over ``runs``). A few dozen calibration
+    replayed (``len(candidates) + 1`` passes over ``runs``; ``len(candidates)`` with ``plain_collisions``). A few
+    dozen calibration
     episodes estimate the rate only roughly; without the margin, a rule chosen at the edge of the budget can
     exceed it on new episodes.
 
@@ -642,6 +644,11 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
         raise ValueError(f"confidence must be in [0.5, 1), got {confidence}")
     if not any(run.perturbed for run in runs) or all(run.perturbed for run in runs):
         raise ValueError("runs need both perturbed (collisions to prevent) and unperturbed (false activations) runs")
+    if plain_collisions is not None:
+        expected = {run.group for run in runs if run.perturbed}
+        if set(plain_collisions) != expected:
+            raise ValueError(f"plain_collisions has the perturbation types {sorted(plain_collisions)}, the runs "
+                             f"{sorted(expected)}: measure them on these runs")
     plain = (dict(plain_collisions) if plain_collisions is not None
              else rollout_scores(None, policy, estimator, runs, window, n_envs, progress)["collisions"])
     groups = [group for group, count in plain.items() if count > 0]
@@ -678,10 +685,13 @@ REFINE_ROUNDS = 2
 #: Eager moves of the refinement: c_prox's threshold times this, beta1 plus this (seconds, closing-speed reading
 #: only), each finite uncertainty threshold times this.
 REFINE_PROX_FACTOR, REFINE_BETA_STEP, REFINE_UNCERTAINTY_FACTOR = 1.5, 0.5, 0.75
+#: Replays per refinement round at most: the current rule and its (at most 4) eager neighbours.
+REFINE_PASSES = 5
 
 
 def eager_neighbours(thresholds: Thresholds) -> list[Thresholds]:
-    """Rules that fire wherever ``thresholds`` fires and in more situations, one parameter at a time: a larger
+    """Rules that fire wherever ``thresholds`` fires and in more situations (for a longer look-ahead: wherever the
+    gap is not growing), one parameter at a time: a larger
     ``lambda_prox`` (x :data:`REFINE_PROX_FACTOR`), for the ``closing-speed`` reading a longer look-ahead
     ``beta1`` (+ :data:`REFINE_BETA_STEP` s; with ``abs-relative-speed`` a larger beta1 fires LESS), and each
     finite uncertainty threshold lower (x :data:`REFINE_UNCERTAINTY_FACTOR`)."""
@@ -702,17 +712,19 @@ CALIBRATION_LEADS = (0, 1, 2)
 PROXY_BUDGET_SHARES = (1.0, 0.5)
 
 
-def _refine(thresholds: Thresholds, table: pd.DataFrame, policy: Any, estimator: Any,
-            runs: Sequence[CalibrationRun], budget: float, window: int, n_envs: int, confidence: float,
-            progress: Callable[[int], None]) -> tuple[Thresholds, pd.DataFrame]:
+def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mapping[str, int], policy: Any,
+            estimator: Any, runs: Sequence[CalibrationRun], budget: float, window: int, n_envs: int,
+            confidence: float, progress: Callable[[int], None]) -> tuple[Thresholds, pd.DataFrame]:
     """Stage 3: up to :data:`REFINE_ROUNDS` rounds of measured hill-climbing from the chosen rule towards eager ones
-    (:func:`eager_neighbours`), each scored by :func:`select_by_rollouts` against the current rule (which wins
-    ties). The proxy counts a rule's firing on the plain policy's steps, but the fallback steers the robot out of
-    the situations that made it fire, so the MEASURED false activation is often well below the budget; this spends
-    that margin where real rollouts say it prevents more. Every row gets a ``stage``; one row stays ``chosen``."""
+    (:func:`eager_neighbours`), each round replaying the current rule and its untried neighbours with
+    :func:`select_by_rollouts` (``plain_collisions``: the plain policy's, measured once in stage 2). A neighbour
+    replaces the current rule only if it prevents STRICTLY more (worst type, then mean): a more eager rule that
+    merely ties is not worth its extra activations. The proxy counts a rule's firing on the plain policy's steps,
+    but the fallback steers the robot out of the situations that made it fire, so the MEASURED false activation is
+    often well below the budget; this spends that margin where real rollouts say it prevents more. Every row gets
+    a ``stage`` and a unique ``candidate`` number; one row stays ``chosen``."""
     if thresholds == Thresholds.never():
         return thresholds, table
-    plain = table.attrs.get("plain_collisions")
     tried = {Thresholds.create(row) for row in table[list(Thresholds.model_fields)].to_dict(orient="records")}
     for round_index in range(REFINE_ROUNDS):
         neighbours = [n for n in eager_neighbours(thresholds) if n not in tried]
@@ -720,9 +732,15 @@ def _refine(thresholds: Thresholds, table: pd.DataFrame, policy: Any, estimator:
             break
         tried.update(neighbours)
         choice, round_table = select_by_rollouts([thresholds, *neighbours], policy, estimator, runs, budget, window,
-                                                 n_envs, confidence, progress=progress, plain_collisions=plain)
-        round_table = round_table.iloc[1:].assign(stage=f"refine-{round_index + 1}")  # row 0: the current rule
-        if choice == thresholds or choice == Thresholds.never():
+                                                 n_envs, confidence, progress=progress,
+                                                 plain_collisions=plain_collisions)
+        score = ["prevented_worst", "prevented_fraction"]
+        current = tuple(round_table.loc[0, score])
+        best = tuple(round_table.loc[round_table["chosen"], score].iloc[0]) if round_table["chosen"].any() else None
+        improved = choice != Thresholds.never() and best is not None and best > current
+        round_table = round_table.iloc[1:].assign(stage=f"refine-{round_index + 1}",  # row 0: the current rule
+                                                  candidate=lambda frame: frame["candidate"] + len(table) - 1)
+        if not improved:
             table = pd.concat([table, round_table.assign(chosen=False)], ignore_index=True)
             break
         table = pd.concat([table.assign(chosen=False), round_table], ignore_index=True)
@@ -769,7 +787,8 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
             for index, (kind, config) in enumerate(configs)]
     per_pass = episodes * len(runs)
     most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS)
-    played = {"done": 0, "total": per_pass * (2 + most_candidates)}  # collection, plain replay, candidates
+    # collection, plain replay, candidates, refinement rounds
+    played = {"done": 0, "total": per_pass * (2 + most_candidates + REFINE_ROUNDS * REFINE_PASSES)}
 
     def advance(n: int) -> None:
         played["done"] += n
@@ -789,8 +808,11 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     if not records.loc[records["perturbed"], "collided"].any():
         # Nothing to learn from: the layer could only cost false activations, so it is switched off.
         thresholds = Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)
+        if progress is not None:  # nothing else to play: the bar ends full
+            progress(played["done"], played["done"])
         return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
-                            "false_activation_rate": 0.0, "n_collisions": 0,
+                            "prevented_worst": float("nan"), "false_activation_rate": 0.0,
+                            "false_activation_upper": 0.0, "n_collisions": 0,
                             "note": "no collision in the calibration episodes: thresholds that never fire", **common}
     candidates, proxies = [], []
     for share in PROXY_BUDGET_SHARES:
@@ -804,12 +826,13 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                                     "proxy_prevented_fraction": result.prevented_fraction,
                                     "proxy_worst_type_fraction": result.worst_type_fraction,
                                     "proxy_false_activation_rate": result.false_activation_rate})
-    played["total"] = per_pass * (2 + len(candidates) + REFINE_ROUNDS * 5)
+    played["total"] = per_pass * (2 + len(candidates) + REFINE_ROUNDS * REFINE_PASSES)
     thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
                                            progress=advance)
+    plain_collisions = table.attrs["plain_collisions"]  # read before concat: pandas drops attrs that differ
     table = pd.concat([table, pd.DataFrame(proxies)], axis=1).assign(stage="proxy")
-    thresholds, table = _refine(thresholds, table, policy, estimator, runs, budget, window, n_envs, confidence,
-                                advance)
+    thresholds, table = _refine(thresholds, table, plain_collisions, policy, estimator, runs, budget, window, n_envs,
+                                confidence, advance)
     played["total"] = played["done"]  # the refinement may stop early: the bar ends full
     if progress is not None:
         progress(played["done"], played["total"])
@@ -834,6 +857,7 @@ def save_calibration(thresholds: Thresholds, report: dict[str, Any], path: str |
     path = Path(path)
     save_thresholds(thresholds, path)
     report_path = path.with_suffix(".report.json")
-    # default=str: values JSON has no type for (e.g. in the candidates table) are written as their text.
+    # Infinity kept (an uncertainty threshold switched off), unlike the run units' strict JSON; default=str: values
+    # JSON has no type for (e.g. in the candidates table) are written as their text.
     write_text_atomic(report_path, json.dumps(report, indent=2, default=str))
     return report_path
