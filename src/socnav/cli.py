@@ -538,11 +538,11 @@ def calibration_table(thresholds: Any, report: dict[str, Any], title: str) -> Ta
     import math
 
     table = Table(title=title)
-    for column in ("λ_ep", "λ_f", "λ_prox", "β1", "c_prox", "prevented", "collisions", "false act."):
+    for column in ("λ_ep", "λ_f", "λ_prox", "β1", "c_prox", "hold", "prevented", "collisions", "false act."):
         table.add_column(column, justify="right", no_wrap=True)
     values = thresholds.model_dump()
     table.add_row(*(f"{values[key]:.4g}" for key in ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")),
-                  values["proximity"],
+                  values["proximity"], str(values["hold_steps"]),
                   "–" if math.isnan(report["prevented_fraction"]) else f"{report['prevented_fraction']:.0%}",
                   str(report["n_collisions"]),
                   f"{report['false_activation_rate']:.1%}"

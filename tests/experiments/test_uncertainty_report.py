@@ -335,7 +335,7 @@ def test_calibrated_thresholds_switched_off_in_json_show_as_infinity(tmp_path):
     data["thresholds"] = {**data["thresholds"], "lambda_ep": None, "proximity": "closing-speed"}  # how inf is saved
     path.write_text(json.dumps(data))
     text = build_report(root).read_text()
-    assert "| MC-dropout | calibrated | ∞ | 0.25 | 1 | 0.25 | closing-speed | 0.8 | 0.01 |" in text
+    assert "| MC-dropout | calibrated | ∞ | 0.25 | 1 | 0.25 | closing-speed | 0 | 0.8 | 0.01 |" in text
 
 
 def test_table3_reports_each_sensing_against_the_same_plain_runs():

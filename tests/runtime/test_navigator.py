@@ -78,11 +78,12 @@ def test_more_humans_than_rows_keeps_the_closest(navigator_file):
     assert observed[-1] == pytest.approx(closest[0], abs=1e-5)  # the closest is the last row
 
 
-@pytest.mark.parametrize("scenario,humans,seed", [("position_swap", 1, 0), ("circle_crossing", 5, 1),
-                                                  ("random", (0, 10), 2)])
-def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_file, scenario, humans, seed):
+@pytest.mark.parametrize("scenario,humans,seed,hold", [("position_swap", 1, 0, 0), ("circle_crossing", 5, 1, 0),
+                                                       ("random", (0, 10), 2, 0), ("circle_crossing", 5, 3, 2)])
+def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_file, scenario, humans, seed, hold):
     """The navigator drives the environment from the world's state arrays; at every step the torch SafePolicy,
-    fed the environment's observation and the same mask stream, decides the same: fallback, action, uncertainty.
+    fed the environment's observation and the same mask stream, decides the same: fallback, action, uncertainty;
+    with a hold of the fallback too (held steps: the fallback drives while the rule does not fire).
 
     (Two environments stepped independently by the two drift apart from float32 rounding (~1e-7), which the
     shipped policy's saturated turns can amplify; so both decide on the one trajectory.)
@@ -93,10 +94,11 @@ def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_
 
     config = socnav.load_config({"scenario": scenario, "n_humans": humans})
     estimator = MCDropoutEstimator(pretrained_policy, k=20, uniforms=DropoutStream(seed))
-    reference = SafePolicy(pretrained_policy, estimator, EAGER, config, n_envs=1)
-    navigator = SafeNavigator.load(navigator_file, thresholds=EAGER, seed=seed)
+    thresholds = EAGER.model_copy(update={"hold_steps": hold})
+    reference = SafePolicy(pretrained_policy, estimator, thresholds, config, n_envs=1)
+    navigator = SafeNavigator.load(navigator_file, thresholds=thresholds, seed=seed)
     env = SocialNavEnv(config)
-    fallbacks = steps = 0
+    fallbacks = steps = held = 0
     for episode in range(2):
         obs, _ = env.reset(seed=100 * seed + episode)
         reference.reset()
@@ -110,10 +112,12 @@ def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_
             for name, value in reference.last_uncertainty.items():
                 assert decision.windowed[name] == pytest.approx(float(value[0]), abs=1e-5), name
             fallbacks += decision.fallback
+            held += decision.fallback and not decision.conditions.p_col[0]
             steps += 1
             obs, _, terminated, truncated, _ = env.step(decision.action)
             done = terminated or truncated
     assert fallbacks > 0 and steps > fallbacks  # both the fallback and the policy were compared
+    assert (held > 0) == (hold > 0)
 
 
 def test_command_and_window(navigator_file):

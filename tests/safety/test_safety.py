@@ -26,6 +26,7 @@ from socnav.safety import (
     collect_records,
     collision_probability,
     evaluate_thresholds,
+    held_fallback,
     load_thresholds,
     nearest_human,
     save_thresholds,
@@ -246,6 +247,37 @@ def test_safe_policy_with_a_firing_rule_avoids_the_staged_collision(kind):
     assert any(fallbacks) and not all(fallbacks)  # the policy acts again once the robot moves away
     assert safe.episode_fallbacks[0] == sum(fallbacks)
     assert safe.last_conditions is not None
+
+
+def test_held_fallback_by_hand():
+    fires = np.array([1, 0, 0, 0, 1, 0, 0, 1, 0], dtype=bool)
+    for hold, expected in ((0, fires), (2, [1, 1, 1, 0, 1, 1, 1, 1, 1]), (3, [1, 1, 1, 1, 1, 1, 1, 1, 1])):
+        steps_left, drove = np.zeros(1, dtype=np.int64), []
+        for fire in fires:
+            fallback, steps_left = held_fallback(np.array([fire]), steps_left, hold)
+            drove.append(bool(fallback[0]))
+        assert drove == list(np.asarray(expected, dtype=bool)), hold
+
+
+@pytest.mark.parametrize("hold", [1, 3])
+def test_safe_policy_holds_the_fallback_for_hold_steps_after_the_rule_last_fired(hold):
+    cfg, world = staged_world("head_on")
+    thresholds = ALWAYS.model_copy(update={"hold_steps": hold})
+    safe = SafePolicy(StraightController(cfg), FakeEstimator(u_ep_heading=1.0), thresholds, cfg)
+    fired, drove = [], []
+    play(world, safe, on_step=lambda: (fired.append(bool(safe.last_conditions.p_col[0])),
+                                       drove.append(bool(safe.last_fallback[0]))))
+    # the fallback drives at step t iff the rule fired at one of the steps t - hold ... t
+    expected = [any(fired[max(0, t - hold): t + 1]) for t in range(len(fired))]
+    assert drove == expected
+    assert any(d and not f for d, f in zip(drove, fired))  # some steps were held, not fired
+    assert safe.episode_fallbacks[0] == sum(drove)
+    # a new episode ends the hold: the rule cannot fire without a human (gap inf), so nothing drives
+    safe.reset()
+    empty = {"robot": np.array([[4.0, 0.0, 0.0, 1.0, 0.3]], np.float32),
+             "humans": np.zeros((1, 1, 7), np.float32), "humans_mask": np.zeros((1, 1), np.float32)}
+    safe.predict(empty)
+    assert not safe.last_fallback[0]
 
 
 def test_safe_policy_with_paper_thresholds_and_low_uncertainty_is_the_plain_policy_here():
@@ -576,12 +608,14 @@ def test_eager_neighbours_fire_in_more_situations_one_parameter_at_a_time():
                                 proximity="closing-speed", sensing="true")
     moves = {tuple(sorted((k, v) for k, v in n.model_dump().items() if v != closing.model_dump()[k]))
              for n in eager_neighbours(closing)}
-    # lambda_prox x1.5, beta1 + 0.5 s, lambda_ep x0.75; lambda_feat is off (inf) and stays off
-    assert moves == {(("lambda_prox", 0.75),), (("beta1", 1.5),), (("lambda_ep", 0.1875),)}  # exact in binary
+    # lambda_prox x1.5, beta1 + 0.5 s, lambda_ep x0.75, a hold one step longer; lambda_feat is off (inf), stays off
+    assert moves == {(("lambda_prox", 0.75),), (("beta1", 1.5),), (("lambda_ep", 0.1875),),
+                     (("hold_steps", 1),)}  # exact in binary
     assert all(n.sensing == "true" and n.proximity == "closing-speed" for n in eager_neighbours(closing))
     # with |dv| added to the gap a larger beta1 fires less: not a neighbour; lambda_prox 0 grows by 0.1 m
     printed = Thresholds.create(lambda_ep=math.inf, lambda_feat=0.3, lambda_prox=0.0, beta1=0.5)
-    assert sorted(n.model_dump()["lambda_prox"] for n in eager_neighbours(printed)) == [0.0, pytest.approx(0.1)]
+    assert sorted(n.model_dump()["lambda_prox"] for n in eager_neighbours(printed)) == [0.0, 0.0,
+                                                                                         pytest.approx(0.1)]
     assert all(n.beta1 == 0.5 for n in eager_neighbours(printed))
 
 

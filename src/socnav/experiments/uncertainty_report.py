@@ -949,11 +949,12 @@ def calibration_section(context: ReportContext) -> str:
             source = "calibrated" if sensing == "perceived" else f"calibrated ({SENSING_LABELS.get(sensing, sensing)})"
             rows.append({"estimator": estimator, "source": source, "sensing": sensing,
                          **{k: thresholds.get(k) for k in keys}, "proximity": thresholds.get("proximity"),
+                         "hold_steps": thresholds.get("hold_steps", 0),  # files from before the hold: none
                          "prevented_fraction": data.get("prevented_fraction"),
                          "false_activation_rate": data.get("false_activation_rate")})
         if estimator in _PAPER_THRESHOLDS:
             rows.append({"estimator": estimator, "source": "paper", "sensing": None,
-                         **dict(zip(keys, _PAPER_THRESHOLDS[estimator])), "proximity": None,
+                         **dict(zip(keys, _PAPER_THRESHOLDS[estimator])), "proximity": None, "hold_steps": 0,
                          "prevented_fraction": None, "false_activation_rate": None})
     table = pd.DataFrame(rows)
     write_table_atomic(table, context.out_dir / "calibration.csv")
@@ -965,13 +966,15 @@ def calibration_section(context: ReportContext) -> str:
         "safety layer prevented and the share of unperturbed steps where it fired (Table 3, on held-out seeds and "
         "strengths, is the real test).",
         "",
-        "| Approach | Thresholds | λ_ep | λ_f | λ_prox | β1 | c_prox | Calibration prevented | Calibration false activation |",
-        "|:--|:--|--:|--:|--:|--:|:--|--:|--:|",
+        "Hold: steps the fallback keeps control after the rule last fired (0: the paper's per-step rule).",
+        "",
+        "| Approach | Thresholds | λ_ep | λ_f | λ_prox | β1 | c_prox | Hold | Calibration prevented | Calibration false activation |",
+        "|:--|:--|--:|--:|--:|--:|:--|--:|--:|--:|",
     ]
     for row in rows:
         lines.append("| " + " | ".join([estimator_label(row["estimator"]), row["source"]]
                                        + [_number_text(row[k]) for k in keys]
-                                       + [row["proximity"] or "abs-relative-speed"]
+                                       + [row["proximity"] or "abs-relative-speed", str(row["hold_steps"])]
                                        + [_number_text(row["prevented_fraction"]),
                                           _number_text(row["false_activation_rate"])]) + " |")
     lines += ["", "Data: [calibration.csv](calibration.csv)."]

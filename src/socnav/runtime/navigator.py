@@ -30,7 +30,8 @@ import numpy as np
 from socnav.config import load_config
 from socnav.runtime.network import DropoutStream, ExportedPolicy, MCBatch, Uniforms, keep_from_uniforms
 from socnav.safety.cautious import CautiousController
-from socnav.safety.rule import RuleConditions, Thresholds, load_thresholds, nearest_human, rule_conditions
+from socnav.safety.rule import (RuleConditions, Thresholds, held_fallback, load_thresholds, nearest_human,
+                                rule_conditions)
 from socnav.sim.observation import observe_robot, robot_command
 from socnav.uncertainty.stats import Uncertainty
 from socnav.uncertainty.window import WindowedUncertainty
@@ -154,7 +155,8 @@ class Decision:
 
     :param speed: commanded speed ``v`` (m/s, in [0, v_pref]). :param turn: heading change ``dtheta`` (rad) over
         the next control step. :param action: the normalised action in [-1, 1]^2 (the environment's action).
-    :param fallback: the cautious ORCA controller acted (the collision rule fired).
+    :param fallback: the cautious ORCA controller acted (the collision rule fired, or fired within the last
+        ``thresholds.hold_steps`` steps).
     :param uncertainty: this step's MC-dropout estimate (batch of one; ``mean_action`` is the sample mean).
     :param windowed: the windowed values the rule read: ``u_ep_speed``, ``u_ep_heading``, ``u_al_speed``,
         ``u_al_heading``, ``u_feat``. :param conditions: the rule's conditions (``c_ep``, ... as (1,) arrays).
@@ -205,6 +207,7 @@ class SafeNavigator:
         self._window = WindowedUncertainty(1, window=int(safety["window"]))
         self.cautious = CautiousController(self.config, radius_scale=float(safety["radius_scale"]))
         self._previous_gap = np.full(1, np.nan)  # d(t-1) of this episode; NaN: none yet (c_ap holds)
+        self._hold_left = np.zeros(1, dtype=np.int64)  # held fallback steps still owed (thresholds.hold_steps)
         self._batches: dict[tuple[int, int, bool], MCBatch] = {}  # per (K, human rows, any human)
         self._warm_up()
 
@@ -241,9 +244,10 @@ class SafeNavigator:
         return self.network.max_humans
 
     def reset(self) -> None:
-        """Start a new episode: empty the uncertainty window and forget the previous nearest-human gap."""
+        """Start a new episode: empty the uncertainty window, forget the previous nearest-human gap, end a hold."""
         self._window.reset()
         self._previous_gap[:] = np.nan
+        self._hold_left[:] = 0
 
     def act(self, robot: RobotState | Mapping[str, Any],
             humans: HumansState | Mapping[str, Any] | None = None) -> Decision:
@@ -274,7 +278,8 @@ class SafeNavigator:
         conditions = rule_conditions(windowed.u_ep_heading, windowed.u_feat, nearest.gap,
                                      nearest.speed(self.thresholds.proximity), self._previous_gap, self.thresholds)
         self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)  # no human: nothing to compare next
-        fallback = bool(conditions.p_col[0])
+        held, self._hold_left = held_fallback(conditions.p_col, self._hold_left, self.thresholds.hold_steps)
+        fallback = bool(held[0])
         if fallback:
             action = self.cautious.predict(observation)[0][0]
         speed, turn = robot_command(action, float(observation["robot"][0, 3]), self.config.max_heading_change)

@@ -44,8 +44,12 @@ come from the plain policy's trajectories. :func:`select_by_rollouts` is therefo
 calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy candidates (e.g. one per proximity
 reading and lead) and keeps the one that prevents the most collisions (worst perturbation type, then the mean
 over types) among those
-whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3 then evaluates the choice on held-out seeds and strengths (SPEC section 5). A third stage (``_refine`` in :func:`calibrate_thresholds`) climbs from the choice towards eager neighbours
-(:func:`eager_neighbours`), keeping a neighbour only if the replays say it prevents strictly more within the budget.
+whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3
+then evaluates the choice on held-out seeds and strengths (SPEC section 5). A third stage (``_refine`` in
+:func:`calibrate_thresholds`) climbs from the choice towards eager neighbours (:func:`eager_neighbours`), keeping a
+neighbour only if the replays say it prevents strictly more within the budget. The proxy scores the per-step rule
+(``hold_steps = 0``): a hold of the fallback (``Thresholds.hold_steps``) changes the trajectories it is meant to
+change, so only replays can score it, and only the third stage searches it.
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
 of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the
@@ -681,20 +685,21 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
 # ------------------------------------------------------------------------------------------------ the workflow
 
 #: Rounds of the measured refinement around the chosen rule (stage 3 of `calibrate_thresholds`).
-REFINE_ROUNDS = 2
+REFINE_ROUNDS = 3
 #: Eager moves of the refinement: c_prox's threshold times this, beta1 plus this (seconds, closing-speed reading
-#: only), each finite uncertainty threshold times this.
-REFINE_PROX_FACTOR, REFINE_BETA_STEP, REFINE_UNCERTAINTY_FACTOR = 1.5, 0.5, 0.75
-#: Replays per refinement round at most: the current rule and its (at most 4) eager neighbours.
-REFINE_PASSES = 5
+#: only), each finite uncertainty threshold times this, the fallback's hold plus this (steps).
+REFINE_PROX_FACTOR, REFINE_BETA_STEP, REFINE_UNCERTAINTY_FACTOR, REFINE_HOLD_STEP = 1.5, 0.5, 0.75, 1
+#: Replays per refinement round at most: the current rule and its (at most 5) eager neighbours.
+REFINE_PASSES = 6
 
 
 def eager_neighbours(thresholds: Thresholds) -> list[Thresholds]:
-    """Rules that fire wherever ``thresholds`` fires and in more situations (for a longer look-ahead: wherever the
-    gap is not growing), one parameter at a time: a larger
+    """Rules whose fallback drives wherever that of ``thresholds`` does and in more situations (for a longer
+    look-ahead: wherever the gap is not growing), one parameter at a time: a larger
     ``lambda_prox`` (x :data:`REFINE_PROX_FACTOR`), for the ``closing-speed`` reading a longer look-ahead
-    ``beta1`` (+ :data:`REFINE_BETA_STEP` s; with ``abs-relative-speed`` a larger beta1 fires LESS), and each
-    finite uncertainty threshold lower (x :data:`REFINE_UNCERTAINTY_FACTOR`)."""
+    ``beta1`` (+ :data:`REFINE_BETA_STEP` s; with ``abs-relative-speed`` a larger beta1 fires LESS), each
+    finite uncertainty threshold lower (x :data:`REFINE_UNCERTAINTY_FACTOR`), and a longer hold of the fallback
+    (``hold_steps`` + :data:`REFINE_HOLD_STEP`; `socnav.safety.rule.held_fallback`)."""
     t = thresholds
     moves = [{"lambda_prox": min(1000.0, max(t.lambda_prox * REFINE_PROX_FACTOR, t.lambda_prox + 0.1))}]
     if t.proximity == "closing-speed":
@@ -702,6 +707,7 @@ def eager_neighbours(thresholds: Thresholds) -> list[Thresholds]:
     for key in ("lambda_ep", "lambda_feat"):
         if math.isfinite(getattr(t, key)) and getattr(t, key) > 0:
             moves.append({key: getattr(t, key) * REFINE_UNCERTAINTY_FACTOR})
+    moves.append({"hold_steps": min(1000, t.hold_steps + REFINE_HOLD_STEP)})
     neighbours = [t.model_copy(update=move) for move in moves]
     return [n for n in neighbours if n != t]
 
@@ -763,8 +769,9 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
     (the worst perturbation type, then the mean over types) among those whose false-activation rate is within
     `budget` at `confidence` (one-sided upper bound), both MEASURED in those rollouts. (3) `_refine`: up to
-    `REFINE_ROUNDS` rounds of measured hill-climbing towards eager neighbours of the chosen rule (`eager_neighbours`),
-    spending the margin between the proxy's and the measured false activation. Every stage scores per perturbation
+    `REFINE_ROUNDS` rounds of measured hill-climbing towards eager neighbours of the chosen rule (`eager_neighbours`,
+    a longer hold of the fallback among them), spending the margin between the proxy's and the measured false
+    activation. Every stage scores per perturbation
     type, worst type first (`socnav.safety.calibration`): no type is traded for another. The report's
     ``candidates`` lists every rule tried with its ``stage`` (``proxy``, ``refine-1``, ...).
 

@@ -27,6 +27,13 @@ of the same step, as a separate safety sensor (e.g. a lidar proximity field) wou
 controller reads it too, while the policy and the uncertainty estimates still see the noisy observation
 (:class:`~socnav.safety.SafePolicy`). ``perceived`` stays the default: it is what the paper's formulation reads and
 what a deployment without such a sensor can run, and old threshold files keep their meaning.
+
+**Holding the fallback** (``Thresholds.hold_steps``, an extension; 0 = the paper's per-step rule): once the rule
+fires, the cautious controller keeps control for the next ``hold_steps`` steps whatever the rule says
+(:func:`held_fallback`). Why: evaluated step by step, the rule can *chatter*. A fallback step stops the gap from
+shrinking, so ``c_ap`` turns False, the policy takes control back and closes the gap again; in Table 3 a collision
+ended that way with the rule firing on every other step of its last 2 s. A minimum dwell time is the usual cure of
+such switching between two controllers. The calibration searches it (``socnav.safety.calibration``).
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ __all__ = [
     "Thresholds",
     "ThresholdsError",
     "collision_probability",
+    "held_fallback",
     "load_thresholds",
     "nearest_human",
     "proximity_score",
@@ -88,7 +96,9 @@ class Thresholds(StrictModel):
     term (finite, 0 ... 100 s);
     ``proximity``: ``abs-relative-speed`` (``d + beta1 |dv|``, as printed in the paper) or ``closing-speed``
     (``d - beta1 v_close``); ``sensing``: ``perceived`` (the observation, noise included) or ``true`` (the
-    simulator's noise-free state) for the proximity terms and the cautious controller; see the module docstring.
+    simulator's noise-free state) for the proximity terms and the cautious controller; ``hold_steps``: steps the
+    fallback keeps control after the rule last fired (0 ... 1000; 0: the paper's per-step rule); see the module
+    docstring.
     """
 
     model_config = ConfigDict(frozen=True)
@@ -102,6 +112,8 @@ class Thresholds(StrictModel):
     beta1: float = Field(..., ge=0, le=100, description="seconds: weight of the speed term")
     proximity: Proximity = Field("abs-relative-speed", description="speed term of c_prox")
     sensing: Sensing = Field("perceived", description="what c_prox, c_ap and the cautious controller read")
+    hold_steps: int = Field(0, ge=0, le=1000, description="steps the fallback keeps control after the rule last "
+                                                          "fired (0: the paper's per-step rule)")
 
     @field_validator("lambda_ep", "lambda_feat")
     @classmethod
@@ -301,3 +313,13 @@ def collision_probability(
     the individual conditions, ``(p_col, RuleConditions)``."""
     conditions = rule_conditions(u_ep_heading, u_feat, gap, relative_speed, previous_gap, thresholds)
     return (conditions.p_col, conditions) if return_conditions else conditions.p_col
+
+
+def held_fallback(p_col: np.ndarray, steps_left: np.ndarray, hold_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where the fallback drives this step, with a hold: ``p_col`` now, or the rule fired within the last
+    ``hold_steps`` steps. ``steps_left`` (int (B,)): held steps still owed from earlier firings (0 at an episode's
+    start). Returns ``(fallback, steps_left)``, the latter to pass in at the next step: ``hold_steps`` where the
+    rule fired now, else one fewer (not below 0)."""
+    p_col = np.asarray(p_col, dtype=bool)
+    fallback = p_col | (steps_left > 0)
+    return fallback, np.where(p_col, hold_steps, np.maximum(steps_left - 1, 0))

@@ -14,12 +14,14 @@ At every step, for every environment of the batch:
    the simulator's noise-free observation of the same step (``true_observation``: passed to ``predict`` or given
    before it with :meth:`SafePolicy.sense`; ``socnav.envs.rollout.rollout_episodes`` does the latter for every
    policy whose ``needs_true_observation`` is True). The policy and the estimator always see the observation;
-4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap``; where it fires, the action is replaced by the
+4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap``; where it fires -- or, with
+   ``thresholds.hold_steps = k > 0``, fired at one of the last ``k`` steps of the episode
+   (:func:`~socnav.safety.rule.held_fallback`) -- the action is replaced by the
    :class:`~socnav.safety.cautious.CautiousController`'s, computed from the sensed observation.
 
 Episode boundaries: call :meth:`SafePolicy.reset` with the environments whose episode ended (before the next
 ``predict`` sees their new first observation), or pass SB3's ``episode_start`` to ``predict``. Without either,
-windows and the previous gap run on across episodes.
+windows, the previous gap and a hold run on across episodes.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ import numpy as np
 
 from socnav.config import ConfigLike, load_config
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
-from socnav.safety.rule import NearestHuman, RuleConditions, Thresholds, load_thresholds, nearest_human, rule_conditions
+from socnav.safety.rule import (NearestHuman, RuleConditions, Thresholds, held_fallback, load_thresholds,
+                               nearest_human, rule_conditions)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -52,7 +55,7 @@ class SafePolicy:
     :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
     :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
 
-    After each ``predict``: ``last_fallback`` (B,) bool, ``last_conditions`` (:class:`RuleConditions`),
+    After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on), ``last_conditions`` (:class:`RuleConditions`),
     ``last_uncertainty`` (dict of windowed (B,) arrays ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``,
     ``u_al_speed``, ``u_feat``), ``last_nearest`` (:class:`NearestHuman`), ``last_previous_gap`` (B,), and
     ``episode_fallbacks`` (n_envs,) -- fallback steps in the current episode (zeroed by :meth:`reset`).
@@ -97,6 +100,7 @@ class SafePolicy:
         self._pos = np.zeros(n_envs, dtype=np.int64)
         self._previous_gap = np.full(n_envs, np.nan)
         self.episode_fallbacks = np.zeros(n_envs, dtype=np.int64)
+        self._hold_left = np.zeros(n_envs, dtype=np.int64)  # held fallback steps still owed (hold_steps)
 
     def _index(self, envs: Any) -> np.ndarray:
         assert self.n_envs is not None
@@ -113,7 +117,7 @@ class SafePolicy:
 
     def reset(self, envs: Any = None) -> None:
         """Start new episodes in ``envs`` (indices, a boolean mask, or None for all): empty their uncertainty
-        windows, forget their previous gap (so ``c_ap`` is True at their first step) and zero their
+        windows, forget their previous gap (so ``c_ap`` is True at their first step), end a hold and zero their
         ``episode_fallbacks``."""
         if self.n_envs is None:
             return
@@ -123,6 +127,7 @@ class SafePolicy:
         self._buffer[index] = 0.0
         self._previous_gap[index] = np.nan
         self.episode_fallbacks[index] = 0
+        self._hold_left[index] = 0
 
     def _push(self, values: np.ndarray) -> np.ndarray:
         rows = np.arange(self.n_envs)
@@ -200,7 +205,7 @@ class SafePolicy:
                                      nearest.speed(self.thresholds.proximity), previous_gap, self.thresholds)
         # No human this step: nothing to compare with next step either.
         self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)
-        fallback = conditions.p_col
+        fallback, self._hold_left = held_fallback(conditions.p_col, self._hold_left, self.thresholds.hold_steps)
         if fallback.any():
             chosen = np.flatnonzero(fallback)
             cautious, _ = self.cautious.predict({key: value[chosen] for key, value in sensed.items()})
