@@ -29,6 +29,7 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Logger, make_output_format
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import explained_variance
@@ -125,6 +126,15 @@ class ODVPPO(PPO):
                 return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
         except NonFiniteError as err:
             raise err.at_timestep(self.num_timesteps) from None
+
+    def _setup_learn(self, total_timesteps: int, callback: MaybeCallback = None, reset_num_timesteps: bool = True,
+                     tb_log_name: str = "run", progress_bar: bool = False) -> tuple[int, BaseCallback]:
+        """SB3's set-up, except that without TensorBoard the logger gets no folder: SB3's would create an empty
+        ``SB3-<time>`` folder in the temp directory at every ``learn`` (hundreds for one table)."""
+        if not self._custom_logger and self.tensorboard_log is None:
+            outputs = [make_output_format("stdout", "")] if self.verbose >= 1 else []
+            self.set_logger(Logger(folder=None, output_formats=outputs))
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def learn(  # type: ignore[override]
         self,
