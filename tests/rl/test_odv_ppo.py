@@ -153,15 +153,19 @@ def test_short_learn_runs_and_logs(small_model, recorder, algo: str) -> None:
         assert all(d["train/variance_loss"] == 0.0 for d in writer.dumps if "train/variance_loss" in d)
 
 
-def test_learn_without_tensorboard_leaves_no_folder_in_the_temp_directory(small_model, monkeypatch, tmp_path) -> None:
+@pytest.mark.parametrize("verbose", [0, 1])
+def test_learn_without_tensorboard_leaves_no_folder_in_the_temp_directory(small_model, monkeypatch, tmp_path, capsys,
+                                                                          verbose) -> None:
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.delenv("SB3_LOGDIR", raising=False)
     model = small_model("odv-ppo")
+    model.verbose = verbose
     model.learn(128)
     model.learn(128, reset_num_timesteps=False)
-    assert model.num_timesteps == 256 and list(tmp_path.iterdir()) == []
+    assert model.num_timesteps == 256 and not list(tmp_path.glob("SB3-*"))
+    assert ("total_timesteps" in capsys.readouterr().out) == (verbose == 1)  # verbose: SB3's table on stdout
 
 
 def test_tensorboard_log_contains_variance_loss(small_model, tmp_path) -> None:

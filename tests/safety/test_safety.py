@@ -259,6 +259,13 @@ def test_held_fallback_by_hand():
         assert drove == list(np.asarray(expected, dtype=bool)), hold
 
 
+@pytest.mark.parametrize("bad", [-1, 1001, 2.5, True, "2"])
+def test_hold_steps_is_a_whole_number_of_steps(bad):
+    with pytest.raises(ThresholdsError, match="hold_steps"):
+        Thresholds.create(Thresholds.preset("mc").model_dump(), hold_steps=bad)
+    assert Thresholds.preset("mc").hold_steps == 0  # the paper's per-step rule by default
+
+
 @pytest.mark.parametrize("hold", [1, 3])
 def test_safe_policy_holds_the_fallback_for_hold_steps_after_the_rule_last_fired(hold):
     cfg, world = staged_world("head_on")

@@ -949,7 +949,8 @@ def calibration_section(context: ReportContext) -> str:
             source = "calibrated" if sensing == "perceived" else f"calibrated ({SENSING_LABELS.get(sensing, sensing)})"
             rows.append({"estimator": estimator, "source": source, "sensing": sensing,
                          **{k: thresholds.get(k) for k in keys}, "proximity": thresholds.get("proximity"),
-                         "hold_steps": thresholds.get("hold_steps", 0),  # files from before the hold: none
+                         # files from before the hold have none: the per-step rule
+                         "hold_steps": thresholds.get("hold_steps", 0) if thresholds else None,
                          "prevented_fraction": data.get("prevented_fraction"),
                          "false_activation_rate": data.get("false_activation_rate")})
         if estimator in _PAPER_THRESHOLDS:
@@ -974,7 +975,7 @@ def calibration_section(context: ReportContext) -> str:
     for row in rows:
         lines.append("| " + " | ".join([estimator_label(row["estimator"]), row["source"]]
                                        + [_number_text(row[k]) for k in keys]
-                                       + [row["proximity"] or "abs-relative-speed", str(row["hold_steps"])]
+                                       + [row["proximity"] or "abs-relative-speed", _number_text(row["hold_steps"])]
                                        + [_number_text(row["prevented_fraction"]),
                                           _number_text(row["false_activation_rate"])]) + " |")
     lines += ["", "Data: [calibration.csv](calibration.csv)."]

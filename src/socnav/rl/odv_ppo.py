@@ -21,6 +21,7 @@ probabilities (``policy.evaluate_actions_and_log_std``), so the variance loss co
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -29,7 +30,7 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.logger import Logger, make_output_format
+from stable_baselines3.common.logger import HumanOutputFormat, Logger
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import explained_variance
@@ -131,10 +132,14 @@ class ODVPPO(PPO):
                      tb_log_name: str = "run", progress_bar: bool = False) -> tuple[int, BaseCallback]:
         """SB3's set-up, except that without TensorBoard the logger gets no folder: SB3's would create an empty
         ``SB3-<time>`` folder in the temp directory at every ``learn`` (hundreds for one table)."""
-        if not self._custom_logger and self.tensorboard_log is None:
-            outputs = [make_output_format("stdout", "")] if self.verbose >= 1 else []
-            self.set_logger(Logger(folder=None, output_formats=outputs))
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        if self._custom_logger or self.tensorboard_log is not None:
+            return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        self._logger = Logger(folder=None, output_formats=[HumanOutputFormat(sys.stdout)] if self.verbose >= 1 else [])
+        self._custom_logger = True  # for this set-up only: SB3 would replace the logger
+        try:
+            return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        finally:
+            self._custom_logger = False
 
     def learn(  # type: ignore[override]
         self,

@@ -227,7 +227,8 @@ def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback:
                         lead: int = 0) -> dict[str, float]:
     """The calibration proxy of given thresholds on records (via the rule itself): ``prevented_fraction`` (the mean
     of the per-type fractions with a ``group`` column), ``worst_type_fraction``, ``false_activation_rate``,
-    ``n_collisions``, ``n_unperturbed_steps``."""
+    ``n_collisions``, ``n_unperturbed_steps``. It scores the per-step rule: ``thresholds.hold_steps`` is ignored
+    (a hold changes the trajectories the records come from; :func:`rollout_scores` measures it)."""
     _check_lead(lookback, lead)
     records = _validate(records)
     fire = rule_conditions(records["u_ep_heading"], records["u_feat"], records["gap"],

@@ -47,7 +47,7 @@ from typing import Any, Literal, Mapping, Union
 import numba
 import numpy as np
 import yaml
-from pydantic import ConfigDict, Field, ValidationError, field_validator
+from pydantic import ConfigDict, Field, StrictInt, ValidationError, field_validator
 
 from socnav.config import StrictModel, format_validation_error, read_mapping_file
 from socnav.io import write_text_atomic
@@ -112,7 +112,7 @@ class Thresholds(StrictModel):
     beta1: float = Field(..., ge=0, le=100, description="seconds: weight of the speed term")
     proximity: Proximity = Field("abs-relative-speed", description="speed term of c_prox")
     sensing: Sensing = Field("perceived", description="what c_prox, c_ap and the cautious controller read")
-    hold_steps: int = Field(0, ge=0, le=1000, description="steps the fallback keeps control after the rule last "
+    hold_steps: StrictInt = Field(0, ge=0, le=1000, description="steps the fallback keeps control after the rule last "
                                                           "fired (0: the paper's per-step rule)")
 
     @field_validator("lambda_ep", "lambda_feat")
