@@ -49,7 +49,8 @@ then evaluates the choice on held-out seeds and strengths (SPEC section 5). A th
 :func:`calibrate_thresholds`) climbs from the choice towards eager neighbours (:func:`eager_neighbours`), keeping a
 neighbour only if the replays say it prevents strictly more within the budget. The proxy scores the per-step rule
 (``hold_steps = 0``): a hold of the fallback (``Thresholds.hold_steps``) changes the trajectories it is meant to
-change, so only replays can score it, and only the third stage searches it.
+change, so only replays can score it: the second stage replays every proposed rule with and without a hold
+(``PROXY_HOLDS``), and the third stage tries longer ones.
 
 The search is an exhaustive, deterministic grid: quantile-based candidates (midpoints between distinct quantiles
 of the records, over all rows and over the collision-window rows, so resolution is where it matters) for the
@@ -717,6 +718,8 @@ def eager_neighbours(thresholds: Thresholds) -> list[Thresholds]:
 CALIBRATION_LEADS = (0, 1, 2)
 #: The proxy search also runs at these fractions of the budget: candidates with a margin below it.
 PROXY_BUDGET_SHARES = (1.0, 0.5)
+#: Fallback holds (`Thresholds.hold_steps`) each proposed rule is replayed with in stage 2.
+PROXY_HOLDS = (0, 1)
 
 
 def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mapping[str, int], policy: Any,
@@ -767,7 +770,8 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     `CALIBRATION_LEADS` and proxy budget (`PROXY_BUDGET_SHARES` of `budget`): the proxy alone rewards a rule that
     fires at the very step of the contact, too late for the fallback when humans close fast, so candidates that
     must fire 1 or 2 steps earlier compete too. (2) `socnav.safety.select_by_rollouts` replays the same
-    calibration episodes with each candidate's `SafePolicy` and keeps the one that prevents the most collisions
+    calibration episodes with each candidate's `SafePolicy`, each candidate once per fallback hold in `PROXY_HOLDS`
+    (the proxy cannot score a hold), and keeps the one that prevents the most collisions
     (the worst perturbation type, then the mean over types) among those whose false-activation rate is within
     `budget` at `confidence` (one-sided upper bound), both MEASURED in those rollouts. (3) `_refine`: up to
     `REFINE_ROUNDS` rounds of measured hill-climbing towards eager neighbours of the chosen rule (`eager_neighbours`,
@@ -794,7 +798,7 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     runs = [CalibrationRun(config, kind != "unperturbed", episodes, CALIBRATION_SEED + index * episodes, kind)
             for index, (kind, config) in enumerate(configs)]
     per_pass = episodes * len(runs)
-    most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS)
+    most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS) * len(PROXY_HOLDS)
     # collection, plain replay, candidates, refinement rounds
     played = {"done": 0, "total": per_pass * (2 + most_candidates + REFINE_ROUNDS * REFINE_PASSES)}
 
@@ -834,6 +838,10 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                                     "proxy_prevented_fraction": result.prevented_fraction,
                                     "proxy_worst_type_fraction": result.worst_type_fraction,
                                     "proxy_false_activation_rate": result.false_activation_rate})
+    # The proxy cannot score a hold (module docstring): every proposed rule is replayed with each of PROXY_HOLDS, so
+    # a hold can pair with a less eager rule than the one the per-step replays prefer (hold 0 first: it wins ties).
+    candidates, proxies = ([c.model_copy(update={"hold_steps": hold}) for hold in PROXY_HOLDS for c in candidates],
+                           [row for _ in PROXY_HOLDS for row in proxies])
     played["total"] = per_pass * (2 + len(candidates) + REFINE_ROUNDS * REFINE_PASSES)
     thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
                                            progress=advance)
