@@ -687,3 +687,9 @@ def test_calibrate_thresholds_replays_the_plain_policy_once_and_fills_the_bar(mo
     assert all(done <= total for done, total in seen) and seen[-1][0] == seen[-1][1]
     frame = pd.DataFrame(report["candidates"])
     assert frame["candidate"].is_unique and frame["chosen"].sum() == 1
+    # stage 2 replays every proposed rule with and without a hold; a tie goes to the per-step rule
+    proposed = frame[frame["stage"] == "proxy"]
+    rules = proposed.drop(columns=["hold_steps", "candidate", "chosen"]).astype(str).apply(tuple, axis=1)
+    assert sorted(proposed["hold_steps"]) == sorted([0, 1] * (len(proposed) // 2))
+    assert set(rules[proposed["hold_steps"] == 0]) == set(rules[proposed["hold_steps"] == 1])
+    assert proposed.loc[proposed["chosen"], "hold_steps"].tolist() in ([0], [])
