@@ -8,8 +8,8 @@ One decision:
    executes), rows 1..K with MC-dropout masks drawn from a `DropoutStream` (the uncertainty samples);
 3. the safety layer's own parts: the uncertainty window (`WindowedUncertainty`), the nearest human and the
    collision-probability rule (`socnav.safety.rule`) and, where it fires (or fired within the last
-   ``hold_steps`` steps), the cautious ORCA controller (`CautiousController`) in place of the policy — what `socnav.safety.SafePolicy` does for one robot (tested
-   step for step against it), without its batch bookkeeping;
+   ``hold_steps`` steps), the cautious ORCA controller (`CautiousController`) in place of the policy — what
+   `socnav.safety.SafePolicy` does for one robot (tested step for step against it), without its batch bookkeeping;
 4. the action turned into ``(v, dtheta)`` by the simulator's own command kernel.
 
 The humans handed to :meth:`SafeNavigator.act` are the robot's tracked state: the policy, the rule's proximity
