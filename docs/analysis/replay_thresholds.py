@@ -7,8 +7,8 @@ very episodes (seeds, strengths, repeats, dropout masks) the unit played, outsid
 RUN_DIR: a finished `socnav run configs/experiments/table3.yaml` directory; PERTURBATION: one of its safety units
 (observation_noise, heading_noise, speed_noise, faster_humans, more_humans); --thresholds: default the run's own
 calibrated true-state thresholds (`calibrate-true/<estimator>/thresholds.yaml`); each --holds value replaces their
-`hold_steps` (default: the file's own). Prints, per hold and strength, the collisions over the unit's repeats and the fallback's share of
-steps (at the unperturbed strength: the false activation). MC-dropout only (the ensemble needs all members).
+`hold_steps` (default: the file's own). Prints, per hold and strength, the collisions over the unit's repeats and
+the fallback's share of steps (at the unperturbed strength: the false activation). MC-dropout only (the ensemble needs all members).
 """
 
 from __future__ import annotations

@@ -55,8 +55,8 @@ class SafePolicy:
     :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
     :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
 
-    After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on), ``last_conditions`` (:class:`RuleConditions`),
-    ``last_uncertainty`` (dict of windowed (B,) arrays ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``,
+    After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on),
+    ``last_conditions`` (:class:`RuleConditions`), ``last_uncertainty`` (dict of windowed (B,) arrays ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``,
     ``u_al_speed``, ``u_feat``), ``last_nearest`` (:class:`NearestHuman`), ``last_previous_gap`` (B,), and
     ``episode_fallbacks`` (n_envs,) -- fallback steps in the current episode (zeroed by :meth:`reset`).
     """
