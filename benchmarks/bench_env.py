@@ -51,7 +51,12 @@ from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
-import pyrvo  # noqa: E402
+
+try:  # the reference loop and the ORCA comparison run RVO2 itself: without it there is nothing to compare against
+    import pyrvo  # noqa: E402
+except ImportError:
+    sys.exit('error: benchmarks/bench_env.py needs the RVO2 reference pyrvo: pip install "pyrvo>=0.4.3" '
+             '(or the test extras: pip install -e ".[test]")')
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 

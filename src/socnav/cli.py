@@ -17,6 +17,7 @@ from rich.table import Table
 from socnav._console import console, fail
 from socnav.config import ConfigError, EnvConfig, describe_world, load_config
 from socnav.experiments.cli import register as add_experiment_commands
+from socnav.experiments.spec import MAX_EPISODES, MAX_TIMESTEPS
 from socnav.sim.scenarios import scenario_names
 
 if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --help` stays fast
@@ -67,8 +68,12 @@ def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
 
 
 def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
-                max_humans: Optional[int] = None, base: Any = None) -> EnvConfig:
-    """The env config of a command: `base` (a config file, or e.g. a model's stored config), then the options."""
+                max_humans: Optional[int] = None, base: Any = None, observes: Optional[int] = None) -> EnvConfig:
+    """The env config of a command: `base` (a config file, or e.g. a model's stored config), then the options.
+
+    :param observes: the max_humans of the model the command runs, if any: raising max_humans is then no way out
+        (a model runs only with the observation size it was trained with), fewer humans are.
+    """
     import re
 
     overrides: dict[str, Any] = {}
@@ -85,7 +90,10 @@ def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: 
         needed = re.search(r"raise max_humans to at least (\d+)", message)
         limit = EnvConfig.model_fields["max_humans"].metadata  # the field's bounds, e.g. Le(le=64)
         most = min((bound.le for bound in limit if getattr(bound, "le", None) is not None), default=None)
-        if needed and most is not None and int(needed.group(1)) > most:
+        if needed and observes is not None:
+            message += (f"\n  the model observes at most {observes} humans (it was trained with max_humans="
+                        f"{observes}): use --n-humans {observes} or fewer")
+        elif needed and most is not None and int(needed.group(1)) > most:
             message += f"\n  at most {most} humans are supported (max_humans <= {most})"
         elif needed and max_humans is None:
             message += f"\n  from the command line: --max-humans {needed.group(1)}"
@@ -144,17 +152,25 @@ def _evaluate(policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: 
                                 progress=advance, observer=observer)
 
 
-def _yaml(option: str, text: Optional[str] = None, path: Optional[Path] = None) -> Any:
-    """A YAML value given on the command line (`text`) or a YAML file (`path`), read with socnav's bounded loader;
-    bad or oversized YAML is a one-line error naming the option."""
+def _yaml(option: str, text: str) -> Any:
+    """A YAML value given on the command line, read with socnav's bounded loader; bad or oversized YAML (or an
+    integer of thousands of digits) is a one-line error naming the option."""
     import yaml
 
-    from socnav.config import read_yaml_file, safe_load_yaml, yaml_problem
+    from socnav.config import safe_load_yaml, yaml_problem
 
+    shown = repr(text if len(text) <= 60 else text[:57] + "...")
     try:
-        return read_yaml_file(path) if path is not None else safe_load_yaml(text or "")
+        return safe_load_yaml(text)
     except yaml.YAMLError as exc:
-        fail(f"{option} {path if path is not None else repr(text)} {' '.join(yaml_problem(exc).split())}")
+        fail(f"{option} {shown} {' '.join(yaml_problem(exc).split())}")
+    except ValueError as exc:  # YAML parses it, Python will not build it, e.g. an integer of 5,000 digits
+        import sys
+
+        digits = sys.get_int_max_str_digits()
+        reason = (f"an integer of more than {digits:,} digits" if "integer string conversion" in str(exc)
+                  else " ".join(str(exc).split())[:200])
+        fail(f"{option} {shown} is refused: {reason}")
 
 
 def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str]) -> dict[str, Any]:
@@ -165,12 +181,12 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
         fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
     overrides: dict[str, Any] = {}
     if algo_config is not None:
-        if not algo_config.is_file():
-            fail(f"--algo-config: no such file {algo_config}")
-        loaded = _yaml("--algo-config", path=algo_config) or {}
-        if not isinstance(loaded, dict):
-            fail(f"--algo-config {algo_config} must hold a mapping of hyperparameters")
-        overrides.update(loaded)
+        from socnav.config import read_mapping_file
+
+        try:
+            overrides.update(read_mapping_file(algo_config, "--algo-config"))
+        except ConfigError as exc:
+            fail(str(exc))
     for setting in settings:
         key, sep, value = setting.partition("=")
         if not sep or not key:
@@ -185,11 +201,12 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
 
 @app.command()
 def train(
+    ctx: typer.Context,
     scenario: Optional[str] = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
     algo: str = typer.Option("odv-ppo-drop", help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
     seed: int = typer.Option(0, min=0, max=2**28 - 1,
                              help="seed of the run (network init, dropout, training episodes)"),
-    timesteps: int = typer.Option(200_000, min=1, help="total environment steps"),
+    timesteps: int = typer.Option(200_000, min=1, max=MAX_TIMESTEPS, help="total environment steps"),
     n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
     max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; at least the "
@@ -197,8 +214,9 @@ def train(
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
     algo_config: Optional[Path] = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
     settings: list[str] = typer.Option([], "--set", help="hyperparameter override key=value (repeatable)"),
-    eval_every: Optional[int] = typer.Option(None, min=1, help="timesteps between evaluations/checkpoints"),
-    eval_episodes: int = typer.Option(50, min=1, help="validation episodes per evaluation"),
+    eval_every: Optional[int] = typer.Option(None, min=1, max=MAX_TIMESTEPS,
+                                             help="timesteps between evaluations/checkpoints"),
+    eval_episodes: int = typer.Option(50, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
     out: Optional[Path] = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>); "
                                                   "must be new or empty unless --force"),
     resume: Optional[Path] = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
@@ -207,18 +225,23 @@ def train(
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
     from socnav.rl.training import (
-        CheckpointError, RunDirectoryBusy, TrainingInterrupted, finished_result, move_run_aside, read_run_info,
+        CheckpointError, RunDirectoryBusy, TrainingInterrupted, check_run_links, finished_result, move_run_aside,
+        read_run_info, resume_step,
     )
     from socnav.rl.training import resume as resume_run
     from socnav.rl.training import train as train_run
 
     if resume is not None:
+        _refuse_options_resume_ignores(ctx)
+        if resume.exists() and not resume.is_dir():
+            fail(f"--resume {resume} is a file; name a run directory (the --out of an earlier socnav train)")
         if not resume.is_dir():
             fail(f"--resume {resume}: no such run directory")
         try:
+            check_run_links(resume)
             asked = read_run_info(resume)
             env_config = load_config(asked.env_config)
-        except ConfigError as exc:
+        except (ConfigError, OSError) as exc:
             fail(f"--resume {resume}: {exc}")
         algo, seed, timesteps, n_envs, overrides = asked.algo, asked.seed, asked.timesteps, asked.n_envs, asked.overrides
         out = resume
@@ -226,6 +249,10 @@ def train(
         if finished is not None:
             _report_complete(resume, algo, timesteps, finished)
             return
+        try:
+            start = resume_step(resume)
+        except CheckpointError as exc:
+            fail(f"--resume {resume}: {exc}")
     else:
         env_config = _env_config(scenario, config, n_humans, max_humans)
         overrides = _algo_overrides(algo, algo_config, settings)
@@ -240,8 +267,16 @@ def train(
                 console.print(f"moved the existing {out} aside to {move_run_aside(out)}")
             except (RunDirectoryBusy, OSError) as exc:
                 fail(f"--force: {exc}")
+        _check_out_writable("--out", out)
+        start = 0
     _check_n_envs(n_envs, env_config)
-    console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}")
+    if start:
+        console.print(f"resuming {algo} on {env_config.scenario} (seed {seed}) from step {start:,} of "
+                      f"{timesteps:,} -> {out}", highlight=False)
+    else:
+        console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}",
+                      highlight=False)
+    _explain_rounding(timesteps, algo, overrides, n_envs)
     try:
         if resume is not None:
             result = resume_run(resume, progress=True)
@@ -254,10 +289,75 @@ def train(
         fail(f"--resume {out}: {exc}")
     except (RunDirectoryBusy, OSError) as exc:
         fail(str(exc))
+    except KeyboardInterrupt:
+        _report_interrupted(out)
     console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
                                 f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
-    _explain_rounding(timesteps, result.timesteps, algo, overrides, n_envs)
     console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
+
+
+#: What `train --resume` takes from the run's own run.json: giving any of these with it would be ignored.
+_RESUME_IGNORES = ("scenario", "algo", "seed", "timesteps", "n_envs", "n_humans", "max_humans", "config",
+                   "algo_config", "settings", "eval_every", "eval_episodes", "out", "force")
+
+
+def _refuse_options_resume_ignores(ctx: typer.Context) -> None:
+    """`train --resume DIR` continues the run with the settings in its run.json: refuse options it would ignore."""
+    # By the source's name: typer may hand back its own copy of click's ParameterSource enum.
+    given = [name for name in _RESUME_IGNORES
+             if getattr(ctx.get_parameter_source(name), "name", None) in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")]
+    if given:
+        flags = ", ".join("--" + ("set" if name == "settings" else name.replace("_", "-")) for name in given)
+        fail(f"--resume continues the run with the settings recorded in its run.json; {flags} would be ignored: "
+             "drop them (or start a new run with --out)")
+
+
+def _report_interrupted(out: Path) -> None:
+    """Ctrl-C during `socnav train`: where the run stopped and how to continue it (exit code 130)."""
+    from socnav.rl.training import CheckpointError, resume_step
+
+    try:
+        step = resume_step(out)
+    except CheckpointError:
+        step = None
+    where = ("no checkpoint yet: --resume starts it from step 0" if step == 0 else
+             f"its last checkpoint is at step {step:,}" if step is not None else "its checkpoint cannot be continued")
+    console.print(f"[yellow]interrupted[/]: the run in {escape(str(out))} stopped; {where}. Continue it with: "
+                  f"socnav train --resume {escape(str(out))}", highlight=False)
+    raise typer.Exit(code=130)
+
+
+def _check_out_file(option: str, path: Path) -> None:
+    """A clear error, before any work, when the output file `path` cannot be written (a directory there, a file
+    among its parents, no permission)."""
+    if path.is_dir():
+        fail(f"{option} {path} is a directory; name a file")
+    _check_out_writable(option, path, directory=False)
+
+
+def _check_out_writable(option: str, path: Path, directory: bool = True) -> None:
+    """A clear error, before any work, when `path` (a directory to create, or a file whose directory it is) cannot
+    be written: a parent that is a file, a dangling link, or a place where no file can be created (no permission,
+    a read-only or virtual filesystem such as /proc). Probed by creating and removing a temporary file in the
+    nearest existing directory, which also holds for root, whom permission bits do not stop."""
+    import os
+    import tempfile
+
+    existing = path if directory else path.parent
+    while not existing.exists():
+        if existing.is_symlink():
+            fail(f"{option} {path}: {existing} is a dangling symbolic link")
+        if existing == existing.parent:
+            break
+        existing = existing.parent
+    if not existing.is_dir():
+        fail(f"{option} {path}: {existing} is a file, not a directory")
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".socnav-write-probe.", dir=existing)
+    except OSError as exc:
+        fail(f"{option} {path}: cannot write in {existing} ({exc.strerror or exc})")
+    os.close(handle)
+    os.unlink(probe)
 
 
 def _report_complete(run_dir: Path, algo: str, asked: int, result: TrainResult) -> None:
@@ -270,15 +370,19 @@ def _report_complete(run_dir: Path, algo: str, asked: int, result: TrainResult) 
                   highlight=False)
 
 
-def _explain_rounding(asked: int, trained: int, algo: str, overrides: dict[str, Any], n_envs: int) -> None:
-    """SB3 collects whole rollouts (n_steps per environment x n_envs), so a run can end past the steps asked."""
-    if trained <= asked:
-        return
+def _explain_rounding(asked: int, algo: str, overrides: dict[str, Any], n_envs: int) -> None:
+    """Before training: SB3 collects whole rollouts (n_steps per environment x n_envs), so a run can end past the
+    steps asked -- a rollout larger than the whole budget above all."""
     from socnav.rl.presets import resolve_config
 
     rollout = resolve_config(algo, overrides).n_steps * n_envs
-    console.print(f"note: {trained:,} steps trained for the {asked:,} asked: SB3 collects whole rollouts "
-                  f"({rollout:,} steps each = n_steps x n_envs) and rounds up to the next one", highlight=False)
+    trained = -(-asked // rollout) * rollout
+    if trained <= asked:
+        return
+    larger = f"one rollout ({rollout:,} steps = n_steps x n_envs) is more than" if rollout > asked else \
+        f"rollouts of {rollout:,} steps (n_steps x n_envs) do not divide"
+    console.print(f"note: {larger} the {asked:,} asked: SB3 collects whole rollouts, so {trained:,} steps will be "
+                  "trained (lower --n-envs or n_steps to stay closer)", highlight=False)
 
 
 def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
@@ -291,12 +395,35 @@ def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path
 
 
 def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
-    """A clear error (not a reshape traceback) when a policy observes a different max_humans than the env."""
+    """A clear error (not a reshape traceback) when a policy observes a different max_humans than the env, with
+    the option that fixes it."""
     for policy in policies:
         observed = policy.observation_space["humans"].shape[0]
         if observed != env_config.max_humans:
+            _, most = env_config.humans_range()
+            fix = (f"--max-humans {observed}" if most <= observed else
+                   f"--max-humans {observed} with at most {observed} humans (--n-humans {observed} or fewer)")
             fail(f"the model observes max_humans={observed} but the env config has "
-                 f"max_humans={env_config.max_humans}; set max_humans in --config to match")
+                 f"max_humans={env_config.max_humans}; a model runs only with the value it was trained with: "
+                 f"use {fix}")
+
+
+def _model_world(model: Optional[str], scenario: Optional[str], config: Optional[Path], n_humans: Optional[int],
+                 max_humans: Optional[int], default: Callable[[], EnvConfig]) -> EnvConfig:
+    """The world a command plays: with --model and without --config, the world the model was trained in (as
+    `evaluate` does; --scenario, --n-humans, --max-humans change it), else `default()`. Prints which world."""
+    if model is None or config is not None:
+        env_config = default()
+        origin = f"--config {config}" if config is not None else "defaults"
+    else:
+        from socnav.rl.persistence import training_world
+
+        policy = _load_learned_policy(model)
+        base, origin = training_world(policy, scenario, n_humans, max_humans)
+        env_config = _env_config(scenario, None, n_humans, max_humans, base=base,
+                                 observes=policy.observation_space["humans"].shape[0])
+    console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
+    return env_config
 
 
 def _load_learned_policy(model: str) -> Any:
@@ -343,7 +470,7 @@ def evaluate(
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
                                                      "model's training world with --model, else circle_crossing)"),
-    episodes: int = typer.Option(200, min=1, help="number of evaluation episodes"),
+    episodes: int = typer.Option(200, min=1, max=MAX_EPISODES, help="number of evaluation episodes"),
     seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
     max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; a model needs "
@@ -386,7 +513,9 @@ def evaluate(
         from socnav.rl.persistence import training_world
 
         base, origin = training_world(actor, scenario, n_humans, max_humans)
-    env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base), perturb)
+    observes = None if actor is None else actor.observation_space["humans"].shape[0]
+    env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base,
+                                               observes=observes), perturb)
     console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
     name = _model_label(model) if model is not None else controller
     observer = None
@@ -406,6 +535,7 @@ def evaluate(
     out = out or _default_records_path(name, env_config, seed, episodes,
                                        {"stochastic": stochastic, "k": k, "estimator": estimator,
                                         "members": members, "sensing": sensing})
+    _check_out_file("--out", out)
     if stochastic:
         import torch
 
@@ -419,7 +549,10 @@ def evaluate(
     if observer is not None:
         records["fallback_steps"] = observer.per_episode(records["episode"])
         metrics["fallback_pct"] = fallback_percent(records)
-    write_table_atomic(records, out)
+    try:
+        write_table_atomic(records, out)
+    except OSError as exc:  # e.g. the disk filled up while the episodes ran
+        fail(f"--out {out}: cannot write the records ({exc.strerror or exc})")
     console.print(metrics_table([(name, metrics)],
                                 f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"))
     console.print(f"per-episode records: {escape(str(out))}", highlight=False)
@@ -430,6 +563,9 @@ def _load_thresholds_option(safety: str, sensing: Optional[str] = None) -> Any:
     error."""
     from socnav.safety import SENSING_CHOICES, Thresholds, ThresholdsError, load_thresholds
 
+    if Path(safety).is_dir():
+        fail(f"--safety {safety} is a directory; name a thresholds file (.yaml or .json, from socnav calibrate) or a "
+             "preset: mc, ensemble")
     try:
         thresholds = load_thresholds(safety)
     except (ThresholdsError, OSError) as exc:
@@ -454,8 +590,12 @@ def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
 
 
 def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
-               env_config: EnvConfig) -> tuple[Any, Any]:
-    """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`."""
+               env_config: EnvConfig, required: bool = True) -> tuple[Any, Any]:
+    """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`.
+
+    :param required: whether the command needs the estimate (a safety layer, a calibration): then a model without
+        dropout layers under ``mc`` is an error; else its estimator is None (nothing to estimate), with a note.
+    """
     import glob
 
     from socnav.uncertainty import ESTIMATOR_KINDS, make_estimator
@@ -469,6 +609,16 @@ def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
 
         policy = _load_learned_policy(model)
         _check_observation_size([policy], env_config)
+        trained_with = float(policy.socnav_metadata.get("algo_config", {}).get("p_train", 0.0))
+        if not policy.dropout_layers() or trained_with == 0.0:  # MC-dropout samples a network trained with it
+            algo = policy.socnav_metadata.get("algo", "?")
+            if required:
+                fail(f"--estimator mc needs a model trained with dropout (odv-ppo-drop, ppo-drop); {model} is "
+                     f"{algo}, trained without: use --estimator ensemble --members GLOB")
+            console.print(f"note: no uncertainty bars: {escape(model)} ({escape(algo)}) was trained without dropout, "
+                          "so MC-dropout has nothing to sample (--estimator ensemble --members GLOB estimates with "
+                          "an ensemble)", highlight=False)
+            return policy, None
         # A private, seeded mask stream (as the experiment units use): the same command gives the same thresholds
         # and the same animation, instead of drawing from torch's unseeded global RNG.
         return policy, MCDropoutEstimator(policy, k=k, seed=MC_SEED)
@@ -516,10 +666,21 @@ def animate(
     """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
     from socnav.experiments.animate import animate_episode
 
+    from socnav.viz import check_animation_path
+
     if out.suffix not in (".gif", ".mp4"):
         fail(f"--out must end in .gif or .mp4, got {out.name!r}")
-    env_config = _perturbed_config(_single_agent_env_config(scenario, config, n_humans, max_humans), perturb)
-    policy, uncertainty = _estimator(estimator, model, members, k, env_config)
+    try:
+        check_animation_path(out)  # before the episode is played: .mp4 without the [video] extra
+    except ImportError as exc:
+        fail(f"--out {out}: {exc}")
+    _check_out_file("--out", out)
+    env_config = _perturbed_config(_model_world(
+        model, scenario, config, n_humans, max_humans,
+        default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans)), perturb)
+    # Without a safety layer the bars are only drawn when there is an uncertainty to draw: a model without dropout
+    # has no MC-dropout samples (all zero bars would say "certain").
+    policy, uncertainty = _estimator(estimator, model, members, k, env_config, required=safety is not None)
     thresholds = None if safety is None else _load_thresholds_option(safety, sensing)
     label = _model_label(model) if model is not None else f"ensemble of {members}"
     path, summary = animate_episode(policy, uncertainty, env_config, out, seed=seed, thresholds=thresholds,
@@ -561,7 +722,7 @@ def calibrate(
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
     max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    episodes: int = typer.Option(40, min=1, help="episodes per calibration configuration"),
+    episodes: int = typer.Option(40, min=1, max=MAX_EPISODES, help="episodes per calibration configuration"),
     false_activation_budget: float = typer.Option(
         0.05, min=0.0, max=1.0, help="allowed false-activation rate: the share of unperturbed steps on which the "
                                      "fallback may act (the experiment's safety.false_activation_budget)"),
@@ -585,7 +746,9 @@ def calibrate(
         fail(f"--sensing {sensing!r} is not known; allowed: perceived, true")
     if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
         fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
-    env_config = _single_agent_env_config(scenario, config, n_humans, max_humans)
+    _check_out_file("--out", out)
+    env_config = _model_world(model, scenario, config, n_humans, max_humans,
+                              default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans))
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     with _progress() as progress:
         task = progress.add_task("calibration episodes (collect, then replay each candidate)", total=None)
@@ -621,6 +784,7 @@ def convert(
 
     if to_sb3.suffix != ".zip":
         fail(f"--to-sb3 must be a .zip path, got {to_sb3.name!r}")
+    _check_out_file("--to-sb3", to_sb3)
     try:
         sb3_model = convert_to_sb3(model, n_envs=1)
     except PolicyLoadError as exc:
@@ -635,7 +799,7 @@ def convert(
 @app.command()
 def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
-    episodes: int = typer.Option(100, min=1, help="episodes per scenario and controller"),
+    episodes: int = typer.Option(100, min=1, max=MAX_EPISODES, help="episodes per scenario and controller"),
     seed: int = typer.Option(0, min=0, help="first episode seed"),
     train_steps: int = typer.Option(0, min=0, help="train a fresh ODV-PPO-Drop policy for this many steps "
                                                     "(0: use the pretrained one shipped with socnav)"),
@@ -644,6 +808,9 @@ def demo(
     the safety layer: metrics and animations (GIF)."""
     from socnav.experiments import demo as steps
 
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out} is an existing file; name a directory for the demo's tables and animations")
+    _check_out_writable("--out", out)
     rows = steps.baseline_rows(out, episodes, seed, progress=_progress_bar)
     console.print(metrics_table(rows, f"Baseline controllers, {episodes} episodes each (seeds {seed}..)"))
     gif, summary = steps.animate_baseline(out, seed)
@@ -703,6 +870,17 @@ def export(
     value: bool = typer.Option(False, "--value", help="also export the critic (output 'value')"),
 ) -> None:
     """Export a policy, its MC-dropout settings and safety thresholds as ONNX for the torch-free socnav.runtime."""
+    import importlib.util
+
+    from socnav.extras import install_hint
+
+    missing = [name for name in ("onnx", "onnxruntime") if importlib.util.find_spec(name) is None]
+    if missing:
+        fail(f"socnav export needs {' and '.join(missing)}: {install_hint('export')}")
+    _check_out_file("--out", out)
+    if Path(thresholds).is_dir():
+        fail(f"--thresholds {thresholds} is a directory; name a thresholds file (from socnav calibrate) or a preset: "
+             "mc, ensemble")
     from socnav.export import ExportError, export_onnx
     from socnav.safety import ThresholdsError
 

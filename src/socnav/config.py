@@ -103,23 +103,43 @@ def read_yaml_file(path: Path) -> Any:
 def read_mapping_file(path: str | Path, what: str, error: type[Exception] = ConfigError,
                       allow_json: bool = False) -> dict[str, Any]:
     """The mapping of fields a YAML file holds (an empty file is an empty mapping), read with the bounded loader;
-    with `allow_json` a ``.json`` file is read as JSON (which writes inf as ``Infinity``, unlike YAML).
+    with `allow_json` a ``.json`` file is read as JSON (which writes inf as ``Infinity``, unlike YAML), bounded in
+    nesting (`socnav.io.parse_json`).
 
-    :raises error: naming the file: '<what> file not found: PATH', '<what> file PATH is not valid YAML: ...'
-        (or '... is refused: ...' for an oversized input), '<what> file PATH must hold a mapping of fields, got list'.
+    :raises error: one line naming the file: '<what> file not found: PATH', '<what> file PATH is a directory, not a
+        file', '<what> file PATH is not valid YAML: ...' (or '... is refused: ...' for an oversized, deeply nested or
+        binary input, or an integer of thousands of digits), '<what> file PATH must hold a mapping of fields, got list'.
     """
-    import json
+    from socnav.io import UntrustedInputError, parse_json, read_bounded
 
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        raise error(f"{what} file {path} is a directory, not a file")
+    if not path.exists():
         raise error(f"{what} file not found: {path}")
     try:
-        data = (json.loads(_read_bounded_text(path)) if allow_json and path.suffix == ".json"
-                else read_yaml_file(path))
-    except json.JSONDecodeError as exc:
-        raise error(f"{what} file {path} is not valid JSON: {exc}") from None
+        # Read within the limit whatever the filesystem reports (a /proc file claims 0 bytes), never a device or pipe.
+        raw = read_bounded(path, YAML_MAX_BYTES)
+        if allow_json and path.suffix == ".json":
+            data = parse_json(raw, f"{what} file {path}")
+        else:
+            data = safe_load_yaml(raw.decode())
+    except OSError as exc:
+        raise error(f"{what} file {path} cannot be read: {exc.strerror or exc}") from None
+    except UntrustedInputError as exc:
+        message = str(exc)
+        raise error(message if message.startswith(what) else f"{what} file {message}") from None
+    except UnicodeDecodeError:
+        raise error(f"{what} file {path} is refused: it is not UTF-8 text (a binary file?)") from None
     except yaml.YAMLError as exc:
-        raise error(f"{what} file {path} {yaml_problem(exc)}") from None
+        raise error(f"{what} file {path} {' '.join(yaml_problem(exc).split())}") from None
+    except ValueError as exc:  # a value YAML parses but Python will not build, e.g. an integer of 5,000 digits
+        import sys
+
+        digits = sys.get_int_max_str_digits()
+        reason = (f"it holds an integer of more than {digits:,} digits" if "integer string conversion" in str(exc)
+                  else " ".join(str(exc).split())[:200])
+        raise error(f"{what} file {path} is refused: {reason}") from None
     if data is None:  # an empty file (or only comments)
         return {}
     if not isinstance(data, dict):

@@ -1,22 +1,28 @@
-"""Atomic file writing (results, records and checkpoints never exist half-written) and the directory lock.
+"""Atomic file writing (results, records and checkpoints never exist half-written), the directory lock, run
+directories that never follow a symbolic link, and bounded reading of untrusted files (JSON above all).
 
 Write to a temporary file in the destination's directory, flush it to disk, then `os.replace` it into place. A
 process killed in between leaves its temporary file (``.<name>.<8 random characters>.tmp<suffix>``) behind;
-`remove_stale_temporaries`, called by the next run holding the directory's lock, deletes them.
+`remove_stale_temporaries`, called by the next run holding the directory's lock, deletes them. `os.replace` replaces
+a symbolic link at the destination itself (never writes through it); the directories above it are the caller's to
+check (`real_directory`, `refuse_links`).
 """
 
 from __future__ import annotations
 
+import errno
+import json
 import math
-
 import os
 import re
+import stat
 import tempfile
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
-import pandas as pd
+if TYPE_CHECKING:  # pandas loads with the first table written or read: `import socnav.io` stays light
+    import pandas as pd
 
 # The names `atomic_path` gives its temporary files: mkstemp's 8 random characters between prefix and suffix.
 _TEMPORARY_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[^.]*)?$")
@@ -68,6 +74,8 @@ def read_table(path: str | Path) -> pd.DataFrame:
     path = Path(path)
     if path.suffix not in TABLE_FORMATS:
         raise ValueError(f"unsupported table format {path.suffix!r} for {path}; allowed: {', '.join(TABLE_FORMATS)}")
+    import pandas as pd
+
     return pd.read_csv(path) if path.suffix == ".csv" else pd.read_parquet(path)
 
 
@@ -88,7 +96,11 @@ def remove_stale_temporaries(directory: str | Path, recursive: bool = True) -> l
 
 @contextmanager
 def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
-    """An exclusive flock on `path` (released when the holder dies); yields False if not blocking and busy."""
+    """An exclusive flock on `path` (released when the holder dies); yields False if not blocking and busy.
+
+    :raises UnsafePathError: `path` is a symbolic link (never opened through: a lock file planted as a link to a
+        file elsewhere would be created or locked there).
+    """
     try:
         import fcntl
     except ImportError:  # not POSIX: no locking
@@ -96,7 +108,14 @@ def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
         return
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as handle:
+    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        descriptor = os.open(path, flags, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UnsafePathError(f"{path} is a symbolic link; {_LINK_ADVICE}") from None
+        raise
+    with os.fdopen(descriptor, "a+") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
         except BlockingIOError:
@@ -109,6 +128,93 @@ def file_lock(path: str | Path, blocking: bool = True) -> Iterator[bool]:
             yield True
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Run directories never follow a symbolic link
+# --------------------------------------------------------------------------------------------------------------
+
+_LINK_ADVICE = "socnav never follows a link inside a run directory (remove it)"
+
+
+class UnsafePathError(OSError):
+    """A symbolic link (or a file) where a run directory keeps its own files or directories: socnav refuses it or
+    replaces it, and never reads, writes or deletes through it."""
+
+
+def _components(root: Path, path: Path) -> list[Path]:
+    """The paths from the first component below `root` down to `path` itself (`path` must lie inside `root`)."""
+    current, components = root, []
+    for part in path.relative_to(root).parts:
+        current = current / part
+        components.append(current)
+    return components
+
+
+def first_link(root: str | Path, path: str | Path) -> Path | None:
+    """The first symbolic link among the components of `path` below `root` (`path` included), None if there is none
+    (the walk stops at the first component that does not exist). `root` itself may be a link: it is the user's."""
+    for component in _components(Path(root), Path(path)):
+        if component.is_symlink():
+            return component
+        if not component.exists():
+            return None
+    return None
+
+
+def refuse_links(root: str | Path, path: str | Path) -> None:
+    """:raises UnsafePathError: a component of `path` below `root` (`path` included) is a symbolic link."""
+    link = first_link(root, path)
+    if link is not None:
+        raise UnsafePathError(f"{link} is a symbolic link; {_LINK_ADVICE}")
+
+
+def remove_links(root: str | Path, path: str | Path) -> list[Path]:
+    """Remove every symbolic link among the components of `path` below `root` (`path` included); returns them.
+    A link is removed, never followed: its target is left untouched. What lay below a removed link is gone from the
+    run directory (the caller redoes it).
+
+    Safe against a concurrent caller: `os.unlink` never removes a real directory, so a link another process already
+    replaced by a directory stays replaced.
+    """
+    removed = []
+    for component in _components(Path(root), Path(path)):
+        if component.is_symlink():
+            with suppress(FileNotFoundError):
+                component.unlink()
+            removed.append(component)
+        elif not component.exists():
+            break
+    return removed
+
+
+def real_directory(root: str | Path, path: str | Path) -> Path:
+    """Create `path` below `root` like ``mkdir -p``, each component a real directory: a symbolic link on the way is
+    removed (`remove_links`) and replaced by a new, empty directory. `root` itself is the caller's (created if
+    missing, and may be a link).
+
+    :raises UnsafePathError: a component is a file (or another non-directory).
+    """
+    path = Path(path)
+    Path(root).mkdir(parents=True, exist_ok=True)
+    remove_links(root, path)
+    for component in _components(Path(root), path):
+        with suppress(FileExistsError):
+            component.mkdir()
+        if component.is_symlink() or not component.is_dir():
+            raise UnsafePathError(f"{component} is not a directory; socnav keeps its own directory there "
+                                  "(move the file away)")
+    return path
+
+
+def find_links(directory: str | Path) -> list[Path]:
+    """Every symbolic link inside `directory`, which is walked without following any (a linked directory is listed,
+    never entered); empty when `directory` does not exist."""
+    links = []
+    for parent, directories, files in os.walk(directory):  # followlinks=False
+        links.extend(Path(parent) / name for name in (*directories, *files)
+                     if os.path.islink(os.path.join(parent, name)))
+    return sorted(links)
 
 
 def save_figure(figure, out_base: Path) -> list[Path]:
@@ -136,3 +242,99 @@ def json_safe(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Bounded reading of untrusted files
+# --------------------------------------------------------------------------------------------------------------
+
+#: What a JSON file socnav reads may hold. socnav writes a few KB (a unit's marker, a run's state) up to ~0.5 MB (the
+#: plan of the paper's Table 1, 900 units) with nesting 5 deep; a crafted file can be far larger or deeper.
+JSON_MAX_BYTES = 16 << 20
+JSON_MAX_DEPTH = 64
+
+# A JSON string: quotes around anything but quotes and backslashes, or escapes. An unterminated string runs to
+# the end (and a lone trailing backslash ends it), so the search never retries from inside one: linear time.
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*(?:"|\\?\Z)', re.DOTALL)
+_NOT_BRACKETS = bytes(code for code in range(256) if code not in b"[]{}")
+
+
+class UntrustedInputError(ValueError):
+    """An input file socnav refuses to parse: too large, nested too deeply, not a regular file or not UTF-8 text, or
+    not valid JSON; the message is one line naming the file and why."""
+
+
+def read_bounded(path: str | Path, max_bytes: int, follow_links: bool = True) -> bytes:
+    """The bytes of the regular file `path`, at most `max_bytes` of them: the limit is enforced while reading, so a
+    file whose size the filesystem does not report (``/proc``, a file still growing) cannot make us read more.
+
+    :param follow_links: False refuses a symbolic link at `path` (a run directory's own files).
+    :raises UntrustedInputError: larger than `max_bytes`, a directory, a device, a pipe or a link not followed.
+    :raises OSError: missing or unreadable.
+    """
+    path = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0)  # a FIFO must not block
+    if not follow_links:
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+    try:
+        descriptor = os.open(path, flags)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UntrustedInputError(f"{path} is a symbolic link; {_LINK_ADVICE}") from None
+        raise
+    mode = os.fstat(descriptor).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(descriptor)
+        if stat.S_ISDIR(mode):
+            raise UntrustedInputError(f"{path} is a directory, not a file")
+        raise UntrustedInputError(f"{path} is not a regular file (a device, pipe or socket)")
+    with os.fdopen(descriptor, "rb") as stream:
+        data = stream.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise UntrustedInputError(f"{path} is larger than {max_bytes:,} bytes, the most socnav reads from such a file")
+    return data
+
+
+def json_depth(data: bytes) -> int:
+    """How deeply the arrays and objects of the JSON text `data` nest (brackets inside strings do not count);
+    linear in its length, recursion-free: it runs before the (recursive) parser sees the text."""
+    brackets = _JSON_STRING.sub(b"", data).translate(None, _NOT_BRACKETS)
+    depth = deepest = 0
+    for code in brackets:
+        depth += 1 if code in b"[{" else -1
+        deepest = max(deepest, depth)
+    return deepest
+
+
+def parse_json(data: bytes | str, what: str, max_depth: int = JSON_MAX_DEPTH) -> Any:
+    """`json.loads` of untrusted text: at most `max_depth` levels of nesting (checked before parsing), valid UTF-8,
+    numbers within Python's limits (an integer of thousands of digits is refused, not converted).
+
+    :param what: how the message names the input, e.g. the file's path.
+    :raises UntrustedInputError: one line naming `what` and the problem.
+    """
+    raw = data.encode() if isinstance(data, str) else data
+    depth = json_depth(raw)
+    if depth > max_depth:
+        raise UntrustedInputError(f"{what} is nested too deeply ({depth} levels; socnav reads JSON nested at most "
+                                  f"{max_depth} deep)")
+    try:
+        text = raw.decode("utf-8")  # JSON is UTF-8 (RFC 8259); json.loads would guess UTF-16/32 from the bytes
+    except UnicodeDecodeError:
+        raise UntrustedInputError(f"{what} is not UTF-8 text") from None
+    try:
+        return json.loads(text)
+    except RecursionError:  # cannot happen within the depth bound; kept so the contract holds regardless
+        raise UntrustedInputError(f"{what} is nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, or an integer over sys.get_int_max_str_digits()
+        raise UntrustedInputError(f"{what} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
+
+
+def read_json(path: str | Path, max_bytes: int = JSON_MAX_BYTES, max_depth: int = JSON_MAX_DEPTH,
+              follow_links: bool = True) -> Any:
+    """The JSON value of the file `path`, read within `max_bytes` and `max_depth` (`read_bounded`, `parse_json`).
+
+    :raises UntrustedInputError: too large, too deep, not a regular file, not UTF-8, not JSON (one line).
+    :raises OSError: missing or unreadable.
+    """
+    return parse_json(read_bounded(path, max_bytes, follow_links), str(path), max_depth)

@@ -110,3 +110,16 @@ def test_cli_refuses_impossible_env_counts_before_writing(tmp_path):
     result = runner.invoke(app, ["evaluate", "--controller", "orca", "--n-envs", "10000000", "--episodes", "10000000",
                                  "--out", str(tmp_path / "x.csv")])
     assert result.exit_code == 2 and "--n-envs=10,000,000" in result.output
+
+
+@pytest.mark.parametrize("shape", [(8,), (2, 4), (4, 2, 1), (4, 1), (3, 2)])
+def test_vec_env_refuses_actions_of_another_shape_instead_of_reshaping(shape):
+    # (8,) and (2, 4) hold the right number of values: reshaped, they would give environment 1 another's action.
+    vec = socnav.make_vec_env(CONFIG, n_envs=4)
+    vec.seed(0)
+    vec.reset()
+    with pytest.raises(ValueError, match=r"shape \(4, 2\)") as error:
+        vec.step(np.zeros(shape, np.float32))
+    assert str(shape) in str(error.value)
+    _, rewards, _, _ = vec.step(np.zeros((4, 2), np.float32))  # the environment is still usable
+    assert np.isfinite(rewards).all()

@@ -75,9 +75,22 @@ def test_title_and_outcome_are_drawn(annotated):
     top = slice(0, 25), slice(100, 380)
     assert (np.abs(titled[top].astype(int) - plain[top].astype(int)).max(axis=-1) > 60).sum() > 50
     ended = annotated.render(frame(outcome="COLLISION"))
-    middle = slice(220, 260), slice(60, 420)
-    dark = lambda img: (img[middle].max(axis=-1) < 60).sum()  # noqa: E731 - black text pixels
-    assert dark(ended) > 20 * dark(plain) + 500  # large type across the scene
+    scene = slice(0, 480), slice(ANNOTATED_LEFT, ANNOTATED_LEFT + 480)
+    dark = lambda img: (img[scene].max(axis=-1) < 60).sum()  # noqa: E731 - black text pixels
+    assert dark(ended) > dark(plain) + 500  # large type
+
+
+@pytest.mark.parametrize("robot_y", [0.0, 3.0, 6.5, -3.0, -6.5])
+def test_outcome_banner_leaves_the_robot_visible(annotated, robot_y):
+    # Where an episode ends -- a collision above all -- must stay visible under the banner saying how it ended.
+    positions = np.array([[0.0, robot_y], [0.6, robot_y], [5.0, 0.0], [-5.0, 0.0]])
+    plain = annotated.render(frame(positions=positions))
+    ended = annotated.render(frame(positions=positions, outcome="COLLISION"))
+    changed = np.abs(ended.astype(int) - plain.astype(int)).max(axis=-1) > 30
+    assert changed.sum() > 500  # the banner is there
+    for x in (0.0, 0.6):  # the robot and the human it touches
+        row, col = to_pixel(x, robot_y, left=ANNOTATED_LEFT)
+        assert not changed[row - 12: row + 13, col - 12: col + 13].any(), (x, robot_y)
 
 
 def test_uncertainty_bars_show_ticks_and_threshold(annotated):

@@ -13,7 +13,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from socnav.config import ConfigLike, EnvConfig, load_config
-from socnav.envs.env import check_actions, check_env_count, scene_frame, step_infos
+from socnav.envs.env import ActionError, check_actions, check_env_count, scene_frame, step_infos
 from socnav.envs.spaces import action_space, observation_space
 from socnav.sim.world import CrowdWorld
 
@@ -47,7 +47,14 @@ class SocialNavVecEnv(VecEnv):
         return self.world.observe()
 
     def step_async(self, actions: np.ndarray) -> None:
-        """Take one action per environment; a NaN action raises `socnav.envs.env.ActionError` naming its index."""
+        """Take one action per environment, an array of shape (num_envs, 2) (SB3's layout: one row per environment);
+        any other shape -- (8,) or (2, 4) for 4 environments, (4, 2, 1) -- raises `socnav.envs.env.ActionError`
+        rather than being reshaped into rows it was not meant as. A NaN action raises it naming its index."""
+        shape = np.shape(actions)
+        expected = (self.num_envs, *self.action_space.shape)
+        if shape != expected:
+            raise ActionError(f"actions must have shape {expected} (one row of speed, heading change per "
+                              f"environment), got shape {shape}")
         self._actions = check_actions(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:

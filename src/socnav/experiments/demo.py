@@ -116,11 +116,13 @@ def animate_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
 
 def train_policy(out: Path, seed: int, timesteps: int) -> TrainResult:
     """Train a fresh ODV-PPO-Drop policy in `TRAINING_WORLD` for `timesteps` steps, the run in OUT/odv_ppo_drop
-    (with its own progress display). Raises `socnav.rl.training.TrainingInterrupted` when stopped."""
+    (with its own progress display); the run of an earlier demo there is moved aside to
+    ``odv_ppo_drop.old-<timestamp>``, never overwritten. Raises `socnav.rl.training.TrainingInterrupted` when
+    stopped."""
     from socnav.rl.training import train
 
     return train(load_config(TRAINING_WORLD), "odv-ppo-drop", seed, timesteps, Path(out) / "odv_ppo_drop",
-                 progress=True)
+                 progress=True, force=True)
 
 
 def learned_policy_row(policy: Any, label: str, out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from socnav.config import YAML_MAX_BYTES
+
 # The executors of the `uncertainty` kind register on import: here, so that every process running units (pool and
 # Ray workers too) knows them.
 from socnav.experiments import uncertainty_units  # noqa: F401
@@ -44,8 +46,11 @@ from socnav.experiments.registry import (
 )
 from socnav.experiments.spec import Experiment, Unit, plan_units
 from socnav.extras import install_hint
+from socnav.io import (
+    UntrustedInputError, first_link, read_bounded, read_json, real_directory, refuse_links, remove_links,
+    remove_stale_temporaries, write_text_atomic,
+)
 from socnav.io import file_lock as _file_lock
-from socnav.io import remove_stale_temporaries, write_text_atomic
 
 __all__ = [
     "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir", "read_plan",
@@ -66,10 +71,17 @@ class RunnerError(RuntimeError):
 # Files and markers
 # --------------------------------------------------------------------------------------------------------------
 
-def _read_json(path: Path) -> Any:
+#: A unit's own small files (unit.json, done.json) are a few KB; the plan (units.json) can reach megabytes.
+MARKER_MAX_BYTES = 1 << 20
+PLAN_MAX_BYTES = 64 << 20
+
+
+def _read_json(path: Path, max_bytes: int = MARKER_MAX_BYTES) -> Any:
+    """The JSON of one of the run's own files, or None when it is missing, a symbolic link (never followed), too
+    large, nested too deeply or not JSON: whatever cannot be read counts as absent, and its unit is redone."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        return read_json(path, max_bytes=max_bytes, follow_links=False)
+    except (OSError, UntrustedInputError):
         return None
 
 
@@ -78,6 +90,7 @@ def mark_done(root: Path, unit: Unit, outputs: list[str], inputs: dict[str, dict
     """Write the unit's completion marker (last, atomically): digests of its `outputs` (paths relative to the unit
     directory) and of the `inputs` it read (``{"<unit id>/<file>": digest}``)."""
     directory = unit_dir(root, unit)
+    refuse_links(root, directory)  # the marker goes where the unit's directory really is, never through a link
     marker = {
         "unit": unit.id, "kind": unit.kind, "spec_hash": unit.spec_hash,
         "outputs": {name: file_digest(directory / name) for name in outputs},
@@ -88,14 +101,20 @@ def mark_done(root: Path, unit: Unit, outputs: list[str], inputs: dict[str, dict
 
 
 def _marker(root: Path, unit_id: str) -> dict[str, Any] | None:
-    marker = _read_json(unit_dir(root, unit_id) / DONE_FILE)
+    path = unit_dir(root, unit_id) / DONE_FILE
+    if first_link(root, path) is not None:  # a unit reached through a link is not the run's own
+        return None
+    marker = _read_json(path)
     return marker if isinstance(marker, dict) else None
 
 
 def unit_state(root: Path, unit: Unit, check_inputs: bool = True) -> UnitState:
     """done | pending (nothing there) | partial (started, no marker) | corrupt (marker or outputs damaged) |
-    stale (finished for other parameters, or its inputs changed since)."""
+    stale (finished for other parameters, or its inputs changed since). A symbolic link on the way to the unit or
+    to one of its outputs makes it corrupt: it is redone in a real directory, never read through the link."""
     directory = unit_dir(root, unit)
+    if first_link(root, directory / DONE_FILE) is not None:
+        return "corrupt"
     if not (directory / DONE_FILE).exists():
         return "partial" if directory.exists() else "pending"
     marker = _marker(root, unit.id)
@@ -105,15 +124,32 @@ def unit_state(root: Path, unit: Unit, check_inputs: bool = True) -> UnitState:
         return "stale"
     for name, expected in marker["outputs"].items():
         path = directory / name
-        if not path.is_file() or path.stat().st_size != expected.get("size") or file_digest(path) != expected:
+        if not isinstance(name, str) or not isinstance(expected, dict) or not _inside(directory, path):
+            return "corrupt"
+        if first_link(directory, path) is not None or not path.is_file():
+            return "corrupt"
+        if path.stat().st_size != expected.get("size") or file_digest(path) != expected:
             return "corrupt"
     if check_inputs:
         for name, expected in marker["inputs"].items():
-            dep_id, _, file_name = name.rpartition("/")
-            dep_marker = _marker(root, dep_id)
-            if dep_marker is None or dep_marker.get("outputs", {}).get(file_name) != expected:
+            dep_id, _, file_name = str(name).rpartition("/")
+            dep_marker = _marker(root, dep_id) if _plain_unit_id(dep_id) else None
+            dep_outputs = dep_marker.get("outputs") if dep_marker is not None else None
+            if not isinstance(dep_outputs, dict) or dep_outputs.get(file_name) != expected:
                 return "stale"
     return "done"
+
+
+def _inside(directory: Path, path: Path) -> bool:
+    """Whether `path` (a name a marker lists) stays inside `directory`: relative, without '..'."""
+    relative = path.relative_to(directory) if path.is_relative_to(directory) else None
+    return relative is not None and ".." not in relative.parts and relative.parts != ()
+
+
+def _plain_unit_id(unit_id: str) -> bool:
+    """Whether `unit_id` names a directory inside the run (relative, no '..', as the planners make them)."""
+    parts = Path(unit_id).parts
+    return bool(parts) and not Path(unit_id).is_absolute() and ".." not in parts
 
 
 def unit_states(root: Path, units: list[Unit]) -> dict[str, UnitState]:
@@ -197,27 +233,41 @@ def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
     """
     unit, run_root = Unit.from_json(unit_json), Path(root)
     started = time.perf_counter()
+    try:
+        real_directory(run_root, run_root / ".locks")  # never a lock file made through a planted link
+        with _file_lock(_unit_lock_path(run_root, unit)):
+            return _execute_locked(unit, run_root, started)
+    except OSError as exc:  # a planted link or file where the unit's lock goes: the unit fails, the sweep goes on
+        return {"id": unit.id, "status": "failed", "wall_time_s": time.perf_counter() - started,
+                "error": f"{type(exc).__name__}: {exc}".strip()}
+
+
+def _execute_locked(unit: Unit, run_root: Path, started: float) -> dict[str, Any]:
+    """`execute_unit` once the unit's lock is held; never raises for the unit's own errors."""
     directory = unit_dir(run_root, unit)
-    with _file_lock(_unit_lock_path(run_root, unit)):
-        try:
-            remove_stale_temporaries(directory)  # a killed writer's half-written files; the unit lock is ours
-            state = unit_state(run_root, unit)
-            if state == "done":
-                return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
-            if unit.kind not in EXECUTORS:
-                raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}")
-            _prepare_unit_dir(run_root, unit, state)
-            result = EXECUTORS[unit.kind](run_root, unit, directory)
-            elapsed = time.perf_counter() - started
-            mark_done(run_root, unit, result.outputs, result.inputs,
-                      {"wall_time_s": elapsed, "previous_state": state, **result.extra})
-            return {"id": unit.id, "status": "done", "wall_time_s": elapsed}
-        except Exception as exc:  # the unit's own failure: recorded, reported, the sweep goes on
-            text = traceback.format_exc()
-            with contextlib.suppress(OSError):
-                write_text_atomic(directory / ERROR_FILE, text)
-            return {"id": unit.id, "status": "failed", "wall_time_s": time.perf_counter() - started,
-                    "error": f"{type(exc).__name__}: {exc}".strip()}
+    try:
+        # A symbolic link on the way to the unit (or the unit's directory itself) is removed before anything is
+        # read, deleted or written there: the unit is redone in a real directory, the link's target untouched.
+        remove_links(run_root, directory)
+        remove_stale_temporaries(directory)  # a killed writer's half-written files; the unit lock is ours
+        state = unit_state(run_root, unit)
+        if state == "done":
+            return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
+        if unit.kind not in EXECUTORS:
+            raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}")
+        _prepare_unit_dir(run_root, unit, state)
+        result = EXECUTORS[unit.kind](run_root, unit, directory)
+        elapsed = time.perf_counter() - started
+        mark_done(run_root, unit, result.outputs, result.inputs,
+                  {"wall_time_s": elapsed, "previous_state": state, **result.extra})
+        return {"id": unit.id, "status": "done", "wall_time_s": elapsed}
+    except Exception as exc:  # the unit's own failure: recorded, reported, the sweep goes on
+        text = traceback.format_exc()
+        with contextlib.suppress(OSError):
+            refuse_links(run_root, directory)
+            write_text_atomic(directory / ERROR_FILE, text)
+        return {"id": unit.id, "status": "failed", "wall_time_s": time.perf_counter() - started,
+                "error": f"{type(exc).__name__}: {exc}".strip()}
 
 
 def _prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
@@ -229,8 +279,9 @@ def _prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
         same_spec = isinstance(recorded, dict) and recorded.get("spec_hash") == unit.spec_hash
         keep = same_spec and unit.kind in RESUMABLE and RESUMABLE[unit.kind](directory)
     if directory.exists() and not keep:
+        refuse_links(root, directory)  # rmtree removes links inside without following them; never one above
         shutil.rmtree(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    real_directory(root, directory)
     (directory / ERROR_FILE).unlink(missing_ok=True)
     (directory / DONE_FILE).unlink(missing_ok=True)
     write_text_atomic(directory / UNIT_FILE, json.dumps(unit.to_json(), indent=2, sort_keys=True))
@@ -246,9 +297,10 @@ def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = No
 
     units = plan_units(experiment)
     root.mkdir(parents=True, exist_ok=True)
-    existing = _read_json(root / "resolved.json")
-    if existing is not None:
-        before = (existing.get("experiment", {}).get("name"), existing.get("experiment", {}).get("budget"))
+    existing = _read_json(root / "resolved.json", PLAN_MAX_BYTES)
+    recorded = existing.get("experiment") if isinstance(existing, dict) else None
+    if isinstance(recorded, dict):
+        before = (recorded.get("name"), recorded.get("budget"))
         now = (experiment.name, experiment.budget)
         if before != now:
             raise RunnerError(
@@ -256,7 +308,8 @@ def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = No
                 f"{now[1]!r}; choose another --out (units of a different budget would overwrite its results)"
             )
     if source is not None:
-        write_text_atomic(root / "experiment.yaml", Path(source).read_text())
+        # within the limit load_experiment read it with (a path such as /proc reports no size)
+        write_text_atomic(root / "experiment.yaml", read_bounded(source, YAML_MAX_BYTES).decode())
     write_text_atomic(root / "resolved.json", json.dumps(
         {"experiment": experiment.to_json(), "socnav_version": socnav.__version__}, indent=2, sort_keys=True))
     write_text_atomic(root / "units.json", json.dumps([unit.to_json() for unit in units], indent=2))
@@ -265,10 +318,25 @@ def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = No
 
 def read_plan(root: Path) -> tuple[dict[str, Any], list[Unit]]:
     """The resolved experiment and the units of a run directory."""
-    resolved, plan = _read_json(root / "resolved.json"), _read_json(root / "units.json")
-    if not isinstance(resolved, dict) or not isinstance(plan, list):
-        raise RunnerError(f"{root} is not a socnav run directory (no readable resolved.json / units.json)")
-    return resolved["experiment"], [Unit.from_json(item) for item in plan]
+    files = {}
+    for name in ("resolved.json", "units.json"):
+        try:
+            files[name] = read_json(root / name, max_bytes=PLAN_MAX_BYTES, follow_links=False)
+        except FileNotFoundError:
+            raise RunnerError(f"{root} is not a socnav run directory (it has no {name})") from None
+        except (OSError, UntrustedInputError) as exc:
+            raise RunnerError(f"{root} is not a readable socnav run directory: {exc}") from None
+    resolved, plan = files["resolved.json"], files["units.json"]
+    if not isinstance(resolved, dict) or not isinstance(resolved.get("experiment"), dict) or not isinstance(plan, list):
+        raise RunnerError(f"{root} is not a socnav run directory (resolved.json or units.json has the wrong shape)")
+    try:
+        units = [Unit.from_json(item) for item in plan]
+    except (TypeError, KeyError, ValueError, AttributeError) as exc:
+        raise RunnerError(f"{root}/units.json lists an invalid unit ({type(exc).__name__}: {exc})") from None
+    bad = [unit.id for unit in units if not isinstance(unit.id, str) or not _plain_unit_id(unit.id)]
+    if bad:
+        raise RunnerError(f"{root}/units.json lists a unit outside the run directory: {bad[0]!r}")
+    return resolved["experiment"], units
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -349,6 +417,84 @@ class _LocalBackend:
             self.pool = None
 
 
+#: Seconds to wait for a Ray head's port to accept a connection, and for a whole `ray.init` to connect, before
+#: giving up on the address.
+RAY_CONNECT_TIMEOUT_S = 10.0
+RAY_INIT_TIMEOUT_S = 90.0
+
+
+def _check_ray_connects(address: str, timeout: float = RAY_INIT_TIMEOUT_S) -> None:
+    """Connect to `address` once in a child process that is killed after `timeout` seconds: ``ray.init`` retries an
+    address where no Ray answers for a long time, inside native code that neither a timeout nor Ctrl-C reaches, so
+    the sweep's own ``ray.init`` only runs once a connection is known to succeed. Ctrl-C stops the child too."""
+    import subprocess
+    import sys
+
+    code = ("import sys, ray; ray.init(address=sys.argv[1], log_to_driver=False, configure_logging=False); "
+            "ray.shutdown()")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, address], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise RunnerError(f"cannot connect to the Ray cluster at {address!r}: no Ray answered within {timeout:.0f} s "
+                          "(is it the head's address, and does the head run?)") from None
+    if done.returncode != 0:
+        lines = [line.strip() for line in done.stderr.splitlines() if line.strip()]
+        last = lines[-1][:300] if lines else f"exit code {done.returncode}"
+        raise RunnerError(f"cannot connect to the Ray cluster at {address!r}: {last}")
+
+
+def _probe_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Refuse a ``host:port`` (or ``ray://host:port``) Ray address at which nothing accepts a connection, within
+    `timeout` seconds: ``ray.init`` itself retries such an address without end, inside native code that Ctrl-C
+    cannot interrupt. ``auto`` and ``local`` are Ray's to resolve (they fail fast without a cluster)."""
+    if address in ("auto", "local"):
+        return
+    target = address.removeprefix("ray://")
+    host, _, port = target.rpartition(":")
+    host = host.strip("[]")  # [::1]:6379
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise RunnerError(f"--address {address!r} is not a Ray address; allowed: auto, HOST:PORT (the head's GCS "
+                          "port, e.g. 10.0.0.5:6379) or ray://HOST:PORT (Ray Client)")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout) as connection:
+            answers = _answers_http2(connection, timeout)
+    except OSError as exc:
+        reason = (f"no answer within {timeout:.0f} s" if isinstance(exc, TimeoutError)
+                  else (exc.strerror or type(exc).__name__).lower())
+        raise RunnerError(f"cannot connect to the Ray cluster at {address!r}: nothing accepts connections at "
+                          f"{host}:{port} ({reason}); start its head with `ray start --head --port {port}` or check "
+                          "the address") from None
+    if not answers:
+        raise RunnerError(f"cannot connect to the Ray cluster at {address!r}: {host}:{port} accepts connections but "
+                          f"does not answer as Ray's (gRPC) server within {timeout:.0f} s; is it the head's port "
+                          "(`ray start --head --port PORT`, or ray://HOST:10001 for Ray Client)?")
+
+
+# What an HTTP/2 client sends first (RFC 9113 section 3.4): the preface, then its SETTINGS frame (empty here).
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+
+
+def _answers_http2(connection: socket.socket, timeout: float) -> bool:
+    """Whether the server on `connection` speaks HTTP/2, as Ray's gRPC servers (GCS, Ray Client) do: its first
+    frame must be SETTINGS (type 4). Skipped (True) with TLS on (``RAY_USE_TLS``), where the handshake comes first.
+    """
+    if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):
+        return True
+    connection.settimeout(timeout)
+    try:
+        connection.sendall(_HTTP2_PREFACE)
+        header = b""
+        deadline = time.monotonic() + timeout
+        while len(header) < 9 and time.monotonic() < deadline:
+            chunk = connection.recv(9 - len(header))
+            if not chunk:
+                break
+            header += chunk
+    except OSError:
+        return False
+    return len(header) == 9 and header[3] == 4
+
+
 class _RayBackend:
     """Units as Ray tasks (1 CPU each, retried on worker/node failure); the run directory must be on a filesystem
     every Ray node sees (or the cluster is this machine)."""
@@ -364,6 +510,8 @@ class _RayBackend:
             if address is None:  # a Ray of our own on this machine, quiet
                 ray.init(log_to_driver=False, configure_logging=False, include_dashboard=False)
             else:  # an existing cluster ("auto", "host:6379") or a Ray Client address ("ray://host:10001")
+                _probe_ray_address(address)
+                _check_ray_connects(address)
                 try:
                     ray.init(address=address, log_to_driver=False)
                 except (ConnectionError, RuntimeError, ValueError) as exc:
@@ -453,11 +601,18 @@ def run_experiment(
     """
     root = Path(root).resolve()
     reporter = reporter or Reporter()
-    root.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file among its parents, no permission: one line, before any work
+        raise RunnerError(f"cannot create the run directory {root}: {exc.strerror or exc}") from None
+    if (root / ".lock").is_symlink():  # file_lock would refuse it too, as an OSError
+        raise RunnerError(f"{root / '.lock'} is a symbolic link; socnav never follows a link inside a run directory "
+                          "(remove it)")
     with _file_lock(root / ".lock", blocking=False) as locked:
         if not locked:
             raise RunnerError(f"another socnav run is working in {root} (its .lock is held)")
         remove_stale_temporaries(root, recursive=False)  # the units' own are removed under their unit locks
+        real_directory(root, root / ".locks")  # the units' locks: a planted link there is replaced, not followed
         units = prepare_run_dir(root, experiment, source)
         return _sweep(units, root, backend, workers, address, retries, reporter)
 

@@ -84,10 +84,27 @@ def _check_settings(study: Any, settings: dict[str, Any]) -> None:
             study.set_user_attr(key, value)
 
 
-def _ensure_sqlite_dir(storage: str) -> None:
-    prefix = "sqlite:///"
-    if storage.startswith(prefix) and storage != prefix + ":memory:":
-        Path(storage[len(prefix):]).parent.mkdir(parents=True, exist_ok=True)
+def _check_storage(storage: str) -> None:
+    """Refuse a storage that is not a database URL before Optuna gets it (SQLAlchemy's parse error is a traceback),
+    and create the directory of a SQLite file.
+
+    :raises ValueError: not a URL, or a SQLite file whose directory cannot be created (one line, with an example).
+    """
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        url = make_url(storage)
+    except ArgumentError:
+        raise ValueError(f"storage {storage!r} is not a database URL; e.g. {DEFAULT_STORAGE} (a SQLite file) or any "
+                         "Optuna RDB URL (postgresql://user@host/db, mysql://...)") from None
+    if url.get_backend_name() == "sqlite" and url.database not in (None, "", ":memory:"):
+        directory = Path(url.database).parent
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"storage {storage!r}: cannot create the directory {directory} ({exc.strerror or exc})") \
+                from None
 
 
 @dataclass
@@ -140,6 +157,11 @@ def tune(
     resolve_config(algo)  # unknown algo: fail before creating a study
     study_name = study_name or f"{algo}_{env_config.scenario}"
     out_dir = Path(out_dir) if out_dir is not None else Path("runs") / "tune" / study_name
+    _check_storage(storage)
+    try:  # before the first trial: a place that cannot hold the trials' runs is one line, not a failed trial
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"out_dir {out_dir}: cannot create it ({exc.strerror or exc})") from None
     eval_every = eval_every or max(1, timesteps // 5)
     settings = {"algo": algo, "env_config": env_config.model_dump(mode="json"), "timesteps": timesteps,
                 "metric": metric, "n_envs": n_envs, "eval_every": eval_every, "eval_episodes": eval_episodes,
@@ -155,11 +177,16 @@ def _open_study(optuna: Any, study_name: str, storage: str, metric: str, n_start
                 settings: dict[str, Any]) -> Any:
     """The study `study_name` in `storage`, created or continued (only with the `settings` it was created with),
     with median pruning and a sampler whose seed moves on with the trials already in it."""
-    _ensure_sqlite_dir(storage)
-    study = optuna.create_study(
-        study_name=study_name, storage=storage, load_if_exists=True, direction=METRICS[metric],
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0),
-    )
+    from sqlalchemy.exc import SQLAlchemyError
+
+    try:
+        study = optuna.create_study(
+            study_name=study_name, storage=storage, load_if_exists=True, direction=METRICS[metric],
+            pruner=optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0),
+        )
+    except (SQLAlchemyError, ModuleNotFoundError) as exc:  # unreachable server, missing driver, unwritable file
+        first = " ".join(str(exc).split())[:200]
+        raise RuntimeError(f"cannot open the Optuna storage {storage!r}: {type(exc).__name__}: {first}") from None
     _check_settings(study, settings)
     # A sampler seeded by `seed` alone would replay the same parameters each time the study is continued (trial
     # n + k = trial k): the seed moves on with the trials already in the study, so new trials explore and a
@@ -189,9 +216,10 @@ class _Objective:
         params = sample_params(trial, self.n_envs)
         run_dir = self.out_dir / f"trial_{trial.number}"
         try:
+            # force: a trial of this number left by an earlier study (a deleted storage) is moved aside, not mixed in
             result = train(self.env_config, self.algo, self.seed, self.timesteps, run_dir, n_envs=self.n_envs,
                            overrides=params, eval_every=self.eval_every, eval_episodes=self.eval_episodes,
-                           progress=self._validation_reporter(trial, run_dir), tensorboard=False)
+                           progress=self._validation_reporter(trial, run_dir), tensorboard=False, force=True)
         except TrainingInterrupted as exc:
             trial.set_user_attr("error", str(exc))
             return float("nan")  # Optuna records the trial as failed and goes on

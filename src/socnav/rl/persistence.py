@@ -23,6 +23,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import struct
 import zipfile
 from collections import deque
 from importlib import resources
@@ -30,7 +31,9 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import torch as th
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator
+from pydantic import (
+    BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator, model_validator,
+)
 
 from socnav.rl.policy import ODVActorCriticPolicy
 from socnav.rl.presets import AlgoConfig, AlgoName, policy_kwargs_for
@@ -50,6 +53,7 @@ MAX_FILE_BYTES = 512 << 20
 MAX_HEADER_BYTES = 1 << 20
 MAX_TENSOR_BYTES = 256 << 20
 MAX_MEMBERS = 16
+MAX_CENTRAL_DIRECTORY_BYTES = 64 << 10  # MAX_MEMBERS entries with names and extras far longer than socnav writes
 MAX_LAYER_SIZE = 4096
 MAX_LAYERS = 8
 MAX_TORCH_THREADS = 256  # make_model applies a checkpoint's torch_threads process-wide
@@ -58,7 +62,7 @@ _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # timestamps would make two saves of th
 
 __all__ = [
     "CheckpointError", "PolicyLoadError", "load_checkpoint", "load_policy", "pretrained_path", "read_checkpoint_header",
-    "save_checkpoint", "save_policy", "training_world", "validation_message",
+    "save_checkpoint", "save_policy", "training_world", "validation_message", "verify_checkpoint",
 ]
 
 
@@ -155,6 +159,18 @@ class CheckpointHeader(_Header):
     ep_success_buffer: list[StrictBool] = Field(max_length=10_000)
     run: dict[str, Any] = Field(default_factory=dict, description="the training run's own counters (opaque here)")
 
+    @model_validator(mode="after")
+    def _schedules_are_the_config(self) -> "CheckpointHeader":
+        """The stored schedules must be the constants of the header's own hyperparameters (what training uses)."""
+        config = self.algo_config
+        for name, schedule, value in (("learning_rate", self.learning_rate, config.learning_rate),
+                                      ("clip_range", self.clip_range, config.clip_range),
+                                      ("clip_range_vf", self.clip_range_vf, config.clip_range_vf)):
+            stored = None if schedule is None else schedule.value
+            if stored != value:
+                raise ValueError(f"the {name} schedule ({stored}) is not the algo_config's {name} ({value})")
+        return self
+
 
 def validation_message(error: ValidationError) -> str:
     """pydantic's errors as one line naming each field and the value it got (as `ConfigError` names them)."""
@@ -170,14 +186,52 @@ def validation_message(error: ValidationError) -> str:
 # Bounded archive reading
 # ---------------------------------------------------------------------------------------------------------------
 
+_END_OF_CENTRAL_DIRECTORY = b"PK\x05\x06"
+_ZIP64_LOCATOR = b"PK\x06\x07"
+_EOCD_SIZE = 22
+
+
+def _check_central_directory(path: Path, error: type[Exception], what: str) -> None:
+    """Read the zip's end-of-central-directory record the way `zipfile` finds it (at the very end, else the last one
+    within the final 64 KiB) and refuse an archive declaring more than `MAX_MEMBERS` entries, a central directory
+    larger than `MAX_CENTRAL_DIRECTORY_BYTES`, or the zip64 extensions (socnav never writes them): `zipfile` builds
+    an object per entry of the whole central directory as soon as it opens an archive, before any check of ours."""
+    with open(path, "rb") as stream:
+        size = stream.seek(0, 2)
+        start = max(0, size - (1 << 16) - _EOCD_SIZE)
+        stream.seek(start)
+        tail = stream.read()
+    if tail[-_EOCD_SIZE:-_EOCD_SIZE + 4] == _END_OF_CENTRAL_DIRECTORY and tail[-2:] == b"\0\0":
+        offset = len(tail) - _EOCD_SIZE  # no archive comment: zipfile's first guess
+    else:
+        offset = tail.rfind(_END_OF_CENTRAL_DIRECTORY)
+    if offset < 0 or len(tail) - offset < _EOCD_SIZE:
+        raise error(f"{path} is not a readable socnav {what} (corrupted or not a zip archive: no end of central "
+                    "directory)")
+    disk, cd_disk, entries_here, entries, cd_size, cd_offset = struct.unpack_from("<HHHHII", tail, offset + 4)
+    zip64 = offset >= 20 and tail[offset - 20:offset - 16] == _ZIP64_LOCATOR
+    if zip64 or 0xFFFF in (entries_here, entries) or 0xFFFFFFFF in (cd_size, cd_offset):
+        raise error(f"{path} uses the zip64 format; socnav {what} files never do")
+    if disk or cd_disk or entries_here != entries:
+        raise error(f"{path} is a multi-disk zip archive; socnav {what} files never are")
+    if entries > MAX_MEMBERS:
+        raise error(f"{path} holds {entries} entries; a {what} file has at most {MAX_MEMBERS}")
+    if cd_size > MAX_CENTRAL_DIRECTORY_BYTES:
+        raise error(f"{path}: its central directory declares {cd_size} bytes, over the limit of "
+                    f"{MAX_CENTRAL_DIRECTORY_BYTES} for {MAX_MEMBERS} entries")
+
+
 def _read_members(path: Path, limits: dict[str, int], error: type[Exception], what: str) -> dict[str, bytes]:
     """The named members of the zip at `path`, refusing encryption, unknown compression and anything over its cap."""
+    if path.is_dir():
+        raise error(f"{path} is a directory, not a {what} file")
     if not path.is_file():
         raise error(f"no {what} file at {path}")
     if path.stat().st_size > MAX_FILE_BYTES:
         raise error(f"{path} is {path.stat().st_size} bytes, more than a {what} file can be ({MAX_FILE_BYTES})")
     contents: dict[str, bytes] = {}
     try:
+        _check_central_directory(path, error, what)
         with zipfile.ZipFile(path) as archive:
             infos = archive.infolist()
             if len(infos) > MAX_MEMBERS:
@@ -210,12 +264,13 @@ def _read_members(path: Path, limits: dict[str, int], error: type[Exception], wh
 
 
 def _parse_json(data: bytes, path: Path, name: str, error: type[Exception]) -> Any:
+    """A header member as JSON, bounded in nesting (`socnav.io.parse_json`); `error` with one line otherwise."""
+    from socnav.io import UntrustedInputError, parse_json
+
     try:
-        return json.loads(data)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: {name} is not valid JSON ({str(exc).splitlines()[0]})") from None
-    except RecursionError:
-        raise error(f"{path}: {name} is nested too deeply to be a socnav header") from None
+        return parse_json(data, f"{path}: {name}")
+    except UntrustedInputError as exc:
+        raise error(str(exc)) from None
 
 
 def _write_archive(path: Path, members: dict[str, bytes]) -> Path:
@@ -244,14 +299,33 @@ def _load_tensors(data: bytes, path: Path, name: str, error: type[Exception]) ->
         raise error(f"{path}: {name} is not a tensors-only state dict ({type(exc).__name__}: {first[:200]})") from None
 
 
-def _expected_shapes(config: AlgoConfig, max_humans: int) -> dict[str, tuple[int, ...]]:
-    """Shapes of the state dict of the network `config` describes, computed on the meta device (nothing allocated)."""
+#: What the network of a header has: per state-dict entry, its shape and dtype.
+Expected = dict[str, tuple[tuple[int, ...], th.dtype]]
+
+
+def _expected_shapes(config: AlgoConfig, max_humans: int) -> Expected:
+    """Shapes and dtypes of the state dict of the network `config` describes, computed on the meta device (nothing
+    allocated)."""
     from socnav.envs.spaces import action_space, observation_space
 
     with th.device("meta"):
         policy = ODVActorCriticPolicy(observation_space(max_humans), action_space(), lambda _: 0.0,
                                       **policy_kwargs_for(config))
-    return {key: tuple(value.shape) for key, value in policy.state_dict().items()}
+    return {key: (tuple(value.shape), value.dtype) for key, value in policy.state_dict().items()}
+
+
+def _tensor_kind_problem(tensor: th.Tensor) -> str | None:
+    """Why `tensor` is not a plain dense CPU tensor holding its values, None if it is one: sparse, quantized or
+    nested layouts, and meta tensors (no values at all), break the checks and the network they would be loaded in."""
+    if tensor.is_meta:
+        return "a meta tensor (it holds no values)"
+    if tensor.layout != th.strided:
+        return f"a {str(tensor.layout).removeprefix('torch.')} tensor, not a dense one"
+    if tensor.is_quantized:
+        return "a quantized tensor"
+    if tensor.device.type != "cpu":
+        return f"a tensor on {tensor.device.type}, not on the cpu"
+    return None
 
 
 def _finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
@@ -267,16 +341,22 @@ def _finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
     return bool(th.isfinite(tensor).all())
 
 
-def _check_state_dict(state: Any, expected: dict[str, tuple[int, ...]], path: Path, name: str,
+def _check_state_dict(state: Any, expected: Expected, path: Path, name: str,
                       error: type[Exception]) -> dict[str, th.Tensor]:
-    """`state` must be exactly the expected tensors (names and shapes) and finite."""
+    """`state` must be exactly the expected tensors (names, shapes and dtypes), dense, on the cpu and finite."""
     if not isinstance(state, dict) or not all(isinstance(v, th.Tensor) for v in state.values()):
         raise error(f"{path}: {name} does not hold a state dict of tensors")
     missing = sorted(set(expected) - set(state))
     extra = sorted(set(state) - set(expected))
     if missing or extra:
         raise error(f"{path}: weights do not fit the recorded network (missing {missing[:3]}, unexpected {extra[:3]})")
-    for key, shape in expected.items():
+    for key, (shape, dtype) in expected.items():
+        problem = _tensor_kind_problem(state[key])
+        if problem is not None:
+            raise error(f"{path}: {name} holds {problem} in {key}")
+        if state[key].dtype != dtype:
+            raise error(f"{path}: {key} is {str(state[key].dtype).removeprefix('torch.')}, the network's is "
+                        f"{str(dtype).removeprefix('torch.')}")
         if tuple(state[key].shape) != shape:
             raise error(f"{path}: weights do not fit the recorded network ({key} has shape "
                         f"{tuple(state[key].shape)}, the header's network needs {shape})")
@@ -434,18 +514,82 @@ def _validate_checkpoint_header(data: Any, path: Path) -> CheckpointHeader:
         raise CheckpointError(f"{path}: invalid {CHECKPOINT_HEADER}: {validation_message(exc)}") from None
 
 
-def load_checkpoint(path: str | Path, env: Any, tensorboard_log: str | None = None,
-                    verbose: int = 0) -> tuple[Any, CheckpointHeader]:
-    """Rebuild the ODVPPO of a checkpoint on `env`: network, optimizer state, counters, schedules and episode
-    statistics as they were saved (saving the result again gives the same bytes). The caller reseeds it.
+def _same_setting(saved: Any, fresh: Any) -> bool:
+    """Whether an optimizer setting from a checkpoint is the fresh optimizer's: equal and of the same type (True is
+    not 1, a tuple's items compared one by one)."""
+    if isinstance(fresh, (tuple, list)):
+        return isinstance(saved, (tuple, list)) and len(saved) == len(fresh) and all(
+            _same_setting(a, b) for a, b in zip(saved, fresh))
+    return type(saved) is type(fresh) and saved == fresh
 
-    :raises CheckpointError: missing, foreign, crafted or invalid file; nothing in it is unpickled.
+
+def _check_optimizer_state(saved: dict[str, Any], optimizer: th.optim.Optimizer, path: Path) -> None:
+    """The optimizer state of a checkpoint must be what training with its header's hyperparameters produces, checked
+    before torch loads it: the settings of every parameter group (learning rate, betas, eps, weight_decay,
+    maximize, amsgrad, ...) equal to those of the optimizer the header builds -- a crafted ``maximize: true`` or a
+    huge ``weight_decay`` would silently wreck the resumed training -- and per parameter exactly the moment
+    tensors Adam keeps (dense, cpu, the parameter's dtype and shape, finite, second moments >= 0) with a scalar,
+    whole, non-negative ``step``.
+
+    :raises CheckpointError: naming the group or parameter and the setting.
+    """
+    fresh = optimizer.state_dict()
+    groups, state = saved["param_groups"], saved["state"]
+    if not isinstance(groups, list) or len(groups) != len(fresh["param_groups"]):
+        raise CheckpointError(f"{path}: the optimizer state has {len(groups) if isinstance(groups, list) else 'no'} "
+                              f"parameter group(s); the network's optimizer has {len(fresh['param_groups'])}")
+    for number, (group, expected) in enumerate(zip(groups, fresh["param_groups"])):
+        if not isinstance(group, dict):
+            raise CheckpointError(f"{path}: optimizer parameter group {number} is not a mapping")
+        unknown = sorted(str(key) for key in set(group) - set(expected))
+        if unknown:
+            raise CheckpointError(f"{path}: optimizer parameter group {number} has unknown settings {unknown[:3]}; "
+                                  f"allowed: {', '.join(sorted(expected))}")
+        for key, value in group.items():
+            if not _same_setting(value, expected[key]):
+                shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+                raise CheckpointError(f"{path}: optimizer setting {key} is {shown}; training with the checkpoint's "
+                                      f"hyperparameters uses {expected[key]!r}")
+    parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
+    amsgrad = any(group.get("amsgrad") for group in optimizer.param_groups)
+    slots = {"step", "exp_avg", "exp_avg_sq"} | ({"max_exp_avg_sq"} if amsgrad else set())
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: the optimizer state is not a mapping of parameters")
+    for index, slot in state.items():
+        if not (type(index) is int and 0 <= index < len(parameters)) or not isinstance(slot, dict):
+            raise CheckpointError(f"{path}: the optimizer state does not fit the network (entry {index!r})")
+        if set(slot) != slots or not all(isinstance(value, th.Tensor) for value in slot.values()):
+            raise CheckpointError(f"{path}: optimizer entry {index} must hold exactly the tensors "
+                                  f"{', '.join(sorted(slots))}; it holds {sorted(map(str, slot))[:5]}")
+        parameter = parameters[index]
+        for key, value in slot.items():
+            problem = _tensor_kind_problem(value)
+            if problem is None and key == "step":
+                if value.shape != () or not value.is_floating_point():
+                    problem = f"shape {tuple(value.shape)} and dtype {value.dtype}, not a float scalar"
+                elif not (math.isfinite(float(value)) and float(value) >= 0 and float(value).is_integer()):
+                    problem = f"{float(value)!r}, not a whole number of steps"
+            elif problem is None:
+                if value.shape != parameter.shape or value.dtype != parameter.dtype:
+                    problem = (f"shape {tuple(value.shape)} and dtype {value.dtype}; the parameter's are "
+                               f"{tuple(parameter.shape)} and {parameter.dtype}")
+                elif not bool(th.isfinite(value).all()):
+                    problem = "NaN or Inf values"
+                elif key != "exp_avg" and bool((value < 0).any()):
+                    problem = "negative values (a mean of squares)"
+            if problem is not None:
+                raise CheckpointError(f"{path}: optimizer entry {index} {key}: {problem}")
+
+
+def _validated_checkpoint(path: Path) -> tuple[CheckpointHeader, dict[str, th.Tensor], dict[str, Any]]:
+    """(header, policy weights, optimizer state) of the checkpoint at `path`, every part checked: the header, the
+    weights against the header's network, the optimizer state against the optimizer that network trains with.
+
+    :raises CheckpointError: one line naming what is wrong.
     """
     from socnav.config import ConfigError, load_config
-    from socnav.rl.presets import make_model
-    from stable_baselines3.common.utils import FloatSchedule
+    from socnav.envs.spaces import action_space, observation_space
 
-    path = Path(path)
     members = _read_members(path, {CHECKPOINT_HEADER: MAX_HEADER_BYTES, CHECKPOINT_STATE: MAX_TENSOR_BYTES},
                             CheckpointError, "checkpoint")
     header = _validate_checkpoint_header(_parse_json(members[CHECKPOINT_HEADER], path, CHECKPOINT_HEADER,
@@ -462,20 +606,40 @@ def load_checkpoint(path: str | Path, env: Any, tensorboard_log: str | None = No
     optimizer_state = payload["optimizer"]
     if not isinstance(optimizer_state, dict) or set(optimizer_state) != {"state", "param_groups"}:
         raise CheckpointError(f"{path}: {CHECKPOINT_STATE} holds no optimizer state")
-    for slot in optimizer_state["state"].values() if isinstance(optimizer_state["state"], dict) else [None]:
-        if not isinstance(slot, dict) or not all(isinstance(v, th.Tensor) and bool(th.isfinite(v).all())
-                                                 for v in slot.values()):
-            raise CheckpointError(f"{path}: the optimizer state holds non-tensor, NaN or Inf values")
+    # The optimizer the header's network trains with, as SB3 builds it (learning rate from the schedule at start);
+    # the network is small and bounded by the header checks.
+    learning_rate = header.algo_config.learning_rate
+    policy = ODVActorCriticPolicy(observation_space(env_config.max_humans), action_space(),
+                                  lambda _: learning_rate, **policy_kwargs_for(header.algo_config))
+    _check_optimizer_state(optimizer_state, policy.optimizer, path)
+    return header, weights, optimizer_state
 
+
+def verify_checkpoint(path: str | Path) -> CheckpointHeader:
+    """Everything `load_checkpoint` checks, without building a model: whether a training can resume from the
+    checkpoint at `path`. Returns its header.
+
+    :raises CheckpointError: one line naming what is wrong.
+    """
+    return _validated_checkpoint(Path(path))[0]
+
+
+def load_checkpoint(path: str | Path, env: Any, tensorboard_log: str | None = None,
+                    verbose: int = 0) -> tuple[Any, CheckpointHeader]:
+    """Rebuild the ODVPPO of a checkpoint on `env`: network, optimizer state, counters, schedules and episode
+    statistics as they were saved (saving the result again gives the same bytes). The caller reseeds it.
+
+    :raises CheckpointError: missing, foreign, crafted or invalid file; nothing in it is unpickled.
+    """
+    from socnav.rl.presets import make_model
+    from stable_baselines3.common.utils import FloatSchedule
+
+    path = Path(path)
+    header, weights, optimizer_state = _validated_checkpoint(path)
     model = make_model(header.algo, env, header.seed, overrides=header.algo_config.model_dump(),
                        tensorboard_log=tensorboard_log, verbose=verbose)
     model.policy.load_state_dict(weights, strict=True)  # names and shapes checked above
-    parameters = list(model.policy.parameters())
-    for index, slot in optimizer_state["state"].items():
-        fits = isinstance(index, int) and 0 <= index < len(parameters) and all(
-            value.shape == parameters[index].shape for key, value in slot.items() if key != "step")
-        if not fits:
-            raise CheckpointError(f"{path}: the optimizer state does not fit the network (entry {index!r})")
+    _check_optimizer_state(optimizer_state, model.policy.optimizer, path)  # the very optimizer it goes into
     try:
         model.policy.optimizer.load_state_dict(optimizer_state)
     except (ValueError, KeyError, TypeError, RuntimeError, IndexError) as exc:

@@ -35,14 +35,17 @@ from stable_baselines3.common.callbacks import BaseCallback
 from socnav.config import ConfigError, ConfigLike, load_config
 from socnav.envs.rollout import rollout_episodes, summarize
 from socnav.envs.vec_env import make_vec_env
-from socnav.io import file_lock, read_table, remove_stale_temporaries, write_table_atomic, write_text_atomic
+from socnav.io import (
+    UnsafePathError, UntrustedInputError, file_lock, find_links, read_json, read_table, remove_stale_temporaries,
+    write_table_atomic, write_text_atomic,
+)
 from socnav.rl.odv_ppo import ODVPPO
 from socnav.rl.persistence import (
     MAX_HEADER_BYTES, CheckpointError, CheckpointHeader, load_checkpoint, read_checkpoint_header, save_checkpoint, save_policy,
-    validation_message,
+    validation_message, verify_checkpoint,
 )
 from socnav.rl.policy import NonFiniteError
-from socnav.rl.presets import AlgoName, make_model, resolve_config
+from socnav.rl.presets import AlgoConfig, AlgoName, make_model, resolve_config
 
 TRAIN_SEED_BASE = 2**40
 VALIDATION_SEED_BASE = 2**41
@@ -54,8 +57,9 @@ EVAL_COLUMNS = ["timesteps", "wall_time_s", "episodes", "goal_pct", "collision_p
 
 CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.zip$")  # the only files of checkpoints/ a run writes or deletes
 
-__all__ = ["CheckpointError", "CheckpointState", "RunDirectoryBusy", "RunInfo", "TrainResult", "TrainingInterrupted",
-           "can_resume", "finished_result", "move_run_aside", "read_run_info", "resume", "train", "training_env_seed"]
+__all__ = ["CheckpointError", "CheckpointState", "RunDirectoryBusy", "RunDirectoryExists", "RunInfo", "TrainResult",
+           "TrainingInterrupted", "can_resume", "check_run_links", "finished_result", "move_run_aside", "read_run_info",
+           "resume", "resume_step", "train", "training_env_seed"]
 
 
 class TrainingInterrupted(RuntimeError):
@@ -64,6 +68,10 @@ class TrainingInterrupted(RuntimeError):
 
 class RunDirectoryBusy(RuntimeError):
     """Another training holds the run directory's lock."""
+
+
+class RunDirectoryExists(FileExistsError):
+    """`train` without `resume` or `force` was given a directory that already holds files (an earlier run?)."""
 
 
 @dataclass
@@ -121,12 +129,12 @@ def read_run_info(out_dir: str | Path) -> RunInfo:
     :raises ConfigError: missing or unreadable file, or a field of the wrong type or out of range (named).
     """
     path = Path(out_dir) / "run.json"
-    if not path.is_file():
+    if not path.is_file() and not path.is_symlink():
         raise ConfigError(f"no run.json in {out_dir} (not a socnav training run directory)")
     try:
-        data = json.loads(_read_small_file(path, ConfigError))
-    except (ValueError, RecursionError) as exc:
-        raise ConfigError(f"{path} is not readable JSON ({type(exc).__name__})") from None
+        data = _read_run_json(path)
+    except (OSError, UntrustedInputError) as exc:
+        raise ConfigError(str(exc)) from None
     try:
         info = RunInfo.model_validate(data)
         resolve_config(info.algo, info.overrides)
@@ -145,29 +153,31 @@ def finished_result(out_dir: str | Path) -> TrainResult | None:
     is there), None if it is still to finish or run.json is unreadable."""
     out_dir = Path(out_dir)
     try:
-        info = json.loads((out_dir / "run.json").read_text())
-    except (OSError, ValueError):
+        info = _read_run_json(out_dir / "run.json")
+    except (OSError, UntrustedInputError):
         return None
-    if info.get("status") != "complete" or not (out_dir / "model.zip").is_file():
+    if not isinstance(info, dict) or info.get("status") != "complete" or not (out_dir / "model.zip").is_file():
+        return None
+    if find_links(out_dir):  # not this run's own files: `train(resume=True)` refuses the directory, naming the link
         return None
     final_eval = info.get("final_eval")
     return TrainResult(out_dir / "model.zip", info.get("num_timesteps", 0), info.get("wall_time_s", 0.0),
                        final_eval if isinstance(final_eval, dict) else {})
 
 
-def _read_small_file(path: Path, error: type[Exception]) -> bytes:
-    """The bytes of a run-metadata file, refusing one far larger than socnav writes (a crafted file)."""
-    try:
-        if path.stat().st_size > MAX_HEADER_BYTES:
-            raise error(f"{path} is {path.stat().st_size} bytes, far larger than socnav writes it")
-        return path.read_bytes()
-    except OSError as exc:
-        raise error(f"{path} is unreadable ({exc})") from None
+def _read_run_json(path: Path) -> Any:
+    """A run-metadata file (run.json, state.json): bounded in size and depth, never read through a symbolic link.
+
+    :raises UntrustedInputError: a link, too large, too deep or not JSON; OSError: missing or unreadable.
+    """
+    return read_json(path, max_bytes=MAX_HEADER_BYTES, follow_links=False)
 
 
 def _read_state(path: Path) -> CheckpointState:
     try:
-        return CheckpointState.model_validate_json(_read_small_file(path, CheckpointError))
+        return CheckpointState.model_validate(_read_run_json(path))
+    except (OSError, UntrustedInputError) as exc:
+        raise CheckpointError(f"{exc}; delete {path.parent} to restart the run") from None
     except ValidationError as exc:
         raise CheckpointError(f"invalid {path}: {validation_message(exc)}; delete {path.parent} to restart "
                               "the run") from None
@@ -184,13 +194,36 @@ def _read_log(out_dir: Path, name: str) -> list[dict[str, Any]]:
         raise CheckpointError(f"{path} is unreadable ({type(exc).__name__}); the logs cannot be continued") from None
 
 
-def _log_rows(out_dir: Path, name: str) -> int:
-    return len(_read_log(out_dir, name))
+def _logs_mismatch(state: CheckpointState, curve: list[dict[str, Any]], evals: list[dict[str, Any]]) -> str | None:
+    """Why the logs cannot continue from the checkpoint `state` describes, None when they can: each log holds at
+    least the checkpoint's rows, the last of them logged at the checkpoint's step, and after them only rows of later
+    steps (what a run killed between writing its logs and its state.json logged past its last checkpoint: dropped
+    on resume, and redone)."""
+    for name, rows, count in (("curve.csv", curve, state.curve_rows), ("eval.csv", evals, state.eval_rows)):
+        if len(rows) < count:
+            return f"{name} holds {len(rows)} rows, fewer than the {count} the checkpoint counts"
+        steps = [_step(row) for row in rows]
+        if count and steps[count - 1] != state.num_timesteps:
+            return (f"row {count} of {name} is at step {steps[count - 1]}, not at the checkpoint's step "
+                    f"{state.num_timesteps}")
+        if any(step is None or step <= state.num_timesteps for step in steps[count:]):
+            return f"{name} holds rows after the checkpoint's {count} that are not of later steps"
+    return None
+
+
+def _step(row: dict[str, Any]) -> int | None:
+    """The `timesteps` of a log row as an int, None if it is not a whole number."""
+    value = row.get("timesteps")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return int(number) if number.is_integer() else None
 
 
 def _recover_state(out_dir: Path) -> CheckpointState | None:
-    """With state.json gone, the newest checkpoint whose log rows are all in the logs (its own header records
-    them); None if checkpoints/ holds no checkpoint. Never deletes anything.
+    """With state.json gone, the newest checkpoint that the logs continue (its own header records its counters);
+    None if checkpoints/ holds no checkpoint. Never deletes anything.
 
     :raises CheckpointError: checkpoints are there but none can be continued consistently.
     """
@@ -199,7 +232,7 @@ def _recover_state(out_dir: Path) -> CheckpointState | None:
                     if (m := CHECKPOINT_NAME.match(path.name))), reverse=True)
     if not named:
         return None
-    curve_rows, eval_rows = _log_rows(out_dir, "curve.csv"), _log_rows(out_dir, "eval.csv")
+    curve, evals = _read_log(out_dir, "curve.csv"), _read_log(out_dir, "eval.csv")
     reasons = []
     for _, path in named:
         try:
@@ -208,23 +241,38 @@ def _recover_state(out_dir: Path) -> CheckpointState | None:
         except (CheckpointError, ValidationError) as exc:
             reasons.append(f"{path.name}: {' '.join(str(exc).split())[:200]}")
             continue
-        if counters.curve_rows <= curve_rows and counters.eval_rows <= eval_rows:
-            return CheckpointState(num_timesteps=header.num_timesteps, checkpoint=path.name,
-                                   **counters.model_dump())
-        reasons.append(f"{path.name}: its log rows are not all in curve.csv / eval.csv")
+        state = CheckpointState(num_timesteps=header.num_timesteps, checkpoint=path.name, **counters.model_dump())
+        problem = _logs_mismatch(state, curve, evals)
+        if problem is None:
+            return state
+        reasons.append(f"{path.name}: {problem}")
     raise CheckpointError(
         f"{directory / 'state.json'} is missing and no checkpoint there can be continued consistently "
         f"({'; '.join(reasons)}); move {directory} aside to restart the run from step 0"
     )
 
 
-def _resume_point(out_dir: Path) -> tuple[CheckpointState, Path, CheckpointHeader] | None:
-    """(state, checkpoint file, its header) to continue the run in `out_dir` from, None if it has no checkpoint.
+@dataclass
+class _ResumePoint:
+    """Where a run continues: its state, the checkpoint file it names with that file's header, and the logs."""
 
-    :raises CheckpointError: the state is invalid, names a missing or unreadable checkpoint, or one of another step.
+    state: CheckpointState
+    checkpoint: Path
+    header: CheckpointHeader
+    curve: list[dict[str, Any]]
+    evals: list[dict[str, Any]]
+
+
+def _resume_point(out_dir: Path) -> _ResumePoint | None:
+    """Where to continue the run in `out_dir` from, None if it has no checkpoint. state.json, the checkpoint it
+    names and the logs are cross-checked: the same step and counters in state.json and in the checkpoint's own
+    header, and logs that continue from it (`_logs_mismatch`).
+
+    :raises CheckpointError: the state is invalid, names a missing or unreadable checkpoint, or one whose counters
+        or logs disagree with it (nothing is truncated or deleted: the message says what to do).
     """
     state_file = out_dir / "checkpoints" / "state.json"
-    state = _read_state(state_file) if state_file.is_file() else _recover_state(out_dir)
+    state = _read_state(state_file) if state_file.exists() or state_file.is_symlink() else _recover_state(out_dir)
     if state is None:
         return None
     checkpoint = out_dir / "checkpoints" / state.checkpoint
@@ -235,14 +283,59 @@ def _resume_point(out_dir: Path) -> tuple[CheckpointState, Path, CheckpointHeade
     if header.num_timesteps != state.num_timesteps:
         raise CheckpointError(f"{checkpoint} (step {header.num_timesteps}) does not match {state_file} "
                               f"(step {state.num_timesteps}); delete both to restart")
-    return state, checkpoint, header
+    try:
+        own = RunCounters.model_validate(header.run)
+    except ValidationError as exc:
+        raise CheckpointError(f"{checkpoint}: invalid run counters: {validation_message(exc)}") from None
+    recorded = RunCounters.model_validate(state.model_dump(include=set(RunCounters.model_fields)))
+    if own != recorded:
+        differ = [key for key in RunCounters.model_fields if getattr(own, key) != getattr(recorded, key)]
+        raise CheckpointError(
+            f"{state_file} does not match {checkpoint}: " + ", ".join(
+                f"{key} {getattr(recorded, key)} vs the checkpoint's {getattr(own, key)}" for key in differ)
+            + f"; move {checkpoint.parent} aside to restart the run")
+    curve, evals = _read_log(out_dir, "curve.csv"), _read_log(out_dir, "eval.csv")
+    problem = _logs_mismatch(state, curve, evals)
+    if problem is not None:
+        raise CheckpointError(f"the logs of {out_dir} do not continue {checkpoint} ({problem}); they cannot be "
+                              f"continued consistently: move {out_dir} aside to restart the run")
+    return _ResumePoint(state, checkpoint, header, curve, evals)
+
+
+def resume_step(out_dir: str | Path) -> int:
+    """The step `train(..., resume=True)` would continue the run in `out_dir` from (0: it has no checkpoint yet).
+
+    :raises CheckpointError: its checkpoint cannot be continued (as `train` would raise).
+    """
+    point = _resume_point(Path(out_dir))
+    return 0 if point is None else point.state.num_timesteps
+
+
+def check_run_links(out_dir: str | Path) -> None:
+    """Refuse a run directory holding a symbolic link anywhere (checkpoints/, tb/, a log, a lock): a training never
+    reads, writes or deletes through one.
+
+    :raises UnsafePathError: naming the first link.
+    """
+    links = find_links(out_dir)
+    if links:
+        more = f" (and {len(links) - 1} more)" if len(links) > 1 else ""
+        raise UnsafePathError(f"{links[0]} is a symbolic link{more}; socnav never follows a link inside a run "
+                              "directory: remove it, or move the run aside (--force, train(force=True))")
 
 
 def can_resume(out_dir: str | Path) -> bool:
-    """Whether `train(..., resume=True)` can continue the run in `out_dir` (or start it: no checkpoint there)."""
+    """Whether `train(..., resume=True)` can continue the run in `out_dir` (or start it: no checkpoint there): no
+    symbolic link inside, a readable run.json if there is one, and a consistent checkpoint if there is one."""
+    out_dir = Path(out_dir)
     try:
-        _resume_point(Path(out_dir))
-    except CheckpointError:
+        check_run_links(out_dir)
+        if (out_dir / "run.json").exists():
+            read_run_info(out_dir)
+        point = _resume_point(out_dir)
+        if point is not None:  # the tensors too: a checkpoint that would fail on load is redone, not kept failing
+            verify_checkpoint(point.checkpoint)
+    except (CheckpointError, ConfigError, OSError):
         return False
     return True
 
@@ -406,7 +499,7 @@ class _Run:
         point = _resume_point(self.out_dir)
         if point is None:
             return None
-        state, self.checkpoint, header = point
+        state, self.checkpoint, header = point.state, point.checkpoint, point.header
         asked = {"algo": self.algo, "algo_config": self.algo_config, "seed": self.seed, "env_config": self.env_config}
         try:
             found = {"algo": header.algo, "algo_config": header.algo_config, "seed": header.seed,
@@ -417,12 +510,9 @@ class _Run:
         if differ:  # checked before anything is built from the header
             raise CheckpointError(f"{self.checkpoint} belongs to another run (its {', '.join(differ)} differ from "
                                   "run.json); delete checkpoints/ or choose another directory")
-        for name, rows in (("curve.csv", state.curve_rows), ("eval.csv", state.eval_rows)):
-            if _log_rows(self.out_dir, name) < rows:
-                raise CheckpointError(f"{self.out_dir / name} holds fewer rows than {self.checkpoint_state} names "
-                                      f"({rows}); the logs cannot be continued consistently")
-        self.curve = _read_log(self.out_dir, "curve.csv")[: state.curve_rows]
-        self.evals = _read_log(self.out_dir, "eval.csv")[: state.eval_rows]
+        # _resume_point checked that rows past the checkpoint's are of later steps: dropped here, they are redone
+        self.curve = point.curve[: state.curve_rows]
+        self.evals = point.evals[: state.eval_rows]
         self.elapsed_before = state.wall_time_s
         self.next_eval = state.next_eval
         return state
@@ -446,6 +536,7 @@ def train(
     progress: bool | Callable[[int, float | None], None] = False,
     tensorboard: bool = True,
     verbose: int = 0,
+    force: bool = False,
 ) -> TrainResult:
     """Train preset `algo` for `timesteps` environment steps on the env `config`; write everything to `out_dir`.
 
@@ -453,14 +544,20 @@ def train(
     :param algo: one of ``socnav.rl.ALGOS``; `overrides` replaces any of its hyperparameters (AlgoConfig fields).
     :param eval_every: timesteps between evaluations + checkpoints (default: a tenth of the run, >= one rollout).
     :param eval_episodes: validation episodes per periodic evaluation (seeds disjoint from training and test).
-    :param resume: continue from ``out_dir/checkpoints`` if a checkpoint is there (else start fresh); the run
-        reaches the same total `timesteps`, and its curve/eval logs continue from the checkpoint. Without it an
-        earlier run's checkpoints in `out_dir` are discarded. Checkpoints are read safely (nothing unpickled).
+    :param resume: continue the run in `out_dir` from its checkpoint if there is one (else start it); the run
+        reaches the same total `timesteps`, and its curve/eval logs continue from the checkpoint. The run there
+        must be this one (same env config, algorithm, hyperparameters and seed). Checkpoints are read safely
+        (nothing unpickled).
+    :param force: without `resume`, an `out_dir` that already holds files is moved aside to
+        ``<out_dir>.old-<timestamp>`` (never deleted) and the run starts afresh; without `force` it is refused.
     :param progress: True for a rich progress bar with the live success rate, or a callable
         ``progress(timesteps_done, success_rate)``.
     :raises TrainingInterrupted: a NaN/Inf in a loss or an output; the message names the step and the tensor.
     :raises RunDirectoryBusy: another training holds `out_dir` (its ``.lock``).
-    :raises CheckpointError: `resume` found a checkpoint it cannot continue from (the message says why).
+    :raises RunDirectoryExists: `out_dir` holds files and neither `resume` nor `force` is given.
+    :raises CheckpointError: `resume` found another run, or a checkpoint it cannot continue from (the message says
+        why).
+    :raises UnsafePathError: `out_dir` holds a symbolic link (never followed; the message names it).
     """
     if timesteps < 1:
         raise ValueError(f"timesteps must be >= 1, got {timesteps}")
@@ -472,19 +569,76 @@ def train(
     algo_config = resolve_config(algo, overrides)  # validates before any work starts
     rollout_size = algo_config.n_steps * n_envs
     eval_every = max(int(eval_every or timesteps // 10), rollout_size)
+    if resume and force:
+        raise ValueError("resume=True continues the run in out_dir and force=True moves it aside: pass one of them")
     if out_dir.exists() and not out_dir.is_dir():
         raise NotADirectoryError(f"{out_dir} is a file, not a run directory")
+    if not resume and _holds_files(out_dir):
+        if not force:
+            raise RunDirectoryExists(
+                f"{out_dir} already holds files (an earlier run?); continue it with resume=True (socnav train "
+                f"--resume {out_dir}), or pass force=True (--force) to move it aside to {out_dir}.old-<timestamp> "
+                "and start afresh")
+        move_run_aside(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if (out_dir / ".lock").is_symlink():
+        check_run_links(out_dir)  # file_lock refuses it too; this names the way out
     with file_lock(out_dir / ".lock", blocking=False) as locked:
         if not locked:
             raise RunDirectoryBusy(f"another socnav train is working in {out_dir} (its .lock is held)")
+        # Nothing is read, written or deleted through a link planted in the run (checkpoints/, tb/, a log).
+        check_run_links(out_dir)
         remove_stale_temporaries(out_dir)  # a killed run's half-written files; no other writer while we hold the lock
         info = {"env_config": env_config.model_dump(mode="json"), "algo": algo,
                 "algo_config": algo_config.model_dump(mode="json"), "overrides": overrides or {}, "seed": seed,
                 "timesteps": timesteps, "n_envs": n_envs, "eval_every": eval_every, "eval_episodes": eval_episodes}
         run = _Run(out_dir, env_config, algo, algo_config, seed, timesteps, eval_every, eval_episodes)
-        state = run.restore() if resume else None
+        state = run.restore() if resume else None  # a checkpoint of another run is refused there
+        if resume and state is None:  # no checkpoint yet: run.json says whose run the directory holds
+            _check_same_run(out_dir, info)
         return _train_locked(run, info, state, progress, tensorboard, verbose)
+
+
+def _holds_files(out_dir: Path) -> bool:
+    """Whether `out_dir` holds anything besides a lock file (a lock alone is no run: nothing to move aside)."""
+    return out_dir.is_dir() and any(entry.name != ".lock" for entry in out_dir.iterdir())
+
+
+#: What makes a run the same run: a directory resumed with other values holds another run.
+_RUN_IDENTITY = ("env_config", "algo", "algo_config", "seed")
+
+
+def _same_value(key: str, recorded: Any, asked: Any) -> bool:
+    """Whether run.json's `key` is the value asked (configs compared once validated, as a checkpoint's are)."""
+    try:
+        if key == "env_config":
+            return load_config(recorded) == load_config(asked)
+        if key == "algo_config":
+            return AlgoConfig.model_validate(recorded) == AlgoConfig.model_validate(asked)
+    except (ConfigError, ValidationError, TypeError):
+        return False
+    return type(recorded) is type(asked) and recorded == asked
+
+
+def _check_same_run(out_dir: Path, info: dict[str, Any]) -> None:
+    """With `resume`, the run.json in `out_dir` (if any) must record the run asked for, or `train` would continue or
+    overwrite another run.
+
+    :raises CheckpointError: run.json is unreadable or records another run (the differing fields are named).
+    """
+    if not (out_dir / "run.json").exists():
+        return
+    try:
+        recorded = _read_run_json(out_dir / "run.json")
+    except (OSError, UntrustedInputError) as exc:
+        raise CheckpointError(f"{exc}; move {out_dir} aside to start afresh") from None
+    if not isinstance(recorded, dict):
+        raise CheckpointError(f"{out_dir / 'run.json'} is not a run's record; move {out_dir} aside to start afresh")
+    differ = [key for key in _RUN_IDENTITY if not _same_value(key, recorded.get(key), info[key])]
+    if differ:
+        raise CheckpointError(f"{out_dir} holds another run (its run.json's {', '.join(differ)} differ from the "
+                              "ones asked); resume it with its own settings (socnav train --resume), or move it "
+                              "aside with force=True (--force)")
 
 
 def resume(

@@ -64,6 +64,24 @@ def _write_mp4(tmp: Path, frames: list[np.ndarray], fps: float) -> None:
             writer.append_data(frame)
 
 
+def check_animation_path(path: str | Path) -> Path:
+    """`path` as a Path if `save_animation` can write it: a .gif, or a .mp4 with imageio-ffmpeg installed. Call it
+    before simulating an episode, so a missing package is reported before the work, not after.
+
+    :raises ValueError: another extension. :raises ImportError: .mp4 without imageio-ffmpeg (with the install hint).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in ALLOWED_EXTENSIONS:
+        raise ValueError(f"unsupported animation extension {path.suffix!r} for {path}; use one of {ALLOWED_EXTENSIONS}")
+    if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ImportError(
+            f"writing .mp4 needs the optional package imageio-ffmpeg: {install_hint('video')} "
+            "(or pip install imageio-ffmpeg), or save a .gif instead"
+        )
+    return path
+
+
 def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: float = 8) -> Path:
     """Write `frames` (uint8 RGB arrays of one shape) to a `.gif` or `.mp4` file and return its path.
 
@@ -72,18 +90,11 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: float = 
     file at `path`. Parent directories are created. MP4 needs the optional `imageio-ffmpeg`
     package (`pip install socnav[video]`).
     """
-    path = Path(path)
+    path = check_animation_path(path)
     suffix = path.suffix.lower()
-    if suffix not in ALLOWED_EXTENSIONS:
-        raise ValueError(f"unsupported animation extension {path.suffix!r} for {path}; use one of {ALLOWED_EXTENSIONS}")
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")
     arrays = _check_frames(frames)
-    if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
-        raise ImportError(
-            f"writing .mp4 needs the optional package imageio-ffmpeg: {install_hint('video')} "
-            "(or pip install imageio-ffmpeg), or save a .gif instead"
-        )
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp{suffix}")

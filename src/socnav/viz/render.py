@@ -33,6 +33,9 @@ TRAIL_BANDS = 6  # number of alpha steps along a trail
 HEADING_LENGTH = 1.4  # heading line length, in robot radii
 PANEL_FRACTION = 0.3  # share of the image width given to the side panel when present
 PANEL_MIN_ROWS = 8  # bars keep the same height for up to this many keys
+#: Where the outcome banner goes (axes fraction): under the two-line title, or over the one-line caption, whichever
+#: band is farther from the robot, so that the end of the episode stays visible.
+OUTCOME_TOP, OUTCOME_BOTTOM = 0.89, 0.07
 
 
 @dataclass
@@ -178,8 +181,8 @@ class SceneRenderer:
                                     bbox=box)
         self.title_text = ax.text(0.5, 0.98, "", transform=ax.transAxes, ha="center", va="top", fontsize=9,
                                   fontweight="bold", bbox=box)
-        self.outcome_text = ax.text(0.5, 0.5, "", transform=ax.transAxes, ha="center", va="center", fontsize=30,
-                                    fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
+        self.outcome_text = ax.text(0.5, OUTCOME_BOTTOM, "", transform=ax.transAxes, ha="center", va="bottom",
+                                    fontsize=30, fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
             self.trail_lines, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
@@ -281,6 +284,22 @@ class SceneRenderer:
         self.time_text.set_visible(not f.title)  # the title takes the top; a caption can carry the time
         self.outcome_text.set_text(f.outcome)
         self.outcome_text.set_visible(bool(f.outcome))
+        if f.outcome:
+            self._place_outcome(pos[0] if robot_on else None)
+
+    def _place_outcome(self, robot: np.ndarray | None) -> None:
+        """Put the outcome banner in the band of the scene farther from the robot (below the title, or above the
+        caption): where an episode ends -- a collision above all -- stays visible under it."""
+        if robot is None:
+            robot_height = 0.5
+        else:
+            _, robot_height = self.ax.transAxes.inverted().transform(self.ax.transData.transform(robot))
+        if robot_height < 0.5:
+            self.outcome_text.set_position((0.5, OUTCOME_TOP))
+            self.outcome_text.set_verticalalignment("top")
+        else:
+            self.outcome_text.set_position((0.5, OUTCOME_BOTTOM))
+            self.outcome_text.set_verticalalignment("bottom")
 
     def _update_trails(self, trails: np.ndarray | None, active: np.ndarray, robot_color: str) -> None:
         """Trails as polylines fading from oldest to newest.
