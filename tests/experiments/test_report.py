@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import scipy.stats
 from typer.testing import CliRunner
 
 from socnav.cli import app
@@ -236,7 +237,8 @@ def test_report_command(handmade_run, tmp_path):
     root, _, _, _ = handmade_run
     result = runner.invoke(app, ["report", str(root)])
     assert result.exit_code == 0, result.output
-    for name in ("report.md", "table1.md", "table1.csv", "training_curves.png", "training_curves.svg"):
+    for name in ("report.md", "table1.md", "table1.csv", "training_curves.png", "training_curves.svg", "claims.md",
+                 "claims.csv", "training_runs.csv", "comparisons.csv"):
         assert (root / "report" / name).is_file(), name
     result = runner.invoke(app, ["report", str(tmp_path / "nothing")])
     assert result.exit_code == 2 and "no such run directory" in result.output
@@ -285,19 +287,28 @@ def test_table1_intervals_aggregate_and_verdicts(tmp_path):
     report = root / "report"
     ci = pd.read_csv(report / "table1_ci.csv")
     goal = ci[(ci["metric"] == "goal_pct") & (ci["algo"] == "ppo")]
-    # two seeds: the mean and the 95 % percentile interval [min, max] of the seeds' goal rates
-    assert (goal["mean"] == 40.0).all() and (goal["ci_low"] == 30.0).all() and (goal["ci_high"] == 50.0).all()
-    assert (goal["n_seeds"] == 2).all() and len(ci) == 2 * 2 * 2 * 5
+    # two seeds 30, 50: mean 40, s / sqrt(2) = 10, Student t_1(0.975) = 12.706 -> 40 -+ 127.06 (no percentile
+    # bootstrap's [min, max])
+    assert (goal["mean"] == 40.0).all() and (goal["n_seeds"] == 2).all() and len(ci) == 2 * 2 * 2 * 5
+    np.testing.assert_allclose(goal["ci_low"], 40.0 - 127.062047, rtol=1e-6)
+    np.testing.assert_allclose(goal["ci_high"], 40.0 + 127.062047, rtol=1e-6)
     comparisons = pd.read_csv(report / "comparisons.csv")
     row = comparisons.iloc[0]
     assert (row["algo"], row["baseline"], row["n_tasks"]) == ("odv-ppo-drop", "ppo", 4)
-    assert row["difference"] == pytest.approx(55.0) and row["difference_low"] > 0
-    assert row["improvement"] == 1.0 and row["verdict"] == "holds"
+    assert (row["n_policies"], row["n_policies_baseline"]) == (4, 4)  # 2 seeds x 2 training scenarios each
+    # per policy (its mean over 2 cells): ODV-PPO-Drop 90, 100 (var 50), PPO 30, 50 (var 200) in both training
+    # scenarios (weights 1/2): D = 55, SE² = 2 (1/4)(50/2 + 200/2) = 62.5, df = 62.5² / (2 (6.25² + 25²)) = 2.94
+    assert row["difference"] == pytest.approx(55.0)
+    assert row["df"] == pytest.approx(62.5**2 / (2 * (6.25**2 + 25.0**2)))
+    assert row["p_value"] == pytest.approx(2 * scipy.stats.t.sf(55.0 / np.sqrt(62.5), row["df"]))
+    assert row["p_holm"] == row["p_value"] and row["confidence"] == 0.95  # one claim: nothing to adjust
+    assert row["difference_low"] > 0 and row["improvement"] == 1.0 and row["verdict"] == "holds"
     aggregate = pd.read_csv(report / "aggregate.csv").set_index("algo")
     assert aggregate.loc["ppo", "iqm_high"] < aggregate.loc["odv-ppo-drop", "iqm_low"]
     assert aggregate.loc["ppo", "n_runs"] == 8 and aggregate.loc["ppo", "iqm"] == pytest.approx(40.0)
     assert "## Table 1 with 95 % confidence intervals" in text and "| ODV-PPO-Drop > PPO |" in text
-    assert "40.0 [30.0, 50.0]" in (report / "table1_ci.md").read_text()
+    assert "40.0 [-87.1, 167.1]" in (report / "table1_ci.md").read_text()
+    assert "## Table 1's claims" in text and (report / "claims.md").is_file()
     assert (report / "aggregate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "<svg" in (report / "aggregate.svg").read_text()[:2000]
 
@@ -308,3 +319,91 @@ def test_table1_intervals_aggregate_and_verdicts(tmp_path):
     row = pd.read_csv(root / "report" / "comparisons.csv").iloc[0]
     assert row["improvement"] == 0.5 and row["difference"] == 0.0
     assert row["difference_low"] < 0 < row["difference_high"] and row["verdict"] == "cannot tell at this budget"
+
+
+def test_training_run_statistics_by_hand():
+    from socnav.experiments.report import training_run_frame
+
+    steps = np.arange(1, 11) * 1000
+    curves = pd.concat([
+        # start 0, final (mean of the last 10 % = 1 point) 10: 90 % is 9, first reached at the last point
+        pd.DataFrame({"seed": 0, "timesteps": steps, "ep_rew_mean": [0, 1, 2, 3, 4, 5, 6, 7, 8, 10.0]}),
+        # no value at first: start 0 (at 2k), final 10, 9 first reached at 4k
+        pd.DataFrame({"seed": 1, "timesteps": steps, "ep_rew_mean": [np.nan, 0, 5, 9, 9.5, 10, 10, 10, 10, 10.0]}),
+        # never improves: counted as converging at its last step
+        pd.DataFrame({"seed": 2, "timesteps": steps[:3], "ep_rew_mean": [5.0, 4.0, 3.0]}),
+    ]).assign(train_scenario="random", algo="ppo")
+    runs = training_run_frame(curves).set_index("seed")
+    assert runs["steps_to_converge"].tolist() == [10000.0, 4000.0, 3000.0]
+    assert runs["start_reward"].tolist() == [0.0, 0.0, 5.0] and runs["final_reward"].tolist() == [10.0, 10.0, 3.0]
+    assert runs.loc[1, "points"] == 9
+
+
+def _claims_records(rng: np.random.Generator) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Per-seed goal rates of 5 algorithms x 3 training scenarios x 3 seeds x 3 evaluation scenarios with known
+    answers (noise SD 2 points), and per-run training statistics."""
+    scenarios = ["circle_interaction", "circle_crossing", "random"]
+    rows = []
+    for train in scenarios:
+        for algo in ["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]:
+            for seed in range(3):
+                for evaluation in scenarios:
+                    in_distribution = train == evaluation
+                    goal = {"ppo": 75.0, "ppo-drop": 85.0, "odv-ppo-noloss": 75.0, "odv-ppo": 80.0,
+                            "odv-ppo-drop": 85.0}[algo]
+                    if algo == "odv-ppo" and not in_distribution:
+                        goal = 95.0  # generalizes better than ODV-PPO-Drop: "best in generalization" fails
+                    if algo == "odv-ppo-noloss" and train == "random":
+                        goal = 3.0  # fails to converge
+                    rows.append({"train_scenario": train, "algo": algo, "train_seed": seed, "eval_scenario": evaluation,
+                                 "episodes": 100, "goal_pct": goal + rng.normal(0, 2)})
+    runs = []
+    for train, converge_k, final_sd in [("circle_interaction", 20, 0.1), ("circle_crossing", 60, 1.0),
+                                        ("random", 20, 0.1)]:
+        for algo in ["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo", "odv-ppo-drop"]:
+            for seed in range(3):
+                runs.append({"train_scenario": train, "algo": algo, "seed": seed,
+                             "steps_to_converge": 1000 * (converge_k + rng.normal(0, 2)),
+                             "final_reward": 4.0 + rng.normal(0, final_sd)})
+    return pd.DataFrame(rows), pd.DataFrame(runs)
+
+
+def test_claims_table_on_synthetic_policies():
+    from socnav.experiments.report import claims_frame
+
+    per_seed, runs = _claims_records(np.random.default_rng(3))
+    claims = claims_frame(per_seed, runs)
+    by_part = claims.set_index("part")
+    assert len(claims) == 10 and np.allclose(claims["confidence"], 1 - 0.05 / 10)  # one family of 10
+    expected = {
+        "PPO-Drop > PPO": "holds",  # +10 points everywhere
+        "ODV-PPO > ODV-PPO no Loss, trained and evaluated in Random": "holds",  # 80 vs 3
+        "ODV-PPO-Drop > PPO": "holds", "ODV-PPO-Drop > ODV-PPO no Loss": "holds",
+        "ODV-PPO-Drop > PPO-Drop": "cannot tell at this budget",  # the same 85 % off the training scenario
+        "ODV-PPO-Drop > ODV-PPO": "does not hold",  # 85 vs 95
+        "faster than Circle Crossing": "holds",  # 60k vs 20k steps
+        "faster than Random": "cannot tell at this budget",  # 20k in both, SD 2k
+    }
+    for part, want in expected.items():
+        assert by_part.loc[part, "verdict"] == want, part
+    # the two variance parts: circle crossing's final reward spreads 10x more (ratio ~100), random's alike
+    variance = claims[claims["claim"] == "Circle-interaction training has the lowest variance across seeds"]
+    assert variance["verdict"].tolist() == ["holds", "cannot tell at this budget"]
+    assert variance["estimate"].iloc[0] > 20 and (variance["n_x"] == 15).all()
+    # estimates are the differences of means over the claim's cells, per policy (3 policies x 3 scenarios)
+    dropout = by_part.loc["PPO-Drop > PPO"]
+    means = per_seed.groupby("algo")["goal_pct"].mean()
+    assert dropout["estimate"] == pytest.approx(means["ppo-drop"] - means["ppo"])
+    assert (dropout["n_x"], dropout["n_y"]) == (9, 9)
+    noloss = by_part.loc["ODV-PPO > ODV-PPO no Loss, trained and evaluated in Random"]
+    assert (noloss["n_x"], noloss["n_y"]) == (3, 3)
+    # Holm's adjusted p-values are >= the raw ones; a claim holds only if all its parts hold
+    assert (claims["p_holm"] >= claims["p_value"] - 1e-15).all()
+    overall = claims.drop_duplicates("claim").set_index("claim")["claim_verdict"]
+    assert overall["Dropout improves PPO"] == "holds"
+    assert overall["ODV-PPO-Drop is best in generalization"] == "does not hold"
+    assert overall["Circle-interaction training converges fastest"] == "cannot tell at this budget"
+    # a run without one algorithm: its parts cannot be told, the rest is tested
+    partial = claims_frame(per_seed[per_seed["algo"] != "ppo"], runs)
+    assert partial.set_index("part").loc["PPO-Drop > PPO", "verdict"] == "cannot tell at this budget"
+    assert partial["p_value"].notna().sum() == 8

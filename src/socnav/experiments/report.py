@@ -15,18 +15,27 @@ Return                -- mean over seeds of the per-seed mean episode return, +-
                          test episodes of all seeds (population std, ddof=0: the spread a user sees per episode).
 The CSV adds ``return_seed_std`` (std over seeds of the per-seed mean return) and the seed / episode counts.
 
-Table 1 with confidence intervals (``table1_ci.md/csv``) and the aggregate (``aggregate.png/svg/csv``,
-``comparisons.csv``): per cell the mean over seeds with a 95 % bootstrap interval over seeds; per algorithm the IQM
-of the goal rate over seeds x (training, evaluation) scenario cells; ODV-PPO-Drop against each other algorithm:
-difference of mean goal rates and probability of improvement with stratified bootstrap intervals, and the verdict
-(holds / does not hold / cannot tell at this budget). See :mod:`socnav.experiments.statistics`.
+Statistics (:mod:`socnav.experiments.statistics`): a trained policy (training scenario, algorithm, seed) is one unit
+in every evaluation cell it appears in, and every verdict comes from a test that keeps its error rate at 3 seeds.
+``table1_ci.md/csv``: per cell and metric the mean over seeds with a 95 % Student t-interval over seeds (descriptive,
+not adjusted for the number of cells). ``aggregate.png/svg/csv``: per algorithm the IQM of the goal rate over
+policies x cells with a cluster-bootstrap interval (policies resampled within training scenarios; descriptive).
+``comparisons.csv``: ODV-PPO-Drop against each other algorithm on the goal rate over all cells, one family: stratified
+Welch t-test on per-policy means (strata: training scenarios), intervals at the Bonferroni level, verdicts by Holm
+(holds / does not hold / cannot tell at this budget), and the probability of improvement (descriptive).
+``claims.md/csv``: the paper's Table 1 claims (dropout improves PPO; ODV without the variance loss fails to converge
+in random; ODV-PPO-Drop generalizes best; circle-interaction training converges fastest with the lowest variance
+across seeds), one family, with the statistic, test, estimate, adjusted interval, Holm p-value and verdict of each
+part (:func:`claims_frame`); ``training_runs.csv``: the per-run training-curve statistics they read
+(:func:`training_run_frame`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 import pandas as pd
@@ -37,9 +46,13 @@ from socnav.experiments.registry import SECTIONS, ReportContext, register_sectio
 from socnav.experiments.runner import read_plan, unit_states
 from socnav.io import save_figure, write_table_atomic, write_text_atomic
 
+if TYPE_CHECKING:
+    from socnav.experiments.statistics import VarianceRatioTest, WelchTest
+
 __all__ = [
-    "aggregate_frame", "build_report", "comparison_frame", "plot_aggregate", "table1_ci_frame", "table1_ci_markdown",
-    "table1_frame", "table1_markdown", "table1_seed_frame", "training_curve_frame", "plot_training_curves",
+    "aggregate_frame", "build_report", "claims_frame", "comparison_frame", "paired_policy_strata", "plot_aggregate",
+    "plot_training_curves", "policy_strata", "table1_ci_frame", "table1_ci_markdown", "table1_frame",
+    "table1_markdown", "table1_seed_frame", "training_curve_frame", "training_run_frame",
 ]
 
 ALGO_LABELS = {"ppo": "PPO", "ppo-drop": "PPO-Drop", "odv-ppo-noloss": "ODV-PPO no Loss", "odv-ppo": "ODV-PPO",
@@ -219,7 +232,7 @@ def table1_section(context: ReportContext) -> str:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Table 1 with confidence intervals over seeds, aggregate scores and claims
+# Table 1 with confidence intervals over seeds, aggregate scores and ODV-PPO-Drop's comparisons
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics shown with intervals in table1_ci.md (table1_ci.csv has every Table 1 metric) -> decimals.
@@ -229,21 +242,24 @@ CI_MARKDOWN_METRICS = {"goal_pct": 1, "collision_pct": 1, "return_mean": 2}
 AGGREGATE_SCORE = "goal_pct"
 #: The paper's method, compared with every other algorithm of the run (PPO first).
 REFERENCE_ALGO = "odv-ppo-drop"
+#: Family-wise confidence of every table of verdicts (comparisons, claims): 1 - the family-wise error rate.
+FAMILY_CONFIDENCE = 0.95
 CI_COLUMNS = ID_COLUMNS + ["metric", "n_seeds", "mean", "ci_low", "ci_high"]
-COMPARISON_COLUMNS = ["algo", "baseline", "n_tasks", "difference", "difference_low", "difference_high",
-                      "improvement", "improvement_low", "improvement_high", "verdict"]
+COMPARISON_COLUMNS = ["algo", "baseline", "n_tasks", "n_policies", "n_policies_baseline", "difference",
+                      "difference_low", "difference_high", "confidence", "df", "p_value", "p_holm", "improvement",
+                      "improvement_low", "improvement_high", "verdict"]
 
 
-def table1_ci_frame(per_seed: pd.DataFrame, confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
+def table1_ci_frame(per_seed: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
     """Per (training scenario, algorithm, evaluation scenario) and Table 1 metric: the mean over seeds and its
-    bootstrap confidence interval over seeds (NaN bounds with a single seed); ``per_seed`` from
-    :func:`table1_seed_frame`."""
+    Student t-interval over seeds (descriptive, not adjusted for the number of cells; NaN bounds with a single
+    seed); ``per_seed`` from :func:`table1_seed_frame`."""
     from socnav.experiments.statistics import mean_interval
 
     rows = []
     for key, group in per_seed.groupby(ID_COLUMNS, sort=False):
         for metric in TABLE1_METRICS:
-            interval = mean_interval(group[metric].to_numpy(float), confidence, seed=seed)
+            interval = mean_interval(group[metric].to_numpy(float), confidence)
             rows.append({**dict(zip(ID_COLUMNS, key)), "metric": metric, "n_seeds": len(group),
                          "mean": interval.estimate, "ci_low": interval.low, "ci_high": interval.high})
     return pd.DataFrame(rows, columns=CI_COLUMNS)
@@ -252,7 +268,7 @@ def table1_ci_frame(per_seed: pd.DataFrame, confidence: float = 0.95, seed: int 
 def table1_ci_markdown(ci: pd.DataFrame, algorithms: list[str] | None = None,
                        train_scenarios: list[str] | None = None, eval_scenarios: list[str] | None = None) -> str:
     """Table 1's layout with ``mean [low, high]`` cells for :data:`CI_MARKDOWN_METRICS` (nothing bold: which
-    algorithm is best is the question the intervals answer, see the comparisons)."""
+    algorithm is best is the question the claims answer)."""
     algorithms = _ordered(ci["algo"], algorithms or [])
     train_scenarios = _ordered(ci["train_scenario"], train_scenarios or [])
     eval_scenarios = _ordered(ci["eval_scenario"], eval_scenarios or [])
@@ -283,68 +299,100 @@ def _interval_text(mean: float, low: float, high: float, decimals: int) -> str:
     return Interval(float(mean), float(low), float(high)).text(decimals)
 
 
-def _task_scores(per_seed: pd.DataFrame, algo: str, tasks: list[tuple[str, str]],
-                 score: str = AGGREGATE_SCORE) -> list[np.ndarray]:
-    mine = per_seed[per_seed["algo"] == algo].groupby(["train_scenario", "eval_scenario"])[score]
-    return [mine.get_group(task).to_numpy(float) for task in tasks]
+Cell = tuple[str, str]  # (training scenario, evaluation scenario)
 
 
-def _tasks(per_seed: pd.DataFrame, *algos: str) -> list[tuple[str, str]]:
+def _cells(per_seed: pd.DataFrame, *algos: str) -> list[Cell]:
     """(training scenario, evaluation scenario) cells where every one of `algos` has at least one seed."""
     cells = [set(map(tuple, per_seed.loc[per_seed["algo"] == algo, ["train_scenario", "eval_scenario"]]
                      .drop_duplicates().to_numpy().tolist())) for algo in algos]
     common = set.intersection(*cells) if cells else set()
     order = per_seed[["train_scenario", "eval_scenario"]].drop_duplicates().itertuples(index=False, name=None)
-    return [task for task in order if task in common]
+    return [cell for cell in order if cell in common]
+
+
+def policy_strata(per_seed: pd.DataFrame, algo: str, cells: list[Cell], score: str = AGGREGATE_SCORE
+                  ) -> dict[str, np.ndarray]:
+    """``algo``'s scores as strata of clusters: per training scenario of ``cells``, an array (policies, cells) --
+    one row per training seed evaluated in every one of that scenario's cells (a seed missing a cell is left out:
+    a policy is one unit, scored on the same cells as the others)."""
+    strata = {}
+    mine = per_seed[per_seed["algo"] == algo]
+    for train_scenario in dict.fromkeys(train for train, _ in cells):
+        evals = [evaluation for train, evaluation in cells if train == train_scenario]
+        block = mine[mine["train_scenario"] == train_scenario].pivot_table(
+            index="train_seed", columns="eval_scenario", values=score)
+        if not set(evals) <= set(block.columns):
+            continue
+        block = block[evals].dropna()
+        if len(block):
+            strata[train_scenario] = block.to_numpy(float)
+    return strata
+
+
+def paired_policy_strata(per_seed: pd.DataFrame, algo_x: str, algo_y: str, cells: list[Cell],
+                         score: str = AGGREGATE_SCORE) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """:func:`policy_strata` of two algorithms on the training scenarios both have policies in (same order)."""
+    strata_x = policy_strata(per_seed, algo_x, cells, score)
+    strata_y = policy_strata(per_seed, algo_y, cells, score)
+    shared = [scenario for scenario in strata_x if scenario in strata_y]
+    return [strata_x[s] for s in shared], [strata_y[s] for s in shared]
 
 
 def aggregate_frame(per_seed: pd.DataFrame, algorithms: list[str] | None = None, score: str = AGGREGATE_SCORE,
                     confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
-    """Per algorithm: the interquartile mean of ``score`` over all seeds x (training, evaluation) scenario cells
-    and its stratified bootstrap interval (seeds resampled within each cell)."""
+    """Per algorithm: the interquartile mean of ``score`` over all seeds x (training, evaluation) scenario cells and
+    its cluster-bootstrap interval (policies resampled within each training scenario, each with all its cells;
+    descriptive)."""
     from socnav.experiments.statistics import iqm_interval
 
     rows = []
     for algo in _ordered(per_seed["algo"], algorithms or []):
-        tasks = _tasks(per_seed, algo)
-        if not tasks:
+        cells = _cells(per_seed, algo)
+        strata = list(policy_strata(per_seed, algo, cells, score).values())
+        if not strata:
             continue
-        scores = _task_scores(per_seed, algo, tasks, score)
-        interval = iqm_interval(scores, confidence, seed=seed)
-        rows.append({"algo": algo, "score": score, "n_tasks": len(tasks), "n_runs": sum(map(len, scores)),
-                     "iqm": interval.estimate, "iqm_low": interval.low, "iqm_high": interval.high,
-                     "mean": float(np.mean([s.mean() for s in scores]))})
+        interval = iqm_interval(strata, confidence, seed=seed)
+        rows.append({"algo": algo, "score": score, "n_tasks": sum(s.shape[1] for s in strata),
+                     "n_runs": sum(s.size for s in strata), "iqm": interval.estimate, "iqm_low": interval.low,
+                     "iqm_high": interval.high,
+                     "mean": float(np.mean(np.concatenate([s.mean(axis=0) for s in strata])))})
     return pd.DataFrame(rows, columns=["algo", "score", "n_tasks", "n_runs", "iqm", "iqm_low", "iqm_high", "mean"])
 
 
 def comparison_frame(per_seed: pd.DataFrame, reference: str = REFERENCE_ALGO, algorithms: list[str] | None = None,
-                     score: str = AGGREGATE_SCORE, confidence: float = 0.95, seed: int = 0) -> pd.DataFrame:
-    """The claim "``reference`` scores higher than B" for every other algorithm B (PPO first), over the cells both
-    were evaluated in: the mean difference of ``score`` (points) and the probability of improvement, each with
-    its stratified bootstrap interval, and the verdict from the difference's interval."""
-    from socnav.experiments.statistics import compare
+                     score: str = AGGREGATE_SCORE, confidence: float = FAMILY_CONFIDENCE, seed: int = 0
+                     ) -> pd.DataFrame:
+    """The claims "``reference`` scores higher than B" for every other algorithm B (PPO first), over the cells both
+    were evaluated in, as one family: stratified Welch test on per-policy means (strata: training scenarios), the
+    difference of ``score`` (points) with its Bonferroni-level interval, Holm-adjusted verdicts, and the probability
+    of improvement with its cluster-bootstrap interval (descriptive)."""
+    from socnav.experiments.statistics import compare_family
 
-    rows = []
     if reference not in set(per_seed["algo"]):
         return pd.DataFrame(columns=COMPARISON_COLUMNS)
     others = [a for a in _ordered(per_seed["algo"], ["ppo", *(algorithms or [])]) if a != reference]
+    pairs, rows = [], []
     for baseline in others:
-        tasks = _tasks(per_seed, reference, baseline)
-        if not tasks:
+        cells = _cells(per_seed, reference, baseline)
+        strata_x, strata_y = paired_policy_strata(per_seed, reference, baseline, cells, score)
+        if not strata_x:
             continue
-        result = compare(_task_scores(per_seed, reference, tasks, score), _task_scores(per_seed, baseline, tasks, score),
-                         confidence, seed=seed)
-        rows.append({"algo": reference, "baseline": baseline, "n_tasks": len(tasks),
-                     "difference": result.difference.estimate, "difference_low": result.difference.low,
-                     "difference_high": result.difference.high, "improvement": result.improvement.estimate,
-                     "improvement_low": result.improvement.low, "improvement_high": result.improvement.high,
-                     "verdict": result.verdict})
+        pairs.append((strata_x, strata_y))
+        rows.append({"algo": reference, "baseline": baseline, "n_tasks": sum(s.shape[1] for s in strata_x),
+                     "n_policies": sum(map(len, strata_x)), "n_policies_baseline": sum(map(len, strata_y))})
+    for row, result in zip(rows, compare_family(pairs, confidence, seed=seed)):
+        row.update({"difference": result.difference.estimate, "difference_low": result.difference.low,
+                    "difference_high": result.difference.high, "confidence": result.confidence, "df": result.df,
+                    "p_value": result.p_value, "p_holm": result.p_adjusted,
+                    "improvement": result.improvement.estimate, "improvement_low": result.improvement.low,
+                    "improvement_high": result.improvement.high, "verdict": result.verdict})
     return pd.DataFrame(rows, columns=COMPARISON_COLUMNS)
 
 
 def plot_aggregate(aggregate: pd.DataFrame, comparisons: pd.DataFrame, out_base: Path) -> list[Path]:
-    """Left: IQM goal rate per algorithm with its 95 % interval; right: probability that the reference algorithm
-    improves on each other one, with its interval (0.5: no difference). PNG and SVG."""
+    """Left: IQM goal rate per algorithm with its 95 % cluster-bootstrap interval; right: probability that the
+    reference algorithm's policy beats another's in the same cell, with its interval (0.5: no difference). PNG, SVG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -359,8 +407,8 @@ def plot_aggregate(aggregate: pd.DataFrame, comparisons: pd.DataFrame, out_base:
     left.errorbar(iqm, y, xerr=error, fmt="o", color="tab:blue", capsize=4)
     left.set_yticks(y, labels)
     left.set_ylim(-0.6, len(aggregate) - 0.4)
-    left.set_xlabel("IQM goal rate (%), 95 % CI")
-    left.set_title("Aggregate over seeds × scenario cells")
+    left.set_xlabel("IQM goal rate (%), 95 % CI (descriptive)")
+    left.set_title("Aggregate over policies × scenario cells")
     left.grid(alpha=0.3, axis="x")
     if len(comparisons):
         y = np.arange(len(comparisons))[::-1]
@@ -375,10 +423,16 @@ def plot_aggregate(aggregate: pd.DataFrame, comparisons: pd.DataFrame, out_base:
         right.set_title(f"P({algo_label(comparisons['algo'].iloc[0])} > Y)")
     else:
         right.set_title(f"P({algo_label(REFERENCE_ALGO)} > Y): not in this run")
-    right.set_xlabel("probability of improvement, 95 % CI")
+    right.set_xlabel("probability of improvement, 95 % CI (descriptive)")
     right.grid(alpha=0.3, axis="x")
     figure.tight_layout()
     return save_figure(figure, out_base)
+
+
+def _p_text(p_value: float) -> str:
+    if math.isnan(p_value):
+        return "–"
+    return "< 0.001" if p_value < 0.001 else f"{p_value:.3f}"
 
 
 @register_section("table1", "table1_ci")
@@ -397,29 +451,34 @@ def table1_ci_section(context: ReportContext) -> str:
     write_table_atomic(comparisons, context.out_dir / "comparisons.csv")
     plot_aggregate(aggregate, comparisons, context.out_dir / "aggregate")
     seeds = per_seed["train_seed"].nunique() if len(per_seed) else 0
+    family_level = comparisons["confidence"].iloc[0] if len(comparisons) else FAMILY_CONFIDENCE
     lines = [
         "## Table 1 with 95 % confidence intervals over seeds",
         "",
-        f"Mean over the training seeds ({seeds} here) [95 % percentile bootstrap interval over seeds] of the "
-        "goal rate (%), collision rate (%) and mean return; every Table 1 metric in the CSV. With 2–3 seeds an "
-        "interval cannot be wider than the seeds' range and understates the uncertainty; one seed gives none "
-        "(`n/a`).",
+        f"Mean over the training seeds ({seeds} here) [95 % Student t-interval over seeds] of the goal rate (%), "
+        "collision rate (%) and mean return; every Table 1 metric in the CSV. The intervals describe one cell each "
+        "and are not adjusted for the number of cells: verdicts come from the tests below and in the claims "
+        "section. One seed gives no interval (`n/a`).",
         "",
         markdown,
         "",
-        "### Aggregate goal rate and claims",
+        "### Aggregate goal rate and ODV-PPO-Drop's comparisons",
         "",
-        "Score: the goal (success) rate (%) of each training seed in each (training scenario, evaluation scenario) "
-        "cell — the paper ranks algorithms by it, and its scale is the same in every scenario. IQM: interquartile "
-        "mean over all seeds × cells; intervals: stratified bootstrap (seeds resampled within each cell), "
-        "as `rliable`. Claim *ODV-PPO-Drop reaches the goal more often than Y*: difference of the mean goal rates "
-        "(points, averaged over cells) and probability of improvement P(a seed of ODV-PPO-Drop beats a seed of Y in "
-        "the same cell); **holds** if the difference's interval is above 0, **does not hold** if below, **cannot "
-        "tell at this budget** if it contains 0.",
+        "Score: the goal (success) rate (%) of each policy (training scenario, algorithm, seed) in each evaluation "
+        "scenario — the paper ranks algorithms by it, and its scale is the same in every scenario. A policy is one "
+        "unit in every cell it is evaluated in. IQM: interquartile mean over all policies × cells, with a 95 % "
+        "cluster-bootstrap interval (policies resampled within each training scenario, with all their cells; "
+        "descriptive, too narrow with few seeds). Claim *ODV-PPO-Drop reaches the goal more often than Y*: "
+        "difference of the mean goal rates (points, averaged over cells), stratified Welch t-test on per-policy "
+        f"means (strata: training scenarios); intervals at the Bonferroni level ({100 * family_level:.2f} % for "
+        f"{len(comparisons)} claim(s)), verdicts by Holm (family-wise error ≤ 5 %): **holds** if the "
+        "Holm-adjusted p ≤ 0.05 and the difference is above 0, **does not hold** if below, otherwise **cannot "
+        "tell at this budget**. P(improvement): probability that an ODV-PPO-Drop policy beats a policy of Y in "
+        "the same cell, with a 95 % cluster-bootstrap interval (descriptive).",
         "",
         "![aggregate](aggregate.png)",
         "",
-        "| Approach | IQM goal (%) [95 % CI] | Mean goal (%) | Seeds × cells |",
+        "| Approach | IQM goal (%) [95 % CI] | Mean goal (%) | Policies × cells |",
         "|:--|--:|--:|--:|",
     ]
     for row in aggregate.to_dict("records"):
@@ -429,12 +488,13 @@ def table1_ci_section(context: ReportContext) -> str:
     if comparisons.empty:
         lines.append(f"No comparison: {algo_label(REFERENCE_ALGO)} and another algorithm are not both in this run.")
     else:
-        lines += ["| Claim | Goal difference (points) [95 % CI] | P(improvement) [95 % CI] | Verdict |",
-                  "|:--|--:|--:|:--|"]
+        lines += ["| Claim | Goal difference (points) [adjusted CI] | p (Holm) | P(improvement) [95 % CI] | Verdict |",
+                  "|:--|--:|--:|--:|:--|"]
         for row in comparisons.to_dict("records"):
             lines.append(
                 f"| {algo_label(row['algo'])} > {algo_label(row['baseline'])} "
                 f"| {_interval_text(row['difference'], row['difference_low'], row['difference_high'], 1)} "
+                f"| {_p_text(row['p_holm'])} "
                 f"| {_interval_text(row['improvement'], row['improvement_low'], row['improvement_high'], 2)} "
                 f"| {row['verdict']} |")
     lines += ["", "Vector version: [aggregate.svg](aggregate.svg); data: [table1_ci.csv](table1_ci.csv), "
@@ -537,6 +597,242 @@ def training_curves_section(context: ReportContext) -> str:
         "",
         "Vector version: [training_curves.svg](training_curves.svg); data: [training_curves.csv](training_curves.csv).",
     ])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Table 1's claims, each tested
+# --------------------------------------------------------------------------------------------------------------
+
+#: The training-curve value the convergence and seed-spread claims read (what the training-curve figure shows).
+CURVE_VALUE = "ep_rew_mean"
+#: A run has converged when its curve first reaches this fraction of the way from its first to its final value.
+CONVERGENCE_FRACTION = 0.9
+#: The final value of a run: the mean of the last share of its logged points (the plateau, not one noisy point).
+FINAL_SHARE = 0.1
+TRAINING_RUN_COLUMNS = ["train_scenario", "algo", "seed", "points", "total_steps", "start_reward", "final_reward",
+                        "steps_to_converge"]
+CLAIM_COLUMNS = ["claim", "part", "statistic", "test", "n_x", "n_y", "estimate", "ci_low", "ci_high", "confidence",
+                 "p_value", "p_holm", "verdict", "claim_verdict"]
+FAST_SCENARIO = "circle_interaction"
+
+
+def training_run_frame(curves: pd.DataFrame, value: str = CURVE_VALUE, fraction: float = CONVERGENCE_FRACTION,
+                       final_share: float = FINAL_SHARE) -> pd.DataFrame:
+    """Per training run (training scenario, algorithm, seed), from its curve of ``value`` vs timesteps (rows with a
+    value): ``start_reward`` (the first point), ``final_reward`` (mean of the last ``final_share`` of the points,
+    at least one) and ``steps_to_converge``, the first timestep at which the curve reaches
+    ``start + fraction (final - start)`` -- the last timestep if the run never improved (final <= start). Scale
+    free: every run is measured against its own start and plateau, so scenarios with other reward scales compare."""
+    rows = []
+    for (scenario, algo, seed), group in curves.groupby(["train_scenario", "algo", "seed"], sort=False):
+        points = group.dropna(subset=[value]).sort_values("timesteps")
+        steps, values = points["timesteps"].to_numpy(float), points[value].to_numpy(float)
+        row = {"train_scenario": scenario, "algo": algo, "seed": seed, "points": len(points),
+               "total_steps": steps[-1] if len(steps) else np.nan, "start_reward": np.nan, "final_reward": np.nan,
+               "steps_to_converge": np.nan}
+        if len(points) >= 2:
+            start, final = values[0], values[-max(1, math.ceil(final_share * len(values))):].mean()
+            reached = values >= start + fraction * (final - start)
+            converged_at = steps[np.argmax(reached)] if final > start else steps[-1]
+            row.update(start_reward=start, final_reward=final, steps_to_converge=converged_at)
+        rows.append(row)
+    return pd.DataFrame(rows, columns=TRAINING_RUN_COLUMNS)
+
+
+@dataclass
+class _Part:
+    claim: str
+    part: str
+    statistic: str
+    test: WelchTest | VarianceRatioTest
+    n_x: int
+    n_y: int
+
+
+def _goal_part(per_seed: pd.DataFrame, claim: str, part: str, statistic: str, algo_x: str, algo_y: str,
+               cells: list[Cell]) -> _Part:
+    from socnav.experiments.statistics import welch_test
+
+    evaluated = set(_cells(per_seed, algo_x, algo_y))
+    cells = [cell for cell in cells if cell in evaluated]
+    strata_x, strata_y = paired_policy_strata(per_seed, algo_x, algo_y, cells)
+    if not strata_x:
+        return _Part(claim, part, statistic, _untestable(), 0, 0)
+    return _Part(claim, part, statistic, welch_test(strata_x, strata_y), sum(map(len, strata_x)),
+                 sum(map(len, strata_y)))
+
+
+def _untestable() -> WelchTest:
+    from socnav.experiments.statistics import WelchTest
+
+    return WelchTest(np.nan, np.nan, np.nan, np.nan)
+
+
+def _run_groups(runs: pd.DataFrame, scenario: str, column: str, algorithms: list[str]) -> list[np.ndarray]:
+    """``column`` of the runs trained on ``scenario``, one array per algorithm (in ``algorithms`` order)."""
+    mine = runs[(runs["train_scenario"] == scenario)].dropna(subset=[column])
+    return [mine.loc[mine["algo"] == algo, column].to_numpy(float) for algo in algorithms]
+
+
+def claims_frame(per_seed: pd.DataFrame, runs: pd.DataFrame, confidence: float = FAMILY_CONFIDENCE
+                 ) -> pd.DataFrame:
+    """The paper's Table 1 claims, one row per tested part, as one family (Holm verdicts, Bonferroni intervals):
+
+    - *Dropout improves PPO*: PPO-Drop - PPO, goal rate (points) over all cells;
+    - *ODV without the variance loss is unstable (fails to converge in the random scenario)*: ODV-PPO - ODV-PPO
+      no Loss, goal rate of the policies trained on random, in random;
+    - *ODV-PPO-Drop is best in generalization*: ODV-PPO-Drop - each other algorithm, goal rate over the cells with
+      training != evaluation scenario;
+    - *circle-interaction training converges fastest*: steps to converge (:func:`training_run_frame`, in thousands)
+      of each other training scenario - circle interaction's, strata: algorithms;
+    - *... with the lowest variance across seeds*: variance over seeds (pooled within algorithms) of the final
+      training reward, each other training scenario / circle interaction's (F-test).
+
+    Goal-rate parts: stratified Welch test on per-policy means (``per_seed`` from :func:`table1_seed_frame`); curve
+    parts read ``runs`` from :func:`training_run_frame`. A claim with several parts holds if every part holds, does
+    not hold if one does not, and otherwise cannot be told.
+    """
+    from socnav.experiments.statistics import (
+        CANNOT_TELL, DOES_NOT_HOLD, HOLDS, adjust_family, variance_ratio_test, welch_test,
+    )
+
+    all_cells = list(dict.fromkeys(map(tuple, per_seed[["train_scenario", "eval_scenario"]].drop_duplicates()
+                                       .to_numpy().tolist())))
+    off_diagonal = [(train, evaluation) for train, evaluation in all_cells if train != evaluation]
+    goal = "goal rate (%)"
+    parts = [
+        _goal_part(per_seed, "Dropout improves PPO", "PPO-Drop > PPO", f"{goal}, all cells: difference (points)",
+                   "ppo-drop", "ppo", all_cells),
+        _goal_part(per_seed, "ODV without the variance loss is unstable (fails to converge in the random scenario)",
+                   "ODV-PPO > ODV-PPO no Loss, trained and evaluated in Random",
+                   f"{goal} in Random of policies trained on Random: difference (points)", "odv-ppo",
+                   "odv-ppo-noloss", [("random", "random")]),
+    ]
+    for baseline in ["ppo", "ppo-drop", "odv-ppo-noloss", "odv-ppo"]:
+        parts.append(_goal_part(per_seed, "ODV-PPO-Drop is best in generalization",
+                                f"ODV-PPO-Drop > {algo_label(baseline)}",
+                                f"{goal}, training ≠ evaluation scenario: difference (points)", "odv-ppo-drop",
+                                baseline, off_diagonal))
+    algorithms = list(dict.fromkeys(runs["algo"]))
+    in_thousands = runs.assign(steps_to_converge=runs["steps_to_converge"] / 1000)
+    fast = _run_groups(in_thousands, FAST_SCENARIO, "steps_to_converge", algorithms)
+    for other in ["circle_crossing", "random"]:
+        slow = _run_groups(in_thousands, other, "steps_to_converge", algorithms)
+        # strata: the algorithms with runs in both scenarios (each algorithm is compared with itself)
+        both = [(s, f) for s, f in zip(slow, fast) if len(s) and len(f)]
+        test = welch_test([s for s, _ in both], [f for _, f in both]) if both else _untestable()
+        parts.append(_Part("Circle-interaction training converges fastest", f"faster than {scenario_label(other)}",
+                           f"steps to {100 * CONVERGENCE_FRACTION:.0f} % of the final training reward (thousands): "
+                           f"{scenario_label(other)} − Circle Interaction", test,
+                           sum(len(s) for s, _ in both), sum(len(f) for _, f in both)))
+    fast = _run_groups(runs, FAST_SCENARIO, "final_reward", algorithms)
+    for other in ["circle_crossing", "random"]:
+        slow = _run_groups(runs, other, "final_reward", algorithms)
+        parts.append(_Part("Circle-interaction training has the lowest variance across seeds",
+                           f"lower than {scenario_label(other)}",
+                           f"variance over seeds of the final training reward: {scenario_label(other)} / "
+                           "Circle Interaction", variance_ratio_test(slow, fast), sum(map(len, slow)),
+                           sum(map(len, fast))))
+
+    adjusted = adjust_family([part.test for part in parts], confidence)
+    rows = [{"claim": part.claim, "part": part.part, "statistic": part.statistic, "test": part.test.method,
+             "n_x": part.n_x, "n_y": part.n_y, "estimate": part.test.estimate, "ci_low": result.interval.low,
+             "ci_high": result.interval.high, "confidence": result.confidence, "p_value": result.p_value,
+             "p_holm": result.p_adjusted, "verdict": result.verdict}
+            for part, result in zip(parts, adjusted)]
+    overall = {}
+    for row in rows:
+        overall.setdefault(row["claim"], set()).add(row["verdict"])
+    for row in rows:
+        verdicts = overall[row["claim"]]
+        row["claim_verdict"] = (DOES_NOT_HOLD if DOES_NOT_HOLD in verdicts
+                                else HOLDS if verdicts == {HOLDS} else CANNOT_TELL)
+    return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
+
+
+def _power_note(per_seed: pd.DataFrame, n_claims: int) -> list[str]:
+    """What this run could have told (a paragraph and a blank line; nothing without 2+ seeds): the goal-rate
+    differences its rule detects with 80 % power at its budget and measured seed variation (simulated,
+    :func:`socnav.experiments.power.min_detectable_difference`, at the Bonferroni level: Holm's first step), and the
+    normal-theory sizes for the two training-curve claims."""
+    from socnav.experiments.power import (
+        estimate_design, min_detectable_difference, min_detectable_standardised_difference,
+        min_detectable_variance_ratio,
+    )
+
+    try:
+        design = estimate_design(per_seed)
+    except ValueError:
+        return []
+    sizes = {}
+    for cells, strata in ((3, 3), (2, 3), (1, 1)):
+        size = min_detectable_difference(replace(design, cells_per_policy=cells, train_scenarios=strata),
+                                         n_claims=n_claims, replicates=1000, tolerance=0.25)
+        sizes[cells] = "no difference the base rate allows" if math.isnan(size) else f"about {size:.1f} points"
+    ratio = min_detectable_variance_ratio(design.seeds, n_claims=n_claims)
+    standardised = min_detectable_standardised_difference(design.seeds, n_claims=n_claims)
+    return [
+        f"**Power at this budget** ({design.seeds} seeds, {design.episodes} episodes; measured in this run: "
+        f"between-seed SD {design.seed_sd_pct:.1f} points beyond the binomial noise, correlation "
+        f"{design.cell_correlation:.2f} between a policy's cells, mean goal rate {design.base_goal_pct:.0f} %): in a "
+        f"family of {n_claims} claim(s), the rule says *holds* with 80 % power from {sizes[3]} over all cells, {sizes[2]} over "
+        f"the generalization cells and {sizes[1]} in one cell (simulated); smaller differences are mostly *cannot "
+        f"tell*. The convergence parts need about {standardised:.1f} between-seed SDs, the variance parts a ratio "
+        f"of about {ratio:.1f} (normal theory; `docs/analysis/power_table.py`).",
+        "",
+    ]
+
+
+@register_section("table1", "claims")
+def claims_section(context: ReportContext) -> str:
+    per_seed = table1_seed_frame(context.episode_records())
+    runs = training_run_frame(context.training_curves())
+    claims = claims_frame(per_seed, runs)
+    write_table_atomic(runs, context.out_dir / "training_runs.csv")
+    write_table_atomic(claims, context.out_dir / "claims.csv")
+    n_claims = int(claims["p_value"].notna().sum())
+    level = claims["confidence"].iloc[0] if len(claims) else FAMILY_CONFIDENCE
+    table = ["| Claim (paper) | Part | Statistic | Test | n | Estimate [adjusted CI] | p (Holm) | Verdict |",
+             "|:--|:--|:--|:--|--:|--:|--:|:--|"]
+    previous = None
+    for row in claims.to_dict("records"):
+        decimals = 2 if "variance" in row["statistic"] else 1
+        table.append(
+            f"| {row['claim'] if row['claim'] != previous else ''} | {row['part']} | {row['statistic']} "
+            f"| {row['test']} | {row['n_x']} vs {row['n_y']} "
+            f"| {_interval_text(row['estimate'], row['ci_low'], row['ci_high'], decimals)} "
+            f"| {_p_text(row['p_holm'])} | {row['verdict']} |")
+        previous = row["claim"]
+    write_text_atomic(context.out_dir / "claims.md", "\n".join(table) + "\n")
+    overall = claims.drop_duplicates("claim")
+    lines = [
+        "## Table 1's claims",
+        "",
+        "The paper's claims about Table 1 and its training curves, each tested. Goal-rate claims: a policy "
+        "(training scenario, algorithm, seed) is one unit, its goal rate averaged over the claim's cells; stratified "
+        "Welch t-test (strata: training scenarios), estimate = difference of the mean goal rates in points. "
+        f"Convergence: per training run, the first step at which its training reward ({CURVE_VALUE}) reaches "
+        f"{100 * CONVERGENCE_FRACTION:.0f} % of the way from its first to its final value (mean of the last "
+        f"{100 * FINAL_SHARE:.0f} % of its points), in thousands of steps; stratified Welch test with the algorithms as "
+        "strata (positive: circle interaction is faster). Variance across seeds: the final training reward's "
+        "variance over seeds, pooled within algorithms, as a ratio (above 1: circle interaction spreads less); "
+        "F-test, which assumes normal per-seed values (one diverging seed can decide it). "
+        f"All {n_claims} testable part(s) are one family: intervals at the Bonferroni level ({100 * level:.2f} %), "
+        "verdicts by Holm's step-down (family-wise error ≤ 5 %): **holds** if the Holm-adjusted p ≤ 0.05 and the "
+        "estimate is on the claim's side, **does not hold** if it is significantly on the other side, otherwise "
+        "**cannot tell at this budget**. Holm may be decisive where the Bonferroni interval still touches the null "
+        "(never the reverse). A claim with several parts holds if all hold and does not hold if one does not.",
+        "",
+        *_power_note(per_seed, max(n_claims, 1)),
+        "\n".join(table),
+        "",
+        "Claim by claim:",
+        *[f"- **{row['claim']}**: {row['claim_verdict']}" for row in overall.to_dict("records")],
+        "",
+        "Data: [claims.csv](claims.csv), [training_runs.csv](training_runs.csv) (per run: start and final training "
+        "reward, steps to converge).",
+    ]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------------------------
