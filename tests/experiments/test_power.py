@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from socnav.experiments.power import (
-    Design, analytic_min_detectable_difference, analytic_power, estimate_design, false_verdict_rate,
+    Design, analytic_min_detectable_difference, cellwise_bootstrap_verdicts, analytic_power, estimate_design, false_verdict_rate,
     min_detectable_difference, min_detectable_standardised_difference, min_detectable_variance_ratio, power,
     simulate_goal_rates, welch_verdicts,
 )
@@ -26,26 +26,6 @@ STRONG_SEED_EFFECT = {"seed_sd_pct": 9.0, "cell_correlation": 0.8}
 CEILING = 0.06
 
 
-def old_bootstrap_verdicts(x: np.ndarray, y: np.ndarray, alpha: float, n_resamples: int = 400, seed: int = 1
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """The rule this library used before: every (training, evaluation) cell an independent stratum, seeds resampled
-    within it, 95 % percentile interval of the mean difference over cells; decisive if it excludes 0."""
-    rng = np.random.default_rng(seed)
-    replicates, strata, seeds, cells = x.shape
-    per_cell_x = x.transpose(0, 1, 3, 2).reshape(replicates, strata * cells, seeds)
-    per_cell_y = y.transpose(0, 1, 3, 2).reshape(replicates, strata * cells, seeds)
-    decisive = np.empty(replicates, dtype=bool)
-    for start in range(0, replicates, 100):  # chunks: (100, resamples, cells, seeds) fits in memory
-        chunk = slice(start, start + 100)
-        draw_x = rng.integers(0, seeds, (n_resamples, strata * cells, seeds))
-        draw_y = rng.integers(0, seeds, (n_resamples, strata * cells, seeds))
-        mean_x = np.take_along_axis(per_cell_x[chunk][:, None], draw_x[None], axis=-1).mean(axis=(-2, -1))
-        mean_y = np.take_along_axis(per_cell_y[chunk][:, None], draw_y[None], axis=-1).mean(axis=(-2, -1))
-        low, high = np.quantile(mean_x - mean_y, [alpha / 2, 1 - alpha / 2], axis=1)
-        decisive[chunk] = (low > 0) | (high < 0)
-    return decisive, x.mean(axis=(1, 2, 3)) - y.mean(axis=(1, 2, 3))
-
-
 @pytest.mark.parametrize("budget", [QUICK, PAPER], ids=["3 seeds", "15 seeds"])
 @pytest.mark.parametrize("variation", [{}, INDEPENDENT_CELLS, STRONG_SEED_EFFECT],
                          ids=["measured", "independent cells", "strong seed effect"])
@@ -58,7 +38,7 @@ def test_null_false_verdict_rate_stays_at_five_percent(budget, variation):
 @pytest.mark.parametrize("budget", [QUICK, PAPER], ids=["3 seeds", "15 seeds"])
 def test_the_old_rule_fails_the_same_check(budget):
     # at the seed variation measured in our quick run (Design's defaults)
-    rate = false_verdict_rate(budget, replicates=1000, decide=old_bootstrap_verdicts, seed=11)
+    rate = false_verdict_rate(budget, replicates=1000, decide=cellwise_bootstrap_verdicts, seed=11)
     assert rate.low > CEILING, rate
 
 
