@@ -294,5 +294,5 @@ def test_the_one_formatter_names_path_problem_allowed_values_and_value():
                for line in lines)
     assert any(line.startswith("  - study.kk: unknown field; allowed fields: estimators, perturbations, k")
                and line.endswith("did you mean k? (got 3)") for line in lines)  # through Optional[Study]
-    assert "  - budgets.quick.seedz: unknown field; did you mean seeds? (got 2)" in lines  # through dict[str, Budget]
+    assert "  - budgets.quick.seedz: unknown field; did you mean seeds or mc_seed? (got 2)" in lines  # dict[str, Budget]
     assert not any("Value error" in line for line in lines)

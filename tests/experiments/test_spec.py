@@ -263,3 +263,85 @@ def test_training_seed_limit_is_the_trainers():
     from socnav.rl.training import MAX_SEED
 
     assert TRAIN_SEED_LIMIT == MAX_SEED - 1
+
+
+# ------------------------------------------------------------------------------------------------ Table 3 ablation
+
+def _uncertainty(**safety) -> dict:
+    return {"name": "tiny-unc", "kind": "uncertainty", "scenario_env": {"position_swap": {"n_humans": 1}},
+            "grid": {"algorithms": ["odv-ppo-drop"], "train_scenarios": ["position_swap"], "seeds": 2,
+                     "timesteps": 256},
+            "evaluation": {"scenarios": ["position_swap"], "episodes": 3},
+            "safety": {"perturbations": {"heading_noise": [0.0, 1.0]}, "sensing": ["perceived", "true"], **safety}}
+
+
+def test_table3_held_out_seeds_and_one_command_replications():
+    quick = load_experiment(CONFIGS / "table3.yaml", "quick")
+    fresh = load_experiment(CONFIGS / "table3.yaml", "quick-fresh-episodes")
+    seeds = load_experiment(CONFIGS / "table3.yaml", "quick-training-seeds")
+    paper = load_experiment(CONFIGS / "table3.yaml", "paper")
+    assert quick.evaluation.seed == seeds.evaluation.seed == paper.evaluation.seed == 3_000_000
+    assert fresh.evaluation.seed == 4_000_000
+    assert seeds.grid.seeds == list(range(100, 120)) and seeds.safety.mc_seed == 100
+    assert quick.safety.mc_seed == fresh.safety.mc_seed == 0
+    for other in (fresh, seeds):  # otherwise the quick budget
+        assert other.safety.perturbations == quick.safety.perturbations
+        assert (other.evaluation.episodes, other.safety.repeats, other.safety.calibration_episodes,
+                other.grid.timesteps) == (150, 3, 60, 100_000)
+    # the held-out ranges touch none of the seeds development looked at (0-999, 100,000-100,449), nor the
+    # calibration's (500,000...), nor each other, at the largest budget
+    from socnav.envs.perturbations import CALIBRATION_SEED
+
+    def seen(experiment):
+        start = experiment.evaluation.seed
+        return range(start, start + experiment.safety.repeats * experiment.evaluation.episodes)
+
+    looked = [range(0, 1000), range(100_000, 100_450), range(CALIBRATION_SEED, CALIBRATION_SEED + 11 * 60)]
+    for held_out in (seen(paper), seen(quick), seen(fresh)):
+        assert all(not set(held_out) & set(r) for r in looked)
+    assert not set(seen(paper)) & set(seen(fresh))
+    assert quick.safety.ablation == ["proximity-only", "uncertainty-only"]
+    assert quick.safety.ablation_sensing_resolved == "true"
+    assert quick.safety.tradeoff_budgets == [0.01, 0.02, 0.05, 0.10]
+    assert (quick.safety.tradeoff_search, quick.safety.tradeoff_repeats) == ("light", 1)
+
+
+@pytest.mark.parametrize("budget, expected", [
+    ({"eval_seed": -1}, ["budgets.b.eval_seed", "greater than or equal to 0"]),
+    ({"eval_seed": 2**31}, ["budgets.b.eval_seed", "less than or equal to 2147483647"]),
+    ({"mc_seed": "seven"}, ["budgets.b.mc_seed", "integer"]),
+    ({"mc_seed": 5}, ["budget 'b'", "safety.mc_seed 5 is not among grid.seeds [0, 1]"]),
+])
+def test_budget_evaluation_seed_and_acting_policy_are_validated(budget, expected):
+    message = _error({**_uncertainty(), "budgets": {"b": budget}})
+    for fragment in expected:
+        assert fragment in message, (fragment, message)
+
+
+def test_budget_evaluation_seed_and_acting_policy_apply():
+    from socnav.experiments.spec import resolve_budget
+
+    data = {**_uncertainty(), "study": {"perturbations": {"heading_noise": [0.0, 1.0]}},
+            "budgets": {"b": {"seeds": [3, 4], "mc_seed": 4, "eval_seed": 77}}}
+    chosen = resolve_budget(parse_experiment(data, "test"), "b")
+    assert (chosen.evaluation.seed, chosen.safety.mc_seed, chosen.study.mc_seed) == (77, 4, 4)
+    acting = [u for u in plan_units(chosen) if u.id == "safety/mc/heading_noise"][0]
+    assert acting.deps[0] == "train/position_swap/odv-ppo-drop/seed4" and acting.params["seed"] == 77
+
+
+@pytest.mark.parametrize("safety, expected", [
+    ({"ablation": ["paper"]}, ["safety.ablation", "'proximity-only' or 'uncertainty-only'"]),
+    ({"ablation": ["proximity-only", "proximity-only"]}, ["safety.ablation", "lists a rule twice"]),
+    ({"tradeoff_budgets": [0.1, 0.05]}, ["safety.tradeoff_budgets", "increasing"]),
+    ({"tradeoff_budgets": [0.0, 0.05]}, ["safety.tradeoff_budgets", "(0, 1]"]),
+    ({"ablation": ["uncertainty-only"], "calibrate": False}, ["safety", "calibrate must be true"]),
+    ({"ablation": ["proximity-only"], "ablation_sensing": "true", "sensing": ["perceived"]},
+     ["safety", "ablation_sensing 'true' must be one of sensing ['perceived']"]),
+    ({"ablation_sensing": "lidar"}, ["safety.ablation_sensing", "'perceived' or 'true'"]),
+    ({"tradeoff_search": "quick"}, ["safety.tradeoff_search", "'full' or 'light'"]),
+    ({"tradeoff_repeats": 0}, ["safety.tradeoff_repeats", "greater than or equal to 1"]),
+])
+def test_ablation_fields_name_the_problem(safety, expected):
+    message = _error(_uncertainty(**safety))
+    for fragment in expected:
+        assert fragment in message, (fragment, message)

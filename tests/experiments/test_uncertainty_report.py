@@ -155,8 +155,9 @@ def report(tmp_path_factory) -> tuple[Path, str]:
 
 def test_sections_are_registered_for_the_uncertainty_kind():
     names = [name for name, _ in SECTIONS["uncertainty"]]
-    assert names[:5] == ["table2", "uncertainty_vs_strength", "feature_uncertainty_collisions", "table3",
-                         "table3_cost"]
+    # uncertainty_information registers first: uncertainty_report imports it at the top
+    assert names[:7] == ["uncertainty_information", "table2", "table2_claims", "uncertainty_vs_strength",
+                         "feature_uncertainty_collisions", "table3", "table3_cost"]
 
 
 def test_table2_numbers_bold_and_dashes(report):
@@ -194,6 +195,24 @@ def test_table2_numbers_bold_and_dashes(report):
     assert rows["Epistemic heading"] == ["**1.00**", "0.50", "0.25", "n/a"]
     assert rows["Epistemic speed"] == ["—", "0.00", "—", "n/a"]                 # u(0) = 0: undefined
     assert "## Table 2" in text and markdown.strip() in text and "u_σ(0) = 0" in text
+
+
+def test_table2_claims_with_magnitudes_and_intervals(report):
+    out, text = report
+    claims = pd.read_csv(out / "table2_claims.csv")
+    assert {"claim", "test", "estimate", "low", "high", "verdict"} <= set(claims.columns)
+    mc = claims[claims["claim"].str.startswith("MC-dropout responds")].set_index("uncertainty")
+    # observation noise, 2 paired episodes: |ΔU/Δσ| MC - ensemble = 1 - 0.5 (u_feat, u_al_speed, u_ep_heading) and
+    # 0 - 0.5 (u_al_heading; u_al_heading is flat for MC, a constant 0.5 -> 1.0 for the ensemble); u_ep_speed: MC's
+    # u(0) = 0, undefined, not compared
+    assert sorted(mc.index) == ["u_al_heading", "u_al_speed", "u_ep_heading", "u_feat"]
+    assert mc["estimate"].to_dict() == pytest.approx({"u_feat": 0.5, "u_al_speed": 0.5, "u_ep_heading": 0.5,
+                                                      "u_al_heading": -0.5})
+    assert mc.loc["u_al_heading", "verdict"] == "does not hold"  # the ensemble responds more, in every resample
+    assert np.allclose(mc["confidence"], 1 - 0.05 / 4)  # Bonferroni over the 4 cells compared
+    assert "cannot tell in" in text and "ensemble larger in 1 of the 4 cells" in text
+    assert "## Table 2 claims" in text and "over episodes for ONE acting policy" in text
+    assert (out / "table2_claims.md").read_text().startswith("| Claim (paper) | Test | Scope |")
 
 
 def test_uncertainty_vs_strength_curves_and_figure(report):
@@ -255,16 +274,12 @@ def test_table3_prevented_collisions(report):
     assert table.loc[("mc", "paper", "observation_noise"), "paper_mean"] == 100
     assert ("ensemble", "paper", "action_noise") not in table.index  # the ensemble ran no action noise
 
-    markdown = (out / "table3.md").read_text()
-    assert markdown.splitlines()[0] == ("| Approach | Thresholds | Observation noise | Heading noise | Speed noise | "
-                                        "Action noise (heading + speed) | Faster humans |")
+    markdown = (out / "table3.md").read_text().split("\n\n")[0]  # the paper's columns (the next test: ours)
+    assert markdown.splitlines()[0] == ("| Approach | Thresholds | Observation noise | Action noise (heading + speed) "
+                                        "| Velocity (faster humans) |")
     rows = _cells(markdown)
-    assert rows[0] == ["MC-dropout", "paper thresholds", "83.3 ± 16.7", "25.0 ± 25.0", "100.0 ± 0.0 (1 of 2)",
-                       "33.3 ± 33.3", "—"]
-    assert rows[1] == ["MC-dropout", "calibrated thresholds", "16.7 ± 16.7", "n/a", "n/a", "n/a", "—"]
-    assert rows[2] == ["MC-dropout", "*paper's Table III*", "*100 ± 0*", "*6 ± 5*", "*6 ± 5*", "*6 ± 5*",
-                       "*56 ± 2*"]
-    assert rows[3] == ["Ensemble", "paper thresholds", "33.3 ± 33.3", "n/a", "n/a", "n/a", "n/a"]
+    assert rows[1] == ["MC-dropout", "calibrated thresholds", "16.7 ± 16.7", "n/a", "—"]
+    assert rows[3] == ["Ensemble", "paper thresholds", "33.3 ± 33.3", "n/a", "n/a"]
     assert rows[4][:3] == ["Ensemble", "*paper's Table III*", "*79 ± 11*"]
     assert "## Table 3" in text and "Warning" not in text
 
@@ -384,3 +399,173 @@ def test_unpaired_groups_compares_each_sensing_with_the_plain_policy():
     shifted = pd.DataFrame(rows("none", "perceived", [0, 1, 2]) + rows("paper", "perceived", [0, 1, 2])
                            + rows("paper", "true", [0, 1, 3]))
     assert _unpaired_groups(shifted) == 1
+
+
+# ------------------------------------------------------------------------------------------------ Table 3 ablation
+
+def test_table3_shows_each_of_the_papers_columns_once(report):
+    out, text = report
+    paper_table, own_table = (out / "table3.md").read_text().strip().split("\n\n")
+    assert paper_table.splitlines()[0] == ("| Approach | Thresholds | Observation noise | Action noise (heading + "
+                                           "speed) | Velocity (faster humans) |")
+    rows = _cells(paper_table)
+    assert rows[0] == ["MC-dropout", "paper thresholds", "83.3 ± 16.7", "33.3 ± 33.3", "—"]
+    assert rows[2] == ["MC-dropout", "*paper's Table III*", "*100 ± 0*", "*6 ± 5*", "*56 ± 2*"]
+    assert paper_table.count("*6 ± 5*") == 1  # the paper's action noise, compared once (heading + speed pooled)
+    assert own_table.splitlines()[0] == ("| Approach | Thresholds | Heading noise alone (ours) | "
+                                         "Speed noise alone (ours) |")
+    assert _cells(own_table)[0] == ["MC-dropout", "paper thresholds", "25.0 ± 25.0", "100.0 ± 0.0 (1 of 2)"]
+    assert "paper's Table III" not in own_table and "Our own columns" in text
+
+
+def test_mcnemar_exact_by_hand():
+    from scipy.stats import binomtest
+
+    from socnav.experiments.uncertainty_report import mcnemar_exact
+
+    # 10 discordant episodes, all won: pi's Clopper-Pearson lower end is (alpha / 2) ** (1 / 10), the upper 1
+    low, high, p = mcnemar_exact(10, 0, 0.95)
+    assert low == pytest.approx(10 * (2 * 0.025 ** 0.1 - 1)) and low == pytest.approx(3.8301, abs=1e-4)
+    assert high == 10 and p == pytest.approx(2 / 2 ** 10)
+    assert mcnemar_exact(0, 10, 0.95) == pytest.approx((-10, -low, p))  # the mirror image
+    assert mcnemar_exact(0, 0, 0.95) == (0.0, 0.0, 1.0)  # the rules decided alike in every episode
+    low, high, p = mcnemar_exact(3, 3, 0.95)
+    assert low == pytest.approx(-high) and p == 1.0
+    assert mcnemar_exact(7, 2, 0.95)[2] == pytest.approx(binomtest(7, 9, 0.5).pvalue)
+
+
+def _ablation_records() -> pd.DataFrame:
+    """Hand-made ablation records, true-state sensing, observation noise: 20 perturbed episodes (seeds 0-19) and 4
+    unperturbed ones (seeds 100-103), 10 steps each. Collisions (perturbed): plain 0-14 (15); proximity-only
+    0-11; gated (MC-dropout's paper rule, calibrated) 0-1; uncertainty-only 0-14; the paper's thresholds 0-11.
+    At the 2 % trade-off budget: proximity-only 0-13, gated 0-5."""
+    collided = {("mc", "none", "", np.nan): range(15), ("none", "none", "", np.nan): range(15),
+                ("none", "calibrated", "proximity-only", 0.05): range(12),
+                ("none", "calibrated", "proximity-only", 0.02): range(14),
+                ("mc", "calibrated", "paper", 0.05): range(2), ("mc", "calibrated", "paper", 0.02): range(6),
+                ("mc", "calibrated", "uncertainty-only", 0.05): range(15), ("mc", "paper", "paper", np.nan): range(12)}
+    fallback = {"proximity-only": 2, "paper": 1, "uncertainty-only": 3, "": 0}  # per unperturbed episode
+    rows = []
+    for (estimator, variant, rule, budget), hits in collided.items():
+        for strength, seeds in ((0.0, range(100, 104)), (1.0, range(20))):
+            for seed in seeds:
+                hit = strength > 0 and seed in hits
+                steps = fallback[rule] if variant != "paper" else 0
+                rows.append({"estimator": estimator, "perturbation": "observation_noise", "strength": strength,
+                             "repeat": 0, "variant": variant, "sensing": "" if variant == "none" else "true",
+                             "rule": rule, "budget": budget, "seed": seed, "outcome": "collision" if hit else "goal",
+                             "length": 10, "time_to_goal": np.nan if hit else 2.5, "duration": 2.5,
+                             "fallback_steps": steps, "proximity_steps": 4 if variant != "none" else 0,
+                             # the gated rule's uncertainty condition vetoed one of its 4 proximity firings
+                             "vetoed_steps": 1 if (rule, variant) == ("paper", "calibrated") else 0,
+                             # its hand-overs differ from proximity-only's in the perturbed episodes 0-6
+                             "fallback_digest": "b" if rule == "paper" and strength > 0 and seed < 7 else "a"})
+    return pd.DataFrame(rows)
+
+
+def test_ablation_compares_every_rule_with_proximity_only_episode_by_episode():
+    from socnav.experiments.uncertainty_report import ablation_records, decisions_frame, paired_frame
+
+    view = ablation_records(_ablation_records(), "true", 0.05)
+    paired = paired_frame(view).set_index(["estimator", "row", "column"])
+    assert set(paired.index) == {("mc", row, column) for row in ("paper", "uncertainty-only", "calibrated")
+                                 for column in ("all", "observation_noise")}
+    gated = paired.loc[("mc", "calibrated", "all")]
+    # proximity-only collides in 0-11, the gated rule in 0-1: it alone prevents 2-11 (10), never the reverse
+    assert (gated["row_only_prevented"], gated["reference_only_prevented"], gated["difference"]) == (10, 0, 10)
+    assert gated["collisions_none"] == 15 and gated["difference_pct"] == pytest.approx(100 * 10 / 15)
+    # Bonferroni over the 3 rows compared: alpha = 0.05 / 3; by hand, 10 of 10 won -> pi >= (alpha / 2) ** (1 / 10)
+    alpha = 0.05 / 3
+    assert gated["comparisons"] == 3 and gated["confidence"] == pytest.approx(1 - alpha)
+    assert gated["low_pct"] == pytest.approx(100 / 15 * 10 * (2 * (alpha / 2) ** 0.1 - 1))
+    assert gated["high_pct"] == pytest.approx(100 * 10 / 15) and gated["verdict"] == "holds"
+    assert gated["p_adjusted"] == pytest.approx(3 * 2 / 2 ** 10)
+    only = paired.loc[("mc", "uncertainty-only", "all")]  # lost 3 (12-14), won none: n = 3 is too few to tell
+    assert (only["row_only_prevented"], only["reference_only_prevented"]) == (0, 3)
+    assert only["high_pct"] == pytest.approx(100 / 15 * 3 * (1 - 2 * (alpha / 2) ** (1 / 3)))
+    assert only["verdict"] == "cannot tell at this budget" and only["p_value"] == pytest.approx(0.25)
+    same = paired.loc[("mc", "paper", "all")]  # the paper's thresholds collide exactly where proximity-only does
+    assert (same["difference"], same["low_pct"], same["high_pct"]) == (0, 0.0, 0.0)
+    assert same["verdict"] == "cannot tell at this budget"
+    # per column: Bonferroni over rows x columns (here one column)
+    assert paired.loc[("mc", "calibrated", "observation_noise"), "comparisons"] == 3
+
+    decisions = decisions_frame(view).set_index(["estimator", "row"])
+    gated = decisions.loc[("mc", "calibrated")]
+    assert gated["false_activation_pct"] == pytest.approx(10.0)  # 1 of 10 steps in each unperturbed episode
+    assert gated["vetoed_pct"] == pytest.approx(25.0) and gated["vetoed_steps"] == 24
+    assert (gated["episodes_other_decisions"], gated["paired_episodes"]) == (7, 24)
+    assert decisions.loc[("none", "proximity-only"), "false_activation_pct"] == pytest.approx(20.0)
+    assert np.isnan(decisions.loc[("mc", "uncertainty-only"), "vetoed_pct"])  # no proximity terms to veto
+
+
+def test_ablation_and_tradeoff_sections(tmp_path):
+    records = _ablation_records()
+    root = _run_dir(tmp_path / "run", study=False, safety=False, calibration=False)
+    resolved = {"experiment": {"name": "unc", "kind": "uncertainty", "budget": "quick",
+                               "evaluation": {"seed": 3_000_000, "episodes": 20},
+                               "safety": {"false_activation_budget": 0.05, "repeats": 1, "calibration_episodes": 60,
+                                          "ablation_sensing": "true"}}}
+    (root / "resolved.json").write_text(json.dumps(resolved))
+    for estimator in ("mc", "none"):
+        write_table_atomic(records[records["estimator"] == estimator],
+                           root / "safety" / estimator / "observation_noise" / "episodes.parquet")
+    page = build_report(root)
+    text, out = page.read_text(), page.parent
+    # Table 3 and its cost: the main rows only (no ablation rule, no trade-off budget, no estimator-free unit)
+    table3 = pd.read_csv(out / "table3.csv")
+    assert set(zip(table3["estimator"], table3["variant"])) == {("mc", "paper"), ("mc", "calibrated")}
+    assert table3.set_index("variant").loc["calibrated", "collisions_variant"] == 2  # budget 5 %, not 2 %
+    assert "Warning" not in text  # every rule and budget played the plain policy's seeds
+    assert "seeds 3,000,000–3,000,019" in text and "held out" in text and "not held out" not in text
+    cost = pd.read_csv(out / "table3_cost.csv")
+    assert list(cost["variant"]) == ["none", "paper", "calibrated"]
+    assert cost.loc[2, "false_activation_pct"] == pytest.approx(10.0)
+    # the ablation: a row per rule, proximity-only the reference
+    assert "## Table 3 ablation" in text
+    rows = {(r[0], r[1]): r for r in _cells((out / "table3_ablation.md").read_text())}
+    gated = rows[("Paper's rule (c_ep ∨ c_feat) ∧ c_prox ∧ c_ap, calibrated: uncertainty-gated", "MC-dropout")]
+    assert gated[3:7] == ["10.00", "25.0 (24 of 96)", "7 of 24", "+66.7 [+15.9, +66.7] (10 vs 0)"]
+    assert gated[7] == "holds"
+    assert rows[("Proximity only: c_prox ∧ c_ap (calibrated)", "–")][5] == "reference"
+    # the trade-off: per rule and budget, measured false activation and prevented share
+    curve = pd.read_csv(out / "table3_tradeoff.csv")
+    points = {(r.estimator, r.thresholds, r.budget if r.budget == r.budget else None):
+              (r.false_activation_pct, r.prevented_pct) for r in curve.itertuples()}
+    assert points[("none", "calibrated", 0.02)] == pytest.approx((20.0, 100 / 15))
+    assert points[("none", "calibrated", 0.05)] == pytest.approx((20.0, 100 * 3 / 15))
+    assert points[("mc", "calibrated", 0.02)] == pytest.approx((10.0, 100 * 9 / 15))
+    assert points[("mc", "paper", None)] == pytest.approx((0.0, 100 * 3 / 15))
+    assert ("mc", "uncertainty-only") not in set(zip(curve["estimator"], curve["rule"]))  # one budget: no curve
+    # a trade-off budget played on the first repeat only: every point of the curve on that repeat alone
+    from socnav.experiments.uncertainty_report import tradeoff_frame
+
+    second = records[records["budget"] != 0.02].assign(repeat=1)
+    second.loc[second["outcome"] == "collision", "outcome"] = "goal"  # a repeat the curve must not see
+    both = tradeoff_frame(pd.concat([records, second], ignore_index=True), "true")
+    pd.testing.assert_frame_equal(both, tradeoff_frame(records, "true"))
+    assert (out / "table3_tradeoff.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<svg" in (out / "table3_tradeoff.svg").read_text()[:2000]
+
+
+def test_calibration_table_names_the_rule_and_hides_what_it_ignores(tmp_path):
+    root = _run_dir(tmp_path / "run", study=False, safety=False)
+    for name, data in (("calibrate-true/proximity-only/calibration.json",
+                        {"thresholds": {"lambda_ep": 0.0, "lambda_feat": 0.0, "lambda_prox": 0.4, "beta1": 1.0,
+                                        "proximity": "closing-speed", "sensing": "true", "hold_steps": 1,
+                                        "conditions": "proximity-only"}, "estimator": "none",
+                         "conditions": "proximity-only", "sensing": "true", "false_activation_budget": 0.05,
+                         "prevented_fraction": 0.9, "false_activation_rate": 0.03}),
+                       ("calibrate-true/mc-uncertainty-only/calibration-budget0.02.json",
+                        {"thresholds": {"lambda_ep": 0.2, "lambda_feat": None, "lambda_prox": 1000.0, "beta1": 0.0,
+                                        "conditions": "uncertainty-only"}, "estimator": "mc",
+                         "conditions": "uncertainty-only", "sensing": "true", "false_activation_budget": 0.02,
+                         "prevented_fraction": 0.5, "false_activation_rate": 0.01})):
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data))
+    text = build_report(root).read_text()
+    assert ("| – | calibrated, proximity only (true state) | – | – | 0.4 | 1 | closing-speed | 1 | 0.9 | 0.03 |"
+            in text)
+    assert ("| MC-dropout | calibrated, uncertainty only (true state), 2 % budget | 0.2 | ∞ | – | – |" in text)
+    assert "| MC-dropout | calibrated | 0.05 | 0.25 | 1 | 0.25 |" in text  # the paper's rule as before

@@ -116,13 +116,17 @@ def test_non_odv_policy_exports_with_calibrated_thresholds(tmp_path, observation
                        overrides={"lstm_hidden_size": 16, "net_arch_pi": (32,)})
     torch.set_num_threads(1)
     policy = model.policy
-    thresholds = Thresholds.create(lambda_ep=0.1, lambda_feat=float("inf"), lambda_prox=1.2, beta1=0.0, hold_steps=2)
+    thresholds = Thresholds.create(lambda_ep=0.1, lambda_feat=float("inf"), lambda_prox=1.2, beta1=0.0, hold_steps=2,
+                                   conditions="uncertainty-only")
     save_thresholds(thresholds, tmp_path / "calibrated.yaml")
     path = socnav.export_onnx(policy, tmp_path / "ppo.onnx", thresholds=tmp_path / "calibrated.yaml", k=4,
                               p_test=0.3, env_config=config)
     network = ExportedPolicy.load(path)
     assert Thresholds.create(network.metadata["safety"]["thresholds"]) == thresholds
-    assert SafeNavigator(network).thresholds.hold_steps == 2  # the navigator holds as calibrated
+    navigator = SafeNavigator(network)
+    assert navigator.thresholds.hold_steps == 2  # the navigator holds as calibrated ...
+    assert navigator.thresholds.conditions == "uncertainty-only"  # ... with the rule variant of the file
+    assert network.metadata["safety"]["thresholds"]["conditions"] == "uncertainty-only"
     batch = {key: value[::7] for key, value in observations.items()}
     np.testing.assert_allclose(network.predict(batch)[0], policy.predict(batch, deterministic=True)[0], atol=TOLERANCE)
     expected = MCDropoutEstimator(policy, k=4, p_test=0.3, uniforms=DropoutStream(5)).samples(batch)

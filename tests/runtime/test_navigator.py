@@ -78,12 +78,16 @@ def test_more_humans_than_rows_keeps_the_closest(navigator_file):
     assert observed[-1] == pytest.approx(closest[0], abs=1e-5)  # the closest is the last row
 
 
-@pytest.mark.parametrize("scenario,humans,seed,hold", [("position_swap", 1, 0, 0), ("circle_crossing", 5, 1, 0),
-                                                       ("random", (0, 10), 2, 0), ("circle_crossing", 5, 3, 2)])
-def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_file, scenario, humans, seed, hold):
+@pytest.mark.parametrize("scenario,humans,seed,hold,conditions", [
+    ("position_swap", 1, 0, 0, "paper"), ("circle_crossing", 5, 1, 0, "paper"), ("random", (0, 10), 2, 0, "paper"),
+    ("circle_crossing", 5, 3, 2, "paper"), ("circle_crossing", 5, 4, 0, "proximity-only"),
+    ("random", (0, 10), 5, 1, "uncertainty-only")])
+def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_file, scenario, humans, seed, hold,
+                                                   conditions):
     """The navigator drives the environment from the world's state arrays; at every step the torch SafePolicy,
     fed the environment's observation and the same mask stream, decides the same: fallback, action, uncertainty;
-    with a hold of the fallback too (held steps: the fallback drives while the rule does not fire).
+    with a hold of the fallback too (held steps: the fallback drives while the rule does not fire), and with each
+    ablation of the rule (``Thresholds.conditions``).
 
     (Two environments stepped independently by the two drift apart from float32 rounding (~1e-7), which the
     shipped policy's saturated turns can amplify; so both decide on the one trajectory.)
@@ -94,7 +98,7 @@ def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_
 
     config = socnav.load_config({"scenario": scenario, "n_humans": humans})
     estimator = MCDropoutEstimator(pretrained_policy, k=20, uniforms=DropoutStream(seed))
-    thresholds = EAGER.model_copy(update={"hold_steps": hold})
+    thresholds = EAGER.model_copy(update={"hold_steps": hold, "conditions": conditions})
     reference = SafePolicy(pretrained_policy, estimator, thresholds, config, n_envs=1)
     navigator = SafeNavigator.load(navigator_file, thresholds=thresholds, seed=seed)
     env = SocialNavEnv(config)
@@ -118,6 +122,7 @@ def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_
             done = terminated or truncated
     assert fallbacks > 0 and steps > fallbacks  # both the fallback and the policy were compared
     assert (held > 0) == (hold > 0)
+    assert navigator.thresholds.conditions == conditions
 
 
 def test_command_and_window(navigator_file):

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
-from pydantic import Field, StrictInt, ValidationError, field_validator
+from pydantic import Field, StrictInt, ValidationError, field_validator, model_validator
 
 from socnav.config import (ConfigError, StrictModel, deep_merge, format_validation_error, load_config,
                            read_mapping_file, short_repr)
@@ -203,11 +203,22 @@ class Study(StrictModel):
         return _perturbation_grid(value)
 
 
+Ablated = Literal["proximity-only", "uncertainty-only"]
+
+
 class Safety(StrictModel):
     """The safety evaluation (paper Table 3): per estimator and perturbation, the same episodes without the safety
     layer, with the paper's thresholds and (if `calibrate`) with thresholds calibrated on disjoint perturbations
     and seeds, each with every `sensing` (one calibration per estimator and sensing); `repeats` independent blocks
-    of `evaluation.episodes` episodes give mean +- std."""
+    of `evaluation.episodes` episodes give mean +- std.
+
+    The ablation (Table 3's question whether the uncertainty condition changes the safety decision): each rule of
+    `ablation` (`socnav.safety.Thresholds.conditions`) is calibrated under the same false-activation budget on the
+    same calibration episodes and played on the same evaluation episodes, for the one sensing `ablation_sensing`;
+    ``proximity-only`` reads no uncertainty, so it is calibrated and played once, not per estimator. With
+    `tradeoff_budgets`, the paper's rule of every estimator and the proximity-only rule are also calibrated and
+    played at each of those false-activation budgets (the trade-off curve) -- with `tradeoff_search` and
+    `tradeoff_repeats` more cheaply than at `false_activation_budget`, for every rule alike."""
 
     estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
                                         description="uncertainty estimators driving the safety layer")
@@ -234,11 +245,62 @@ class Safety(StrictModel):
     window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES, description="steps of the windowed uncertainty")
     mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT,
                                description="training seed of the acting / MC-dropout policy")
+    ablation: list[Ablated] = Field(default_factory=list,
+                                    description="rule variants calibrated and evaluated next to the paper's rule "
+                                                "(eq. (10)): proximity-only and/or uncertainty-only")
+    ablation_sensing: Optional[Literal["perceived", "true"]] = Field(
+        None, description="the sensing the ablation and the trade-off curve are run with (one of `sensing`; null: "
+                          "true if listed, else the first)")
+    tradeoff_budgets: list[float] = Field(default_factory=list,
+                                          description="false-activation budgets (each in (0, 1], increasing) of "
+                                                      "the trade-off curve; [] for none")
+    tradeoff_search: Literal["full", "light"] = Field(
+        "full", description="calibration at the trade-off budgets other than false_activation_budget: full (as at "
+                            "that budget) or light (one proxy budget, no refinement stage; every rule alike)")
+    tradeoff_repeats: Optional[StrictInt] = Field(
+        None, ge=1, le=MAX_SAMPLES, description="the first repeats the rules of those budgets are evaluated on "
+                                                "(null: every repeat); the curve uses the repeats all its points share")
 
     @field_validator("perturbations")
     @classmethod
     def _grid(cls, value: dict[str, list[float]]) -> dict[str, list[float]]:
         return _perturbation_grid(value)
+
+    @field_validator("ablation")
+    @classmethod
+    def _ablation(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError(f"lists a rule twice: {value}; allowed: proximity-only, uncertainty-only (each once)")
+        return value
+
+    @field_validator("ablation_sensing", mode="before")
+    @classmethod
+    def _ablation_sensing(cls, value: Any) -> Any:
+        return "true" if value is True else value  # YAML reads an unquoted `true` as a boolean
+
+    @field_validator("tradeoff_budgets")
+    @classmethod
+    def _budgets(cls, value: list[float]) -> list[float]:
+        if any(not 0.0 < budget <= 1.0 for budget in value):
+            raise ValueError(f"each budget must lie in (0, 1] (a share of unperturbed steps), got {value}")
+        if sorted(set(value)) != list(value):
+            raise ValueError(f"budgets must be increasing, each listed once, got {value}")
+        return value
+
+    @model_validator(mode="after")
+    def _ablation_needs_calibration(self) -> "Safety":
+        if (self.ablation or self.tradeoff_budgets) and not self.calibrate:
+            raise ValueError("ablation / tradeoff_budgets: the rules are calibrated, so calibrate must be true")
+        if self.ablation_sensing is not None and self.ablation_sensing not in self.sensing:
+            raise ValueError(f"ablation_sensing {self.ablation_sensing!r} must be one of sensing {self.sensing}")
+        return self
+
+    @property
+    def ablation_sensing_resolved(self) -> str:
+        """The sensing of the ablation: `ablation_sensing`, or ``true`` if `sensing` lists it, else its first."""
+        if self.ablation_sensing is not None:
+            return self.ablation_sensing
+        return "true" if "true" in self.sensing else self.sensing[0]
 
     @field_validator("sensing", mode="before")
     @classmethod
@@ -277,6 +339,10 @@ class Budget(StrictModel):
     repeats: Optional[StrictInt] = Field(None, ge=1, le=MAX_SAMPLES, description="safety.repeats")
     calibration_episodes: Optional[StrictInt] = Field(None, ge=1, le=MAX_EPISODES,
                                                       description="safety.calibration_episodes")
+    eval_seed: Optional[StrictInt] = Field(None, ge=0, le=EPISODE_SEED_LIMIT,
+                                           description="evaluation.seed: episode k uses seed + k")
+    mc_seed: Optional[StrictInt] = Field(None, ge=0, le=TRAIN_SEED_LIMIT,
+                                         description="study.mc_seed and safety.mc_seed (one of the seeds trained)")
 
     @field_validator("study_perturbations", "safety_perturbations")
     @classmethod
@@ -430,6 +496,10 @@ def _check_consistency(experiment: Experiment, source: str) -> None:
                     detail = str(exc).split("\n", 1)[-1]
                     raise ExperimentError(f"invalid experiment ({source}): {name}.perturbations.{kind}: strength "
                                           f"{strength} gives an invalid env:\n{detail}") from None
+    for name, block in (("study", experiment.study), ("safety", experiment.safety)):
+        if block is not None and experiment.kind == "uncertainty" and block.mc_seed not in experiment.grid.seeds:
+            raise ExperimentError(f"invalid experiment ({source}): {name}.mc_seed {block.mc_seed} is not among "
+                                  f"grid.seeds {experiment.grid.seeds}: the acting policy must be one of those trained")
     if len(set(max_humans.values())) > 1:
         raise ExperimentError(
             f"invalid experiment ({source}): env.max_humans differs between scenarios ({max_humans}); every policy "
@@ -460,7 +530,8 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
     if chosen.overrides is not None:
         grid_update["overrides"] = {**experiment.grid.overrides, **chosen.overrides}
     evaluation_update: dict[str, Any] = {}
-    for key, target in (("episodes", "episodes"), ("eval_n_envs", "n_envs"), ("eval_scenarios", "scenarios")):
+    for key, target in (("episodes", "episodes"), ("eval_n_envs", "n_envs"), ("eval_scenarios", "scenarios"),
+                        ("eval_seed", "seed")):
         if getattr(chosen, key) is not None:
             evaluation_update[target] = getattr(chosen, key)
     update: dict[str, Any] = {
@@ -468,12 +539,15 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
         "evaluation": experiment.evaluation.model_copy(update=evaluation_update),
         "budget": budget,
     }
-    if experiment.study is not None and chosen.study_perturbations is not None:
-        update["study"] = experiment.study.model_copy(update={"perturbations": chosen.study_perturbations})
+    if experiment.study is not None:
+        study_update = {key: value for key, value in (("perturbations", chosen.study_perturbations),
+                                                      ("mc_seed", chosen.mc_seed)) if value is not None}
+        update["study"] = experiment.study.model_copy(update=study_update)
     if experiment.safety is not None:
         safety_update = {key: value for key, value in (("perturbations", chosen.safety_perturbations),
                                                        ("repeats", chosen.repeats),
-                                                       ("calibration_episodes", chosen.calibration_episodes))
+                                                       ("calibration_episodes", chosen.calibration_episodes),
+                                                       ("mc_seed", chosen.mc_seed))
                          if value is not None}
         update["safety"] = experiment.safety.model_copy(update=safety_update)
     return experiment.model_copy(update=update)
@@ -526,9 +600,23 @@ def register_planner(kind: str) -> Callable[[Planner], Planner]:
     return decorate
 
 
-def calibration_unit_id(estimator: str, sensing: str) -> str:
-    """The calibration unit of an estimator and sensing (``perceived`` keeps the id it had before sensing)."""
-    return f"calibrate/{estimator}" if sensing == "perceived" else f"calibrate-{sensing}/{estimator}"
+#: The estimator name of the rule that reads no uncertainty (records, unit ids): ``proximity-only``.
+NO_ESTIMATOR = "none"
+
+
+def calibration_unit_id(estimator: str, sensing: str, conditions: str = "paper") -> str:
+    """The calibration unit of an estimator, sensing and rule variant (``perceived`` and the paper's rule keep the
+    id they had before those choices): ``calibrate[-<sensing>]/<estimator>``, ``.../<estimator>-uncertainty-only``
+    and, for the one rule that reads no uncertainty, ``.../proximity-only`` (whatever `estimator`)."""
+    name = {"paper": estimator, "uncertainty-only": f"{estimator}-uncertainty-only",
+            "proximity-only": "proximity-only"}[conditions]
+    return f"calibrate/{name}" if sensing == "perceived" else f"calibrate-{sensing}/{name}"
+
+
+def tradeoff_thresholds_file(budget: float) -> str:
+    """The file a calibration unit writes the thresholds of a trade-off budget to (``thresholds.yaml``: its main
+    budget)."""
+    return f"thresholds-budget{budget:g}.yaml"
 
 
 def train_unit_id(scenario: str, algo: str, seed: int) -> str:
@@ -573,8 +661,12 @@ def plan_train_eval(experiment: Experiment) -> list[Unit]:
 @register_planner("uncertainty")
 def plan_uncertainty(experiment: Experiment) -> list[Unit]:
     """Train the policies of `grid` (one scenario, one algorithm: the ensemble members), then one study unit per
-    (estimator, perturbation) and, with `safety`, one calibration unit per estimator and one safety unit per
-    (estimator, perturbation)."""
+    (estimator, perturbation) and, with `safety`, one calibration unit per estimator and sensing and one safety unit
+    per (estimator, perturbation). With `safety.ablation`: an uncertainty-only calibration per estimator (its rows
+    played in that estimator's safety units) and one proximity-only calibration, played by its own safety units
+    ``safety/none/<perturbation>`` (the rule reads no uncertainty); with `safety.tradeoff_budgets` the calibrations
+    of `safety.ablation_sensing` (paper's rule and proximity-only) also choose thresholds at those budgets, played
+    by the same safety units."""
     grid, evaluation = experiment.grid, experiment.evaluation
     if len(grid.train_scenarios) != 1 or len(grid.algorithms) != 1:
         raise ExperimentError(f"experiment {experiment.name!r}: kind uncertainty trains one algorithm on one "
@@ -601,27 +693,93 @@ def plan_uncertainty(experiment: Experiment) -> list[Unit]:
                     "k": study.k, "p_test": study.p_test, "window": study.window,
                 }, deps=policies(estimator, study.mc_seed)))
     if experiment.safety is not None:
-        safety = experiment.safety
-        for estimator in safety.estimators:
-            deps = policies(estimator, safety.mc_seed)
-            calibrations: tuple[str, ...] = ()
-            if safety.calibrate:
-                for sensing in safety.sensing:
-                    calibration = Unit(calibration_unit_id(estimator, sensing), "calibrate", {
-                        "env": common["env"], "estimator": estimator, "episodes": safety.calibration_episodes,
-                        "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
-                        "k": safety.k, "window": safety.window, "sensing": sensing,
-                    }, deps=deps)
-                    units.append(calibration)
-                    calibrations += (calibration.id,)
-            for perturbation, strengths in safety.perturbations.items():
-                units.append(Unit(f"safety/{estimator}/{perturbation}", "safety_eval", {
-                    **common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
-                    "repeats": safety.repeats, "thresholds": safety.thresholds.get(estimator, estimator),
-                    "proximity": safety.proximity, "k": safety.k, "window": safety.window,
-                    "sensing": list(safety.sensing),
-                }, deps=deps + calibrations))
+        units += _plan_safety(experiment, experiment.safety, common, policies)
     return units
+
+
+def _plan_safety(experiment: Experiment, safety: Safety, common: dict[str, Any],
+                 policies: Callable[[str, int], tuple[str, ...]]) -> list[Unit]:
+    """The calibration and safety units of `plan_uncertainty` (its docstring). Without `ablation` and
+    `tradeoff_budgets` the units and their parameters are those planned before the ablation existed."""
+    units: list[Unit] = []
+    ablation_sensing = safety.ablation_sensing_resolved
+    extra_budgets = [b for b in safety.tradeoff_budgets if b != safety.false_activation_budget]
+    ablated = bool(safety.ablation or safety.tradeoff_budgets)
+
+    def calibration_params(sensing: str, conditions: str = "paper") -> dict[str, Any]:
+        params = {"env": common["env"], "episodes": safety.calibration_episodes,
+                  "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
+                  "window": safety.window, "sensing": sensing}
+        if sensing == ablation_sensing and extra_budgets and conditions != "uncertainty-only":
+            params["tradeoff_budgets"] = extra_budgets
+            if safety.tradeoff_search != "full":
+                params["tradeoff_search"] = safety.tradeoff_search
+        if conditions != "paper":
+            params["conditions"] = conditions
+        return params
+
+    acting = policies("mc", safety.mc_seed)
+    evaluations: list[Unit] = []  # planned after every calibration (see `_relative_cost`)
+    proximity_calibration: Unit | None = None
+    # Every perturbation type's unperturbed strength is the same world, so its episodes are the same in every
+    # safety unit: with the ablation they are played once, by the unit of the first perturbation type.
+    first = next(iter(safety.perturbations), None)
+    if "proximity-only" in safety.ablation:
+        # reads no uncertainty: one calibration (and one evaluation) for all estimators, on the acting policy only
+        proximity_calibration = Unit(calibration_unit_id(NO_ESTIMATOR, ablation_sensing, "proximity-only"),
+                                     "calibrate", {**calibration_params(ablation_sensing, "proximity-only"),
+                                                   "estimator": None}, deps=acting)
+        units.append(proximity_calibration)
+    for estimator in safety.estimators:
+        deps = policies(estimator, safety.mc_seed)
+        calibrations: tuple[str, ...] = ()
+        if safety.calibrate:
+            for sensing in safety.sensing:
+                calibration = Unit(calibration_unit_id(estimator, sensing), "calibrate",
+                                   {**calibration_params(sensing), "estimator": estimator, "k": safety.k}, deps=deps)
+                units.append(calibration)
+                calibrations += (calibration.id,)
+            if "uncertainty-only" in safety.ablation:
+                calibration = Unit(calibration_unit_id(estimator, ablation_sensing, "uncertainty-only"), "calibrate",
+                                   {**calibration_params(ablation_sensing, "uncertainty-only"),
+                                    "estimator": estimator, "k": safety.k}, deps=deps)
+                units.append(calibration)
+                calibrations += (calibration.id,)
+        for perturbation, strengths in safety.perturbations.items():
+            params = {**common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
+                      "repeats": safety.repeats, "thresholds": safety.thresholds.get(estimator, estimator),
+                      "proximity": safety.proximity, "k": safety.k, "window": safety.window,
+                      "sensing": list(safety.sensing)}
+            if ablated:
+                params["ablation"] = {"sensing": ablation_sensing, "budget": safety.false_activation_budget,
+                                      "rules": [rule for rule in safety.ablation if rule == "uncertainty-only"],
+                                      "tradeoff_budgets": extra_budgets, "tradeoff_repeats": safety.tradeoff_repeats,
+                                      "unperturbed": perturbation == first}
+            evaluations.append(Unit(f"safety/{estimator}/{perturbation}", "safety_eval", params,
+                                    deps=deps + calibrations))
+    if proximity_calibration is not None:
+        for perturbation, strengths in safety.perturbations.items():
+            evaluations.append(Unit(f"safety/{NO_ESTIMATOR}/{perturbation}", "safety_eval_proximity", {
+                **common, "perturbation": perturbation, "strengths": strengths, "repeats": safety.repeats,
+                "window": safety.window, "sensing": ablation_sensing,
+                "budgets": [safety.false_activation_budget, *extra_budgets], "unperturbed": perturbation == first,
+                "tradeoff_repeats": safety.tradeoff_repeats,
+            }, deps=acting + (proximity_calibration.id,)))
+    if not ablated:
+        return units + evaluations  # the configured order
+    return sorted(units, key=_relative_cost, reverse=True) + sorted(evaluations, key=_relative_cost, reverse=True)
+
+
+def _relative_cost(unit: Unit) -> float:
+    """A unit's rough cost relative to a one-budget MC-dropout calibration, for the plan order: the runner starts
+    ready units in plan order, so the longest first keep both workers busy to the end. Measured on the 2-core
+    machine (Table 3 quick): an ensemble replay costs ~1.2 MC-dropout ones, a replay without estimate ~0.2; each
+    further trade-off budget adds ~35 % replays, the uncertainty-only search has ~15 % fewer candidates."""
+    p = unit.params
+    per_replay = {"ensemble": 1.2, "mc": 1.0}.get(p.get("estimator") or NO_ESTIMATOR, 0.2)
+    replays = (1.0 + 0.35 * len(p.get("tradeoff_budgets", []))) * (0.85 if p.get("conditions") == "uncertainty-only"
+                                                                    else 1.0)
+    return per_replay * replays
 
 
 def plan_units(experiment: Experiment) -> list[Unit]:

@@ -1,21 +1,23 @@
 """Units of the `uncertainty` experiment kind: the perturbation study (Table 2), threshold calibration and the safety
-evaluation (Table 3). Each executor reads the trained policies of its dependencies and writes Parquet records.
-"""
+evaluation (Table 3, its rule ablation and trade-off curve). Each executor reads the trained policies of its
+dependencies and writes Parquet records."""
 
 from __future__ import annotations
 
 import json
+import math
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import pandas as pd
 
-from socnav.envs.perturbations import perturbed_config
+from socnav.envs.perturbations import PAPER_GRIDS, perturbed_config, strength_zero
 from socnav.envs.rollout import rollout_episodes
 from socnav.experiments.registry import (
     ExecutorResult, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
 )
-from socnav.experiments.spec import Unit, calibration_unit_id
+from socnav.experiments.spec import NO_ESTIMATOR, Unit, calibration_unit_id, tradeoff_thresholds_file
 from socnav.io import write_table_atomic, write_text_atomic
 from socnav.uncertainty import MC_SEED
 
@@ -72,64 +74,167 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 
 @register_executor("calibrate")
 def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
-    """Calibration records on perturbations and seeds disjoint from the evaluation, then `calibrate`."""
-    from socnav.safety import calibrate_thresholds, save_thresholds
+    """Calibration records on perturbations and seeds disjoint from the evaluation, then `calibrate`: thresholds for
+    the unit's budget (``thresholds.yaml``, ``calibration.json``) and, with ``tradeoff_budgets``, for each of those
+    on the same episodes (``thresholds-budget<b>.yaml``, ``calibration-budget<b>.json``). A ``proximity-only``
+    rule reads no uncertainty: no estimator is built for it."""
+    from socnav.safety import calibrate_budgets, save_thresholds
 
     p = unit.params
     single_threaded_torch()
     policies, inputs = _policies(root, unit)
-    thresholds, report = calibrate_thresholds(policies[0], _estimator(p["estimator"], policies, p["k"]), p["env"],
-                                              p["episodes"], p["budget"], p["proximity"], p["window"],
-                                              sensing=p["sensing"])
-    save_thresholds(thresholds, directory / "thresholds.yaml")
-    write_text_atomic(directory / "calibration.json", json.dumps(json_safe(report), indent=2))
-    return ExecutorResult(["thresholds.yaml", "calibration.json"], inputs=inputs)
+    conditions = p.get("conditions", "paper")
+    estimator = None if conditions == "proximity-only" else _estimator(p["estimator"], policies, p["k"])
+    budgets = [p["budget"], *p.get("tradeoff_budgets", [])]
+    light = p.get("tradeoff_budgets", []) if p.get("tradeoff_search") == "light" else []
+    results = calibrate_budgets(policies[0], estimator, p["env"], p["episodes"], budgets, p["proximity"],
+                                p["window"], sensing=p["sensing"], conditions=conditions, light=light)
+    files = []
+    for budget, (thresholds, report) in results.items():
+        if conditions != "paper":  # the directory does not name the estimator of an ablated rule
+            report = {**report, "estimator": p["estimator"] if p["estimator"] is not None else NO_ESTIMATOR}
+        names = (("thresholds.yaml", "calibration.json") if budget == p["budget"] else
+                 (tradeoff_thresholds_file(budget), f"calibration-budget{budget:g}.json"))
+        save_thresholds(thresholds, directory / names[0])
+        write_text_atomic(directory / names[1], json.dumps(json_safe(report), indent=2))
+        files += list(names)
+    return ExecutorResult(files, inputs=inputs)
 
 
-@register_executor("safety_eval")
-def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
-    """The same episodes without the safety layer and with each threshold set and sensing, at every strength and
-    repeat. Records: ``variant`` (none / paper / calibrated) and ``sensing`` (perceived / true; empty for none)."""
-    from socnav.safety import FallbackCounter, SafePolicy, Thresholds, load_thresholds
+#: Per-episode columns the safety units add with an ablation (`socnav.safety.FallbackCounter.columns`).
+ABLATION_COLUMNS = ("proximity_steps", "vetoed_steps", "fallback_digest")
 
-    p = unit.params
-    single_threaded_torch()
-    policies, inputs = _policies(root, unit)
-    # The paper's threshold sets take the experiment's proximity reading; calibrated ones keep the variant chosen.
-    paper = Thresholds.create(load_thresholds(p["thresholds"]).model_dump(), proximity=p["proximity"])
-    variants: list[tuple[str, Any]] = []
-    for sensing in p["sensing"]:
-        variants.append(("paper", Thresholds.create(paper.model_dump(), sensing=sensing)))
-        calibration = calibration_unit_id(p["estimator"], sensing)
-        if calibration in unit.deps:
-            path = unit_dir(root, calibration) / "thresholds.yaml"
-            variants.append(("calibrated", Thresholds.create(load_thresholds(path).model_dump(), sensing=sensing)))
-            inputs[f"{calibration}/thresholds.yaml"] = file_digest(path)
+
+@dataclass(frozen=True)
+class _Variant:
+    """One safe variant of a safety unit: the record tags and the thresholds it plays."""
+
+    name: str  # none / paper (the paper's thresholds) / calibrated
+    thresholds: Any
+    rule: str = "paper"  # Thresholds.conditions
+    budget: float = math.nan  # the false-activation budget a calibrated rule was chosen for (NaN: not calibrated)
+    repeats: int | None = None  # played in the first this many repeats only (a trade-off budget); None: all
+
+
+def _calibrated(root: Path, unit: Unit, inputs: dict[str, str], calibration: str, file: str, sensing: str) -> Any:
+    """Thresholds a calibration dependency wrote to `file`, with `sensing` (its digest recorded in `inputs`)."""
+    from socnav.safety import Thresholds, load_thresholds
+
+    path = unit_dir(root, calibration) / file
+    inputs[f"{calibration}/{file}"] = file_digest(path)
+    return Thresholds.create(load_thresholds(path).model_dump(), sensing=sensing)
+
+
+def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimator: Callable[[Any], Any],
+          tags: dict[str, Any], ablation: bool, unperturbed: bool = True) -> pd.DataFrame:
+    """The plain policy and every variant on the same episodes, at every strength and repeat (the records of
+    `_execute_safety`); with `ablation` also the ``rule`` and ``budget`` tags and :data:`ABLATION_COLUMNS`, and the
+    unperturbed strength only if ``unperturbed`` is true (the same world and episodes in every safety unit)."""
+    from socnav.safety import FallbackCounter, SafePolicy
+
     parts = []
+    kind = p["perturbation"]
     for strength in p["strengths"]:
-        config = perturbed_config(p["env"], p["perturbation"], strength)
+        if ablation and not unperturbed and kind in PAPER_GRIDS and math.isclose(strength, strength_zero(kind)):
+            continue  # played by the unit of the first perturbation type
+        config = perturbed_config(p["env"], kind, strength)
         for repeat in range(p["repeats"]):
             seed = p["seed"] + repeat * p["episodes"]
-            tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength),
-                    "repeat": repeat}
-            plain = rollout_episodes(policies[0], config, p["episodes"], seed=seed, n_envs=p["n_envs"])
+            block = {**tags, "perturbation": p["perturbation"], "strength": float(strength), "repeat": repeat}
+            plain = rollout_episodes(policy, config, p["episodes"], seed=seed, n_envs=p["n_envs"])
             plain["fallback_steps"] = 0
-            parts.append(_tag(plain, **tags, variant="none", sensing=""))
+            extra = {"rule": "", "budget": math.nan} if ablation else {}
+            if ablation:
+                plain = plain.assign(proximity_steps=0, vetoed_steps=0, fallback_digest="")
+            parts.append(_tag(plain, **block, variant="none", sensing="", **extra))
             played: dict[Any, pd.DataFrame] = {}
-            for name, thresholds in variants:
+            for variant in variants:
+                if variant.repeats is not None and repeat >= variant.repeats:
+                    continue
+                thresholds = variant.thresholds
                 # Without observation noise the true state IS the observation: both sensings play the same
                 # episodes, so a rollout already played with the other sensing is reused.
                 key = (thresholds.model_copy(update={"sensing": "perceived"})
                        if config.perturbation.observation_noise == 0.0 else thresholds)
                 if key not in played:
                     # a fresh, seeded estimator per run: every variant sees the same dropout masks
-                    estimator = _estimator(p["estimator"], policies, p["k"])
-                    safe = SafePolicy(policies[0], estimator, thresholds, config, window=p["window"])
+                    safe = SafePolicy(policy, make_estimator(thresholds), thresholds, config, window=p["window"])
                     counter = FallbackCounter(safe)
                     records = rollout_episodes(safe, config, p["episodes"], seed=seed, n_envs=p["n_envs"],
                                                observer=counter)
-                    records["fallback_steps"] = counter.per_episode(records["episode"])
+                    columns = counter.columns(records["episode"])
+                    for name in ("fallback_steps", *(ABLATION_COLUMNS if ablation else ())):
+                        records[name] = columns[name]
                     played[key] = records
-                parts.append(_tag(played[key].copy(), **tags, variant=name, sensing=thresholds.sensing))
-    write_table_atomic(pd.concat(parts, ignore_index=True), directory / "episodes.parquet")
+                extra = {"rule": variant.rule, "budget": variant.budget} if ablation else {}
+                parts.append(_tag(played[key].copy(), **block, variant=variant.name, sensing=thresholds.sensing,
+                                  **extra))
+    return pd.concat(parts, ignore_index=True)
+
+
+@register_executor("safety_eval")
+def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    """The same episodes without the safety layer and with each threshold set and sensing, at every strength and
+    repeat. Records: ``variant`` (none / paper / calibrated) and ``sensing`` (perceived / true; empty for none).
+    With ``ablation`` (`socnav.experiments.spec.Safety.ablation`): for its sensing also the uncertainty-only rule
+    and the paper's rule at the trade-off budgets, and the columns ``rule`` (``Thresholds.conditions``; empty for
+    none), ``budget`` (the calibration's false-activation budget; NaN for none and the paper's thresholds) and
+    :data:`ABLATION_COLUMNS`; the unperturbed strength (the same episodes in every unit) is then played by the unit
+    of the first perturbation type only (``ablation.unperturbed``)."""
+    from socnav.safety import Thresholds, load_thresholds
+
+    p = unit.params
+    single_threaded_torch()
+    policies, inputs = _policies(root, unit)
+    ablation = p.get("ablation")
+    main_budget = ablation["budget"] if ablation else math.nan
+    # The paper's threshold sets take the experiment's proximity reading; calibrated ones keep the variant chosen.
+    paper = Thresholds.create(load_thresholds(p["thresholds"]).model_dump(), proximity=p["proximity"])
+    variants: list[_Variant] = []
+    for sensing in p["sensing"]:
+        variants.append(_Variant("paper", Thresholds.create(paper.model_dump(), sensing=sensing)))
+        calibration = calibration_unit_id(p["estimator"], sensing)
+        if calibration in unit.deps:
+            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs, calibration, "thresholds.yaml",
+                                                               sensing), budget=main_budget))
+    if ablation:
+        sensing = ablation["sensing"]
+        for budget in ablation["tradeoff_budgets"]:
+            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs,
+                                                               calibration_unit_id(p["estimator"], sensing),
+                                                               tradeoff_thresholds_file(budget), sensing),
+                                     budget=budget, repeats=ablation.get("tradeoff_repeats")))
+        for rule in ablation["rules"]:
+            calibration = calibration_unit_id(p["estimator"], sensing, rule)
+            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs, calibration, "thresholds.yaml",
+                                                               sensing), rule=rule, budget=main_budget))
+    records = _play(p, policies[0], variants, lambda _: _estimator(p["estimator"], policies, p["k"]),
+                    {"estimator": p["estimator"]}, ablation=bool(ablation),
+                    unperturbed=ablation.get("unperturbed", True) if ablation else True)
+    write_table_atomic(records, directory / "episodes.parquet")
+    return ExecutorResult(["episodes.parquet"], inputs=inputs)
+
+
+@register_executor("safety_eval_proximity")
+def _execute_safety_proximity(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    """The safety unit of the proximity-only rule (no estimator: it reads no uncertainty): the plain policy and the
+    rule calibrated at each of ``budgets`` (the first: the main budget), on the episodes of every other safety unit
+    (the unperturbed strength only with ``unperturbed``). Records as `_execute_safety`'s with an ablation,
+    ``estimator`` = ``none``."""
+    p = unit.params
+    single_threaded_torch()
+    policies, inputs = _policies(root, unit)
+    calibration = calibration_unit_id(NO_ESTIMATOR, p["sensing"], "proximity-only")
+    variants = [_Variant("calibrated", _calibrated(root, unit, inputs, calibration,
+                                                   "thresholds.yaml" if index == 0 else tradeoff_thresholds_file(b),
+                                                   p["sensing"]), rule="proximity-only", budget=b,
+                         repeats=None if index == 0 else p.get("tradeoff_repeats"))
+                for index, b in enumerate(p["budgets"])]
+    from socnav.safety import no_uncertainty
+
+    # nothing estimated; a calibration that found no rule within its budget wrote thresholds that never fire (an
+    # uncertainty rule with infinite thresholds), which read the zero uncertainty
+    records = _play(p, policies[0], variants, lambda t: no_uncertainty if t.uses_uncertainty else None,
+                    {"estimator": NO_ESTIMATOR}, ablation=True, unperturbed=p["unperturbed"])
+    write_table_atomic(records, directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)

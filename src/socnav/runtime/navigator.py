@@ -7,7 +7,8 @@ One decision:
 2. ONE onnxruntime call on ``1 + K`` rows: row 0 with all-ones keep masks (the deterministic action the policy
    executes), rows 1..K with MC-dropout masks drawn from a `DropoutStream` (the uncertainty samples);
 3. the safety layer's own parts: the uncertainty window (`WindowedUncertainty`), the nearest human and the
-   collision-probability rule (`socnav.safety.rule`) and, where it fires (or fired within the last
+   collision-probability rule (`socnav.safety.rule`: eq. (10), or the ablation the thresholds' ``conditions``
+   name, exactly as `socnav.safety.SafePolicy` applies it) and, where it fires (or fired within the last
    ``hold_steps`` steps), the cautious ORCA controller (`CautiousController`) in place of the policy — what
    `socnav.safety.SafePolicy` does for one robot (tested step for step against it), without its batch bookkeeping;
 4. the action turned into ``(v, dtheta)`` by the simulator's own command kernel.

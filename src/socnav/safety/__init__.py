@@ -1,4 +1,4 @@
-"""Safe action selection (paper IV-C, SPEC section 5): a probability-of-collision rule on the windowed
+"""Safe action selection (paper IV-C): a probability-of-collision rule on the windowed
 uncertainty and the nearest human, and a cautious ORCA controller that takes over when it fires.
 
 Example::
@@ -16,6 +16,7 @@ from socnav.safety.calibration import (
     CalibrationResult,
     CalibrationRun,
     calibrate,
+    calibrate_budgets,
     calibrate_thresholds,
     collect_records,
     evaluate_thresholds,
@@ -26,6 +27,7 @@ from socnav.safety.calibration import (
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
 from socnav.safety.rule import (
     PROXIMITY_VARIANTS,
+    RULE_CONDITIONS,
     SENSING_CHOICES,
     THRESHOLD_PRESETS,
     NearestHuman,
@@ -40,12 +42,13 @@ from socnav.safety.rule import (
     rule_conditions,
     save_thresholds,
 )
-from socnav.safety.safe_policy import FallbackCounter, SafePolicy, fallback_percent
+from socnav.safety.safe_policy import FallbackCounter, SafePolicy, fallback_percent, no_uncertainty
 
 __all__ = [
     "CAUTIOUS_RADIUS_SCALE",
     "PROXIMITY_VARIANTS",
     "RECORD_COLUMNS",
+    "RULE_CONDITIONS",
     "SENSING_CHOICES",
     "THRESHOLD_PRESETS",
     "CalibrationResult",
@@ -58,6 +61,7 @@ __all__ = [
     "Thresholds",
     "ThresholdsError",
     "calibrate",
+    "calibrate_budgets",
     "calibrate_thresholds",
     "collect_records",
     "collision_probability",
@@ -66,6 +70,7 @@ __all__ = [
     "held_fallback",
     "load_thresholds",
     "nearest_human",
+    "no_uncertainty",
     "proximity_score",
     "rollout_scores",
     "rule_conditions",

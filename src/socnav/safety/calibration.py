@@ -1,4 +1,4 @@
-"""Calibrating the rule's thresholds from rollouts (the paper tuned them by hand; SPEC section 5).
+"""Calibrating the rule's thresholds from rollouts (the paper tuned them by hand, paper V-B).
 
 **Records** -- one row per step of calibration rollouts of the PLAIN policy (no fallback), a pandas DataFrame:
 
@@ -45,9 +45,9 @@ calibration episodes with :class:`~socnav.safety.SafePolicy` for a few proxy can
 reading and lead) and keeps the one that prevents the most collisions (worst perturbation type, then the mean
 over types) among those
 whose false-activation rate is within the budget at a one-sided upper confidence bound, both measured. Table 3
-then evaluates the choice on held-out seeds and strengths (SPEC section 5). A third stage (``_refine`` in
-:func:`calibrate_thresholds`) climbs from the choice towards eager neighbours (:func:`eager_neighbours`), keeping a
-neighbour only if the replays say it prevents strictly more within the budget. The proxy scores the per-step rule
+then evaluates the choice on held-out seeds and strengths (docs/reproduction.md, Table 3). A third stage
+(``_refine`` in :func:`calibrate_thresholds`) climbs from the choice towards eager neighbours
+(:func:`eager_neighbours`), keeping a neighbour only if the replays say it prevents strictly more within the budget. The proxy scores the per-step rule
 (``hold_steps = 0``): a hold of the fallback (``Thresholds.hold_steps``) changes the trajectories it is meant to
 change, so only replays can score it: the second stage replays every proposed rule with and without a hold
 (``PROXY_HOLDS``), and the third stage tries longer ones.
@@ -57,6 +57,12 @@ of the records, over all rows and over the collision-window rows, so resolution 
 three lambdas and a fixed ``beta1`` list, or explicit candidate lists given in ``grid``. All
 ``lambda_ep`` x ``lambda_feat`` pairs of one ``(beta1, lambda_prox)`` are scored at once with 2-D cumulative
 histograms, so large grids are cheap.
+
+**Rule variants and budgets.** The same three stages calibrate the rule's ablations (``Thresholds.conditions``:
+``proximity-only``, ``uncertainty-only``), each searching only the parameters it reads (:data:`SEARCHED_KEYS`; the
+others get :data:`NEUTRAL_VALUES`), so every variant is chosen under the same false-activation budget on the same
+calibration episodes. :func:`calibrate_budgets` chooses thresholds for several budgets at once (a trade-off curve):
+the records and every replay are played once and shared, a candidate proposed for two budgets is scored once.
 """
 
 from __future__ import annotations
@@ -74,18 +80,21 @@ import pandas as pd
 from socnav.config import ConfigLike, load_config
 from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbed_config
 from socnav.io import write_text_atomic
-from socnav.safety.rule import (PROXIMITY_VARIANTS, Proximity, Thresholds, _check_proximity, proximity_score,
-                                rule_conditions, save_thresholds)
+from socnav.safety.rule import (PROXIMITY_VARIANTS, RULE_CONDITIONS, Conditions, Proximity, Thresholds,
+                                _check_proximity, proximity_score, rule_conditions, save_thresholds)
 
 __all__ = [
     "CALIBRATION_LEADS",
     "DEFAULT_BETA1_GRID",
+    "NEUTRAL_VALUES",
     "PROXY_BUDGET_SHARES",
     "RECORD_COLUMNS",
+    "SEARCHED_KEYS",
     "CalibrationRecorder",
     "CalibrationResult",
     "CalibrationRun",
     "calibrate",
+    "calibrate_budgets",
     "calibrate_thresholds",
     "clopper_pearson_upper",
     "collect_records",
@@ -99,6 +108,12 @@ RECORD_COLUMNS = ("episode", "step", "perturbed", "u_ep_heading", "u_feat", "gap
                   "previous_gap", "collided", "collision_step")
 DEFAULT_BETA1_GRID = (0.0, 0.25, 0.5, 1.0, 2.0)
 GRID_KEYS = ("lambda_ep", "lambda_feat", "lambda_prox", "beta1")
+#: The parameters each rule variant (`Thresholds.conditions`) reads, i.e. the ones its calibration searches.
+SEARCHED_KEYS: dict[str, tuple[str, ...]] = {"paper": GRID_KEYS, "proximity-only": ("lambda_prox", "beta1"),
+                                              "uncertainty-only": ("lambda_ep", "lambda_feat")}
+#: What the calibration writes for the parameters of a removed condition (ignored by that rule): the values under
+#: which the removed condition (nearly) always holds in eq. (10) -- any uncertainty above 0, any human within 1 km.
+NEUTRAL_VALUES: dict[str, float] = {"lambda_ep": 0.0, "lambda_feat": 0.0, "lambda_prox": 1000.0, "beta1": 0.0}
 #: Per-step columns a :class:`CalibrationRecorder` keeps (the per-episode ones are added by :func:`collect_records`).
 STEP_COLUMNS = ("episode", "step", "u_ep_heading", "u_feat", "gap", "relative_speed", "closing_speed", "previous_gap")
 
@@ -324,6 +339,11 @@ def _preference(row: Mapping[str, float]) -> tuple[float, ...]:
             -row["lambda_ep"], -row["lambda_feat"], row["lambda_prox"], row["beta1"])
 
 
+def _check_conditions(conditions: str) -> None:
+    if conditions not in RULE_CONDITIONS:
+        raise ValueError(f"unknown rule conditions {conditions!r}; allowed: {', '.join(RULE_CONDITIONS)}")
+
+
 def calibrate(
     records: pd.DataFrame,
     false_activation_budget: float = 0.05,
@@ -332,6 +352,7 @@ def calibrate(
     proximity: Proximity = "abs-relative-speed",
     n_quantiles: int = 41,
     lead: int = 0,
+    conditions: Conditions = "paper",
 ) -> CalibrationResult:
     """Choose the rule's thresholds on calibration records (see the module docstring for the format and proxy).
 
@@ -343,6 +364,10 @@ def calibrate(
     :param lead: ... but not in its last ``lead`` ones (0: up to and including the step of the collision).
     :param proximity: speed term of ``c_prox`` (kept fixed, not searched).
     :param n_quantiles: quantile levels per candidate grid.
+    :param conditions: the rule variant (`Thresholds.conditions`): ``paper`` searches all four parameters,
+        ``proximity-only`` only ``lambda_prox`` and ``beta1``, ``uncertainty-only`` only ``lambda_ep`` and
+        ``lambda_feat`` (:data:`SEARCHED_KEYS`); the parameters of a removed condition get
+        :data:`NEUTRAL_VALUES` (the rule ignores them) and a ``grid`` entry for one is an error.
 
     Deterministic. The result's scores are the proxy on these records; evaluate on held-out seeds with real
     :class:`~socnav.safety.SafePolicy` rollouts.
@@ -350,10 +375,16 @@ def calibrate(
     if not 0.0 <= false_activation_budget <= 1.0:
         raise ValueError(f"false_activation_budget must be in [0, 1], got {false_activation_budget}")
     _check_lead(lookback, lead)
+    _check_conditions(conditions)
+    searched = SEARCHED_KEYS[conditions]
     if grid is not None:
         unknown = set(grid) - set(GRID_KEYS)
         if unknown:
             raise ValueError(f"unknown grid keys {sorted(unknown)}; allowed: {', '.join(GRID_KEYS)}")
+        ignored = sorted(set(grid) - set(searched))
+        if ignored:
+            raise ValueError(f"grid keys {ignored} are not searched for conditions={conditions!r} (the rule ignores "
+                             f"them); allowed: {', '.join(searched)}")
     records = _validate(records)
     perturbed = records["perturbed"].to_numpy(bool)
     n_unperturbed = int((~perturbed).sum())
@@ -367,28 +398,40 @@ def calibrate(
     u_ep = records["u_ep_heading"].to_numpy(np.float64)
     u_feat = records["u_feat"].to_numpy(np.float64)
     gap = records["gap"].to_numpy(np.float64)
-    speed = _speed_column(records, proximity)
     previous_gap = records["previous_gap"].to_numpy(np.float64)
     approaching = np.isnan(previous_gap) | (gap <= previous_gap)  # c_ap, as in the rule
 
-    lambda_ep = _explicit(grid, "lambda_ep")
-    lambda_ep = _candidates(u_ep, u_ep[window], n_quantiles, True) if lambda_ep is None else lambda_ep
-    lambda_feat = _explicit(grid, "lambda_feat")
-    lambda_feat = _candidates(u_feat, u_feat[window], n_quantiles, True) if lambda_feat is None else lambda_feat
-    betas = _explicit(grid, "beta1")
-    betas = np.asarray(DEFAULT_BETA1_GRID) if betas is None else betas
+    if "lambda_ep" in searched:
+        lambda_ep = _explicit(grid, "lambda_ep")
+        lambda_ep = _candidates(u_ep, u_ep[window], n_quantiles, True) if lambda_ep is None else lambda_ep
+        lambda_feat = _explicit(grid, "lambda_feat")
+        lambda_feat = _candidates(u_feat, u_feat[window], n_quantiles, True) if lambda_feat is None else lambda_feat
+        k_ep, k_feat = _bins(u_ep, lambda_ep), _bins(u_feat, lambda_feat)
+    else:  # proximity-only: one "uncertainty condition" that holds on every row (k = 1 > a = 0)
+        lambda_ep, lambda_feat = np.array([NEUTRAL_VALUES["lambda_ep"]]), np.array([NEUTRAL_VALUES["lambda_feat"]])
+        k_ep, k_feat = np.ones(len(records), dtype=np.int64), np.zeros(len(records), dtype=np.int64)
+    scorer = _GridScorer(records, perturbed, window, k_ep, k_feat, len(lambda_ep), len(lambda_feat))
+    if "lambda_prox" in searched:
+        speed = _speed_column(records, proximity)
+        betas = _explicit(grid, "beta1")
+        betas = np.asarray(DEFAULT_BETA1_GRID) if betas is None else betas
+    else:  # uncertainty-only: no c_prox, one gate (c_ap)
+        speed, betas = np.zeros(len(records)), np.array([NEUTRAL_VALUES["beta1"]])
     fixed_prox = _explicit(grid, "lambda_prox")
-    scorer = _GridScorer(records, perturbed, window, _bins(u_ep, lambda_ep), _bins(u_feat, lambda_feat),
-                         len(lambda_ep), len(lambda_feat))
 
     # The frontier: per (beta1, lambda_prox), the best (lambda_ep, lambda_feat) within the budget.
     frontier_rows: list[dict[str, Any]] = []
     for beta in betas:
-        score = proximity_score(gap, speed, float(beta), proximity)
-        prox_candidates = (_prox_candidates(score, approaching, window, n_quantiles) if fixed_prox is None
-                           else fixed_prox)
-        for lam_prox in prox_candidates:
-            gate = approaching & np.isfinite(gap) & (score < lam_prox)
+        if "lambda_prox" in searched:
+            score = proximity_score(gap, speed, float(beta), proximity)
+            prox_candidates = (_prox_candidates(score, approaching, window, n_quantiles) if fixed_prox is None
+                               else fixed_prox)
+            if fixed_prox is None and conditions == "proximity-only":  # a gate that (almost) never opens: with no
+                prox_candidates = np.unique(np.append(prox_candidates, 0.0))  # uncertainty grid, no inf to fall on
+            gates = [(lam_prox, approaching & np.isfinite(gap) & (score < lam_prox)) for lam_prox in prox_candidates]
+        else:
+            gates = [(NEUTRAL_VALUES["lambda_prox"], approaching)]
+        for lam_prox, gate in gates:
             false_rate, worst, prevented = scorer.score(gate)
             best = _best_feasible(false_rate, worst, prevented, false_activation_budget)
             if best is None:
@@ -402,12 +445,14 @@ def calibrate(
     frontier = pd.DataFrame(frontier_rows, columns=["beta1", "lambda_prox", "lambda_ep", "lambda_feat",
                                                     "prevented_fraction", "worst_type_fraction",
                                                     "false_activation_rate"])
-    if not frontier_rows:  # only possible with an explicit grid without inf and a budget too small
+    if not frontier_rows:  # only possible with an explicit grid without inf, or a rule without uncertainty condition
         raise ValueError("no candidate thresholds meet the false-activation budget; add inf to grid['lambda_ep'] "
-                         "and grid['lambda_feat'] or raise the budget")
+                         "and grid['lambda_feat'], or (proximity-only) smaller grid['lambda_prox'] values, or raise "
+                         "the budget")
     row = min(frontier_rows, key=_preference)  # the first of equals, as the frontier is ordered
     thresholds = Thresholds.create(lambda_ep=row["lambda_ep"], lambda_feat=row["lambda_feat"],
-                                   lambda_prox=row["lambda_prox"], beta1=row["beta1"], proximity=proximity)
+                                   lambda_prox=row["lambda_prox"], beta1=row["beta1"], proximity=proximity,
+                                   conditions=conditions)
     return CalibrationResult(
         thresholds=thresholds,
         prevented_fraction=row["prevented_fraction"],
@@ -482,10 +527,12 @@ def collect_records(
     ``sensing``: what the proximity columns (``gap``, speeds, ``previous_gap``) are read from, as
     ``Thresholds.sensing``: the observation (``perceived``) or the noise-free state (``true``).
     ``progress(n)`` is called with the number of episodes finished at each step that finishes some.
+    ``estimator`` None: no uncertainty is estimated (the columns hold 0), for a rule that reads none
+    (``Thresholds.conditions == "proximity-only"``).
     Concatenate the frames of an unperturbed and some perturbed configs (distinct ``episode_offset``).
     """
     from socnav.envs.rollout import rollout_episodes
-    from socnav.safety.safe_policy import SafePolicy
+    from socnav.safety.safe_policy import SafePolicy, no_uncertainty
 
     config = load_config(config)
     if perturbed is None:
@@ -493,8 +540,8 @@ def collect_records(
         perturbed = bool(pert.observation_noise or pert.heading_noise or pert.speed_noise
                          or pert.human_speed_factor != 1.0 or pert.total_agents is not None)
     # A SafePolicy whose rule never fires plays exactly `policy` and computes the rule's inputs on the way.
-    probe = SafePolicy(policy, estimator, Thresholds.create(Thresholds.never().model_dump(), sensing=sensing),
-                       config, window=window)
+    probe = SafePolicy(policy, no_uncertainty if estimator is None else estimator,
+                       Thresholds.create(Thresholds.never().model_dump(), sensing=sensing), config, window=window)
     recorder = CalibrationRecorder(probe, episode_offset)
     episodes = rollout_episodes(probe, config, n_episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
                                 progress=progress, observer=recorder)
@@ -618,7 +665,8 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
                        runs: Sequence[CalibrationRun], false_activation_budget: float = 0.05, window: int = 4,
                        n_envs: int = 40, confidence: float = 0.95,
                        progress: Callable[[int], None] | None = None,
-                       plain_collisions: Mapping[str, int] | None = None) -> tuple[Thresholds, pd.DataFrame]:
+                       plain_collisions: Mapping[str, int] | None = None,
+                       cache: dict[Thresholds, dict[str, Any]] | None = None) -> tuple[Thresholds, pd.DataFrame]:
     """The candidate that prevents the most collisions in REAL rollouts on the calibration ``runs``, among those
     whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget`` with
     ``confidence``: its one-sided upper bound (:func:`false_activation_upper`: the larger of the normal bound
@@ -638,7 +686,9 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     fire are returned (the layer is then off). Deterministic given a deterministic policy and a seeded estimator.
 
     ``plain_collisions``: the plain policy's collisions per type on these ``runs`` (``rollout_scores(None, ...)``'s
-    ``collisions``) if already measured: the plain pass is then skipped.
+    ``collisions``) if already measured: the plain pass is then skipped. ``cache``: ``rollout_scores`` of
+    candidates already replayed on these ``runs`` (thresholds -> scores), read and extended: a candidate found there
+    is not replayed again (the replays are deterministic, so the numbers are the same).
 
     :return: ``(thresholds, table)``: one row per candidate with ``prevented_worst`` and ``prevented_fraction``
         (the score, lexicographically), one
@@ -660,7 +710,12 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
     groups = [group for group, count in plain.items() if count > 0]
     rows = []
     for index, thresholds in enumerate(candidates):
-        scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs, progress)
+        if cache is not None and thresholds in cache:
+            scores = cache[thresholds]
+        else:
+            scores = rollout_scores(thresholds, policy, estimator, runs, window, n_envs, progress)
+            if cache is not None:
+                cache[thresholds] = scores
         per_group = {group: (plain[group] - scores["collisions"][group]) / plain[group] for group in groups}
         rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": sum(plain.values()),
                      "safe_collisions": sum(scores["collisions"].values()),
@@ -701,13 +756,18 @@ def eager_neighbours(thresholds: Thresholds) -> list[Thresholds]:
     ``lambda_prox`` (x :data:`REFINE_PROX_FACTOR`), for the ``closing-speed`` reading a longer look-ahead
     ``beta1`` (+ :data:`REFINE_BETA_STEP` s; with ``abs-relative-speed`` a larger beta1 fires LESS), each
     finite uncertainty threshold lower (x :data:`REFINE_UNCERTAINTY_FACTOR`), and a longer hold of the fallback
-    (``hold_steps`` + :data:`REFINE_HOLD_STEP`; `socnav.safety.rule.held_fallback`)."""
+    (``hold_steps`` + :data:`REFINE_HOLD_STEP`; `socnav.safety.rule.held_fallback`). Only parameters the rule
+    variant reads move (``thresholds.conditions``, :data:`SEARCHED_KEYS`): a proximity-only rule's uncertainty
+    thresholds and an uncertainty-only rule's ``lambda_prox`` and ``beta1`` stay as they are."""
     t = thresholds
-    moves = [{"lambda_prox": min(1000.0, max(t.lambda_prox * REFINE_PROX_FACTOR, t.lambda_prox + 0.1))}]
-    if t.proximity == "closing-speed":
-        moves.append({"beta1": min(100.0, t.beta1 + REFINE_BETA_STEP)})
+    searched = SEARCHED_KEYS[t.conditions]
+    moves: list[dict[str, Any]] = []
+    if "lambda_prox" in searched:
+        moves.append({"lambda_prox": min(1000.0, max(t.lambda_prox * REFINE_PROX_FACTOR, t.lambda_prox + 0.1))})
+        if t.proximity == "closing-speed":
+            moves.append({"beta1": min(100.0, t.beta1 + REFINE_BETA_STEP)})
     for key in ("lambda_ep", "lambda_feat"):
-        if math.isfinite(getattr(t, key)) and getattr(t, key) > 0:
+        if key in searched and math.isfinite(getattr(t, key)) and getattr(t, key) > 0:
             moves.append({key: getattr(t, key) * REFINE_UNCERTAINTY_FACTOR})
     moves.append({"hold_steps": min(1000, t.hold_steps + REFINE_HOLD_STEP)})
     neighbours = [t.model_copy(update=move) for move in moves]
@@ -724,10 +784,12 @@ PROXY_HOLDS = (0, 1)
 
 def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mapping[str, int], policy: Any,
             estimator: Any, runs: Sequence[CalibrationRun], budget: float, window: int, n_envs: int,
-            confidence: float, progress: Callable[[int], None]) -> tuple[Thresholds, pd.DataFrame]:
+            confidence: float, progress: Callable[[int], None],
+            cache: dict[Thresholds, dict[str, Any]] | None = None) -> tuple[Thresholds, pd.DataFrame]:
     """Stage 3: up to :data:`REFINE_ROUNDS` rounds of measured hill-climbing from the chosen rule towards eager ones
     (:func:`eager_neighbours`), each round replaying the current rule and its untried neighbours with
-    :func:`select_by_rollouts` (``plain_collisions``: the plain policy's, measured once in stage 2). A neighbour
+    :func:`select_by_rollouts` (``plain_collisions``: the plain policy's, measured once in stage 2; ``cache``: the
+    replays already played, see there). A neighbour
     replaces the current rule only if it prevents STRICTLY more (worst type, then mean): a more eager rule that
     merely ties is not worth its extra activations. The proxy counts a rule's firing on the plain policy's steps,
     but the fallback steers the robot out of the situations that made it fire, so the MEASURED false activation is
@@ -735,7 +797,9 @@ def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mappi
     a ``stage`` and a unique ``candidate`` number; one row stays ``chosen``."""
     if thresholds == Thresholds.never():
         return thresholds, table
-    tried = {Thresholds.create(row) for row in table[list(Thresholds.model_fields)].to_dict(orient="records")}
+    # a paper rule's rows have no `conditions` column (its dump leaves the default out): it reads as the default
+    fields = [key for key in Thresholds.model_fields if key in table]
+    tried = {Thresholds.create(row) for row in table[fields].to_dict(orient="records")}
     for round_index in range(REFINE_ROUNDS):
         neighbours = [n for n in eager_neighbours(thresholds) if n not in tried]
         if not neighbours:
@@ -743,7 +807,7 @@ def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mappi
         tried.update(neighbours)
         choice, round_table = select_by_rollouts([thresholds, *neighbours], policy, estimator, runs, budget, window,
                                                  n_envs, confidence, progress=progress,
-                                                 plain_collisions=plain_collisions)
+                                                 plain_collisions=plain_collisions, cache=cache)
         score = ["prevented_worst", "prevented_fraction"]
         current = tuple(round_table.loc[0, score])
         best = tuple(round_table.loc[round_table["chosen"], score].iloc[0]) if round_table["chosen"].any() else None
@@ -761,7 +825,7 @@ def _refine(thresholds: Thresholds, table: pd.DataFrame, plain_collisions: Mappi
 def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
                          proximity: str = "both", window: int = 4, confidence: float = 0.95,
                          progress: Callable[[int, int], None] | None = None,
-                         sensing: str = "perceived") -> tuple[Thresholds, dict[str, Any]]:
+                         sensing: str = "perceived", conditions: str = "paper") -> tuple[Thresholds, dict[str, Any]]:
     """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
     `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
 
@@ -786,11 +850,46 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     `sensing` (``perceived`` | ``true``, `socnav.safety.Thresholds.sensing`): what the rule's proximity terms and
     the fallback read, in the records and the replays alike; the thresholds returned carry it.
 
+    `conditions` (`socnav.safety.Thresholds.conditions`): the rule variant calibrated -- eq. (10) (``paper``) or one
+    of its ablations, each searching only the parameters it reads (`calibrate`, `eager_neighbours`); an
+    ``uncertainty-only`` rule has no c_prox, so one proximity reading is enough. A ``proximity-only`` rule reads no
+    uncertainty: `estimator` may then be None (nothing is estimated; much cheaper).
+
+    Several budgets on the same episodes: `calibrate_budgets`.
+
     :return: ``(thresholds, report)``; without any collision to learn from, thresholds that never fire.
+    """
+    return calibrate_budgets(policy, estimator, env, episodes, [budget], proximity, window, confidence, progress,
+                             sensing, conditions)[budget]
+
+
+def calibrate_budgets(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budgets: Sequence[float],
+                      proximity: str = "both", window: int = 4, confidence: float = 0.95,
+                      progress: Callable[[int, int], None] | None = None, sensing: str = "perceived",
+                      conditions: str = "paper",
+                      light: Sequence[float] = ()) -> dict[float, tuple[Thresholds, dict[str, Any]]]:
+    """`calibrate_thresholds` for each false-activation budget of `budgets` (a trade-off curve: prevented share vs
+    false activation), on the same calibration episodes: the records, the plain policy's replay and every
+    candidate's replay are played once and shared by all budgets (a candidate proposed for two budgets is scored
+    once). Each budget's result is what `calibrate_thresholds` with that budget alone returns -- except for the
+    budgets in `light`, chosen by a lighter search for the points of a trade-off curve (their reports say
+    ``"search": "light"``): stage 1 at the budget itself only (not also at the other `PROXY_BUDGET_SHARES`) and no
+    stage 3. Applied to every rule alike, it keeps their comparison at each budget fair at about half the replays.
+
+    :return: budget -> ``(thresholds, report)``, in the order of `budgets`.
     """
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
         raise ValueError(f"proximity must be one of: both, {', '.join(PROXIMITY_VARIANTS)}; got {proximity!r}")
+    _check_conditions(conditions)
+    budgets = [float(b) for b in budgets]
+    if not budgets or any(not 0.0 <= b <= 1.0 for b in budgets) or len(set(budgets)) != len(budgets):
+        raise ValueError(f"budgets must be distinct numbers in [0, 1], at least one; got {budgets}")
+    lighter = {float(b) for b in light}
+    if not lighter <= set(budgets):
+        raise ValueError(f"light must name budgets of {budgets}; got {sorted(lighter)}")
     variants = PROXIMITY_VARIANTS if proximity == "both" else (proximity,)
+    if conditions == "uncertainty-only":  # no c_prox: its reading changes nothing
+        variants = variants[:1]
     configs = [("unperturbed", load_config(env))]
     configs += [(kind, perturbed_config(env, kind, strength)) for kind, strengths in CALIBRATION_SET.items()
                 for strength in strengths]
@@ -800,7 +899,8 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
     per_pass = episodes * len(runs)
     most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS) * len(PROXY_HOLDS)
     # collection, plain replay, candidates, refinement rounds
-    played = {"done": 0, "total": per_pass * (2 + most_candidates + REFINE_ROUNDS * REFINE_PASSES)}
+    played = {"done": 0,
+              "total": per_pass * (2 + len(budgets) * (most_candidates + REFINE_ROUNDS * REFINE_PASSES))}
 
     def advance(n: int) -> None:
         played["done"] += n
@@ -812,25 +912,81 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                              sensing=sensing).assign(group=run.group)
              for index, run in enumerate(runs)]
     records = pd.concat(parts, ignore_index=True)
-    common = {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
-              "false_activation_budget": budget, "episodes_per_configuration": episodes,
-              "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS),
-              "proxy_budgets": [share * budget for share in PROXY_BUDGET_SHARES], "confidence": confidence,
-              "sensing": sensing}
+    extra = {} if conditions == "paper" else {"conditions": conditions}  # paper reports as before the choice
+
+    def common(budget: float) -> dict[str, Any]:
+        return {"calibration_set": CALIBRATION_SET, "calibration_seed": CALIBRATION_SEED,
+                "false_activation_budget": budget, "episodes_per_configuration": episodes,
+                "proximity_searched": list(variants), "leads_searched": list(CALIBRATION_LEADS),
+                "proxy_budgets": [share * budget for share in
+                                  (PROXY_BUDGET_SHARES[:1] if budget in lighter else PROXY_BUDGET_SHARES)],
+                "confidence": confidence,
+                "sensing": sensing, **extra}
+
     if not records.loc[records["perturbed"], "collided"].any():
         # Nothing to learn from: the layer could only cost false activations, so it is switched off.
         thresholds = Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)
         if progress is not None:  # nothing else to play: the bar ends full
             progress(played["done"], played["done"])
-        return thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
-                            "prevented_worst": float("nan"), "false_activation_rate": 0.0,
-                            "false_activation_upper": 0.0, "n_collisions": 0,
-                            "note": "no collision in the calibration episodes: thresholds that never fire", **common}
-    candidates, proxies = [], []
-    for share in PROXY_BUDGET_SHARES:
+        return {budget: (thresholds, {"thresholds": thresholds.model_dump(), "prevented_fraction": float("nan"),
+                                      "prevented_worst": float("nan"), "false_activation_rate": 0.0,
+                                      "false_activation_upper": 0.0, "n_collisions": 0,
+                                      "note": "no collision in the calibration episodes: thresholds that never fire",
+                                      **common(budget)})
+                for budget in budgets}
+    proposals = [_proposals(records, budget, variants, conditions, sensing,
+                            shares=PROXY_BUDGET_SHARES[:1] if budget in lighter else PROXY_BUDGET_SHARES)
+                 for budget in budgets]
+    distinct = {candidate for candidates, _ in proposals for candidate in candidates}
+    refined = len(budgets) - len(lighter)
+    played["total"] = played["done"] + per_pass * (1 + len(distinct) + refined * REFINE_ROUNDS * REFINE_PASSES)
+    plain_collisions = rollout_scores(None, policy, estimator, runs, window, n_envs, advance)["collisions"]
+    cache: dict[Thresholds, dict[str, Any]] = {}
+    results = {}
+    for budget, (candidates, proxies) in zip(budgets, proposals):
+        thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs,
+                                               confidence, progress=advance, plain_collisions=plain_collisions,
+                                               cache=cache)
+        table = pd.concat([table, pd.DataFrame(proxies)], axis=1).assign(stage="proxy")
+        if budget not in lighter:
+            thresholds, table = _refine(thresholds, table, plain_collisions, policy, estimator, runs, budget, window,
+                                        n_envs, confidence, advance, cache)
+        thresholds = Thresholds.create(thresholds.model_dump(), sensing=sensing)  # also when none met the budget
+        chosen = table[table["chosen"]]
+        report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
+                  "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
+                  "prevented_worst": float(chosen["prevented_worst"].iloc[0]) if len(chosen) else 0.0,
+                  "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
+                  "false_activation_upper": float(chosen["false_activation_upper"].iloc[0]) if len(chosen) else 0.0,
+                  "candidates": table.to_dict(orient="records"), **common(budget)}
+        if not len(chosen):
+            report["note"] = ("no candidate met the false-activation budget in the calibration rollouts (at the "
+                              f"{confidence:.0%} upper bound): thresholds that never fire")
+        if budget in lighter:
+            report["search"] = "light"
+        results[budget] = (thresholds, report)
+    played["total"] = played["done"]  # the refinement may stop early: the bar ends full
+    if progress is not None:
+        progress(played["done"], played["total"])
+    return results
+
+
+def _proposals(records: pd.DataFrame, budget: float, variants: Sequence[str], conditions: str, sensing: str,
+               shares: Sequence[float] = PROXY_BUDGET_SHARES) -> tuple[list[Thresholds], list[dict[str, Any]]]:
+    """Stage 1 of `calibrate_thresholds` for one budget: the distinct proxy candidates (per budget share, proximity
+    reading and lead), each with every hold of `PROXY_HOLDS`, and their proxy scores (one row per candidate)."""
+    candidates: list[Thresholds] = []
+    proxies: list[dict[str, Any]] = []
+    for share in shares:
         for variant in variants:
             for lead in CALIBRATION_LEADS:
-                result = calibrate(records, false_activation_budget=share * budget, proximity=variant, lead=lead)
+                try:
+                    result = calibrate(records, false_activation_budget=share * budget, proximity=variant,
+                                       lead=lead, conditions=conditions)
+                except ValueError:
+                    if conditions == "paper":  # always has a feasible rule (inf thresholds): a real error
+                        raise
+                    continue  # a rule without uncertainty condition may have none within this budget
                 candidate = Thresholds.create(result.thresholds.model_dump(), sensing=sensing)
                 if candidate not in candidates:
                     candidates.append(candidate)
@@ -838,32 +994,12 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                                     "proxy_prevented_fraction": result.prevented_fraction,
                                     "proxy_worst_type_fraction": result.worst_type_fraction,
                                     "proxy_false_activation_rate": result.false_activation_rate})
+    if not candidates:  # nothing within the budget: the rule that never fires is replayed (and not chosen)
+        candidates, proxies = [Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)], [{}]
     # The proxy cannot score a hold (module docstring): every proposed rule is replayed with each of PROXY_HOLDS, so
     # a hold can pair with a less eager rule than the one the per-step replays prefer (hold 0 first: it wins ties).
-    candidates, proxies = ([c.model_copy(update={"hold_steps": hold}) for hold in PROXY_HOLDS for c in candidates],
-                           [row for _ in PROXY_HOLDS for row in proxies])
-    played["total"] = per_pass * (2 + len(candidates) + REFINE_ROUNDS * REFINE_PASSES)
-    thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs, confidence,
-                                           progress=advance)
-    plain_collisions = table.attrs["plain_collisions"]  # read before concat: pandas drops attrs that differ
-    table = pd.concat([table, pd.DataFrame(proxies)], axis=1).assign(stage="proxy")
-    thresholds, table = _refine(thresholds, table, plain_collisions, policy, estimator, runs, budget, window, n_envs,
-                                confidence, advance)
-    played["total"] = played["done"]  # the refinement may stop early: the bar ends full
-    if progress is not None:
-        progress(played["done"], played["total"])
-    thresholds = Thresholds.create(thresholds.model_dump(), sensing=sensing)  # also when none met the budget
-    chosen = table[table["chosen"]]
-    report = {"thresholds": thresholds.model_dump(), "n_collisions": int(table["plain_collisions"].iloc[0]),
-              "prevented_fraction": float(chosen["prevented_fraction"].iloc[0]) if len(chosen) else 0.0,
-              "prevented_worst": float(chosen["prevented_worst"].iloc[0]) if len(chosen) else 0.0,
-              "false_activation_rate": float(chosen["false_activation_rate"].iloc[0]) if len(chosen) else 0.0,
-              "false_activation_upper": float(chosen["false_activation_upper"].iloc[0]) if len(chosen) else 0.0,
-              "candidates": table.to_dict(orient="records"), **common}
-    if not len(chosen):
-        report["note"] = ("no candidate met the false-activation budget in the calibration rollouts (at the "
-                          f"{confidence:.0%} upper bound): thresholds that never fire")
-    return thresholds, report
+    return ([c.model_copy(update={"hold_steps": hold}) for hold in PROXY_HOLDS for c in candidates],
+            [row for _ in PROXY_HOLDS for row in proxies])
 
 
 def save_calibration(thresholds: Thresholds, report: dict[str, Any], path: str | Path) -> Path:

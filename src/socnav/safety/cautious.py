@@ -1,4 +1,4 @@
-"""The cautious fallback controller of the safety layer (paper IV-C, SPEC section 5).
+"""The cautious fallback controller of the safety layer (paper IV-C).
 
 ORCA for the robot towards its goal, from the observation it is given (by :class:`~socnav.safety.SafePolicy`: the
 robot's observation, or with ``sensing: true`` the simulator's noise-free one), with every human's radius taken

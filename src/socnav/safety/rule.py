@@ -1,4 +1,4 @@
-"""The probability-of-collision rule of the safety layer (paper eq. (10), SPEC section 5) and its thresholds.
+"""The probability-of-collision rule of the safety layer (paper eq. (10), IV-C) and its thresholds.
 
     P(col) = 1  iff  (c_ep or c_feat) and c_prox and c_ap,   else 0
 
@@ -34,6 +34,21 @@ fires, the cautious controller keeps control for the next ``hold_steps`` steps w
 shrinking, so ``c_ap`` turns False, the policy takes control back and closes the gap again; in Table 3 a collision
 ended that way with the rule firing on every other step of its last 2 s. A minimum dwell time is the usual cure of
 such switching between two controllers. The calibration searches it (``socnav.safety.calibration``).
+
+**Which conditions the rule combines** (``Thresholds.conditions``, an ablation of eq. (10); ``paper`` is the
+default and eq. (10) itself):
+
+- ``paper``: ``(c_ep or c_feat) and c_prox and c_ap``;
+- ``proximity-only``: ``c_prox and c_ap`` -- the uncertainty condition removed: the layer hands over whenever the
+  robot closes in on a person, however certain the policy is (``lambda_ep`` and ``lambda_feat`` are ignored);
+- ``uncertainty-only``: ``(c_ep or c_feat) and c_ap`` -- the proximity condition removed (``lambda_prox`` and
+  ``beta1`` are ignored). ``c_ap`` stays: it is not a distance test but the paper's "once the robot is moving away
+  from the human, the risky scenario was averted", so keeping it removes exactly one condition and the rule still
+  leaves a receding robot alone. (Without any human, ``c_ap`` holds -- there is no previous gap -- so this rule
+  can fire on uncertainty alone there; in the Table 3 worlds a human is always present.)
+
+The rule variants answer whether the uncertainty condition changes any hand-over at all: Table 3's ablation
+calibrates each under the same false-activation budget and compares them episode by episode.
 """
 
 from __future__ import annotations
@@ -47,13 +62,14 @@ from typing import Any, Literal, Mapping, Union
 import numba
 import numpy as np
 import yaml
-from pydantic import ConfigDict, Field, StrictInt, ValidationError, field_validator
+from pydantic import ConfigDict, Field, StrictInt, ValidationError, field_validator, model_serializer
 
 from socnav.config import StrictModel, format_validation_error, read_mapping_file
 from socnav.io import write_text_atomic
 
 __all__ = [
     "PROXIMITY_VARIANTS",
+    "RULE_CONDITIONS",
     "SENSING_CHOICES",
     "THRESHOLD_PRESETS",
     "NearestHuman",
@@ -76,6 +92,9 @@ PROXIMITY_VARIANTS: tuple[str, ...] = ("abs-relative-speed", "closing-speed")
 Sensing = Literal["perceived", "true"]
 #: What the proximity terms and the cautious controller read: the (noisy) observation or the true state.
 SENSING_CHOICES: tuple[str, ...] = ("perceived", "true")
+Conditions = Literal["paper", "proximity-only", "uncertainty-only"]
+#: Which conditions the rule combines: eq. (10) as printed, or one of its two ablations (module docstring).
+RULE_CONDITIONS: tuple[str, ...] = ("paper", "proximity-only", "uncertainty-only")
 
 #: Paper thresholds (lambda_ep, lambda_feat, lambda_prox, beta1) per estimator kind (paper V-B.3).
 THRESHOLD_PRESETS: dict[str, tuple[float, float, float, float]] = {
@@ -97,8 +116,12 @@ class Thresholds(StrictModel):
     ``proximity``: ``abs-relative-speed`` (``d + beta1 |dv|``, as printed in the paper) or ``closing-speed``
     (``d - beta1 v_close``); ``sensing``: ``perceived`` (the observation, noise included) or ``true`` (the
     simulator's noise-free state) for the proximity terms and the cautious controller; ``hold_steps``: steps the
-    fallback keeps control after the rule last fired (0 ... 1000; 0: the paper's per-step rule); see the module
-    docstring.
+    fallback keeps control after the rule last fired (0 ... 1000; 0: the paper's per-step rule); ``conditions``:
+    which conditions the rule combines, ``paper`` (eq. (10)), ``proximity-only`` or ``uncertainty-only`` (the
+    parameters of a removed condition are kept but ignored); see the module docstring.
+
+    ``model_dump()`` leaves ``conditions`` out while it is ``paper``, so files and records written with the
+    paper's rule are the same as before the field existed (and files without it read as ``paper``).
     """
 
     model_config = ConfigDict(frozen=True)
@@ -114,6 +137,9 @@ class Thresholds(StrictModel):
     sensing: Sensing = Field("perceived", description="what c_prox, c_ap and the cautious controller read")
     hold_steps: StrictInt = Field(0, ge=0, le=1000, description="steps the fallback keeps control after the rule last "
                                                           "fired (0: the paper's per-step rule)")
+    conditions: Conditions = Field("paper", description="which conditions the rule combines: paper (eq. (10)), "
+                                                        "proximity-only (c_prox and c_ap) or uncertainty-only "
+                                                        "((c_ep or c_feat) and c_ap)")
 
     @field_validator("lambda_ep", "lambda_feat")
     @classmethod
@@ -121,6 +147,23 @@ class Thresholds(StrictModel):
         if math.isnan(value):
             raise ValueError("must be a number (inf allowed), not NaN")
         return value
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        if data.get("conditions") == "paper":  # the default: dumps (files, records) as before the field existed
+            del data["conditions"]
+        return data
+
+    @property
+    def uses_uncertainty(self) -> bool:
+        """Whether the rule reads the uncertainty (``c_ep or c_feat``): not for ``proximity-only``."""
+        return self.conditions != "proximity-only"
+
+    @property
+    def uses_proximity(self) -> bool:
+        """Whether the rule reads ``c_prox``: not for ``uncertainty-only``."""
+        return self.conditions != "uncertainty-only"
 
     @classmethod
     def create(cls, data: Mapping[str, Any] | None = None, **fields: Any) -> "Thresholds":
@@ -208,7 +251,8 @@ class NearestHuman:
 
 
 def nearest_human(observation: Mapping[str, np.ndarray]) -> NearestHuman:
-    """Read the nearest human of each environment from a batched observation (SPEC section 2 layout).
+    """Read the nearest human of each environment from a batched observation (the environment's layout,
+    `socnav.envs.spaces`).
 
     Rows are real humans first, sorted farthest to closest, so the nearest human is the LAST real row
     (``humans_mask`` is a prefix). Environments without humans get ``gap = inf`` and zero speeds.
@@ -264,18 +308,38 @@ def proximity_score(gap: Any, speed: Any, beta1: float, proximity: Proximity = "
 
 @dataclass(frozen=True)
 class RuleConditions:
-    """The rule's conditions for a batch (bool (B,) arrays) and the collision probability ``p_col``."""
+    """The rule's conditions for a batch (bool (B,) arrays) and the collision probability ``p_col`` of the rule
+    ``conditions`` names (``Thresholds.conditions``; every condition is evaluated whichever the rule combines)."""
 
     c_ep: np.ndarray
     c_feat: np.ndarray
     c_prox: np.ndarray
     c_ap: np.ndarray
+    conditions: Conditions = "paper"
+
+    @property
+    def c_uncertain(self) -> np.ndarray:
+        """The uncertainty condition ``c_ep or c_feat``."""
+        return self.c_ep | self.c_feat
 
     @property
     def p_col(self) -> np.ndarray:
-        """``(c_ep or c_feat) and c_prox and c_ap`` -- where the cautious controller takes over."""
+        """Where the cautious controller takes over: ``(c_ep or c_feat) and c_prox and c_ap`` (``paper``), ``c_prox
+        and c_ap`` (``proximity-only``) or ``(c_ep or c_feat) and c_ap`` (``uncertainty-only``)."""
+        if self.conditions == "proximity-only":
+            return self.c_prox & self.c_ap
+        if self.conditions == "uncertainty-only":
+            return self.c_uncertain & self.c_ap
         # paper eq. (10): P(col) = 1 iff (c_ep or c_feat) and c_prox and c_ap
-        return (self.c_ep | self.c_feat) & self.c_prox & self.c_ap
+        return self.c_uncertain & self.c_prox & self.c_ap
+
+    @property
+    def vetoed(self) -> np.ndarray:
+        """Where the proximity terms fire (``c_prox and c_ap``) but the uncertainty condition does not: the hand-overs
+        the uncertainty condition of eq. (10) holds back (False everywhere unless the rule combines both)."""
+        if self.conditions != "paper":
+            return np.zeros_like(self.c_prox)
+        return self.c_prox & self.c_ap & ~self.c_uncertain
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"c_ep": self.c_ep, "c_feat": self.c_feat, "c_prox": self.c_prox, "c_ap": self.c_ap,
@@ -285,7 +349,8 @@ class RuleConditions:
 def rule_conditions(
     u_ep_heading: Any, u_feat: Any, gap: Any, relative_speed: Any, previous_gap: Any, thresholds: Thresholds
 ) -> RuleConditions:
-    """Evaluate every condition of the rule. Inputs are (B,) arrays (or scalars):
+    """Evaluate every condition of the rule (``thresholds.conditions`` says which of them ``p_col`` combines).
+    Inputs are (B,) arrays (or scalars):
 
     ``u_ep_heading``, ``u_feat``: WINDOWED uncertainties; ``gap``: nearest-human gap ``d(t)`` (``inf``: no human);
     ``relative_speed``: the speed input of ``thresholds.proximity``: ``|dv|`` (abs-relative-speed) or the closing
@@ -299,17 +364,19 @@ def rule_conditions(
     score = proximity_score(gap, relative_speed, thresholds.beta1, thresholds.proximity)
     c_prox = np.isfinite(gap) & (score < thresholds.lambda_prox)  # no human: never close
     c_ap = np.isnan(previous_gap) | (gap <= previous_gap)
+    rule = thresholds.conditions
     if c_ep.ndim and c_ep.shape == c_feat.shape == c_prox.shape == c_ap.shape:
-        return RuleConditions(c_ep, c_feat, c_prox, c_ap)  # fresh arrays already (the common, batched case)
+        return RuleConditions(c_ep, c_feat, c_prox, c_ap, rule)  # fresh arrays already (the common, batched case)
     c_ep, c_feat, c_prox, c_ap = np.broadcast_arrays(c_ep, c_feat, c_prox, c_ap)
-    return RuleConditions(c_ep.copy(), c_feat.copy(), c_prox.copy(), c_ap.copy())
+    return RuleConditions(c_ep.copy(), c_feat.copy(), c_prox.copy(), c_ap.copy(), rule)
 
 
 def collision_probability(
     u_ep_heading: Any, u_feat: Any, gap: Any, relative_speed: Any, previous_gap: Any, thresholds: Thresholds,
     return_conditions: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, RuleConditions]:
-    """``P(col)`` as a bool array (see :func:`rule_conditions` for the inputs); with ``return_conditions`` also
+    """``P(col)`` as a bool array of the rule ``thresholds.conditions`` names (see :func:`rule_conditions` for the
+    inputs); with ``return_conditions`` also
     the individual conditions, ``(p_col, RuleConditions)``."""
     conditions = rule_conditions(u_ep_heading, u_feat, gap, relative_speed, previous_gap, thresholds)
     return (conditions.p_col, conditions) if return_conditions else conditions.p_col

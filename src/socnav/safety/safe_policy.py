@@ -1,4 +1,4 @@
-"""Safe action selection as a policy wrapper (paper IV-C, SPEC section 5).
+"""Safe action selection as a policy wrapper (paper IV-C).
 
 At every step, for every environment of the batch:
 
@@ -14,7 +14,8 @@ At every step, for every environment of the batch:
    the simulator's noise-free observation of the same step (``true_observation``: passed to ``predict`` or given
    before it with :meth:`SafePolicy.sense`; ``socnav.envs.rollout.rollout_episodes`` does the latter for every
    policy whose ``needs_true_observation`` is True). The policy and the estimator always see the observation;
-4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap``; where it fires -- or, with
+4. the rule ``P(col) = (c_ep or c_feat) and c_prox and c_ap`` (paper eq. (10); or one of its ablations,
+   ``thresholds.conditions``: ``c_prox and c_ap`` or ``(c_ep or c_feat) and c_ap``); where it fires -- or, with
    ``thresholds.hold_steps = k > 0``, fired at one of the last ``k`` steps of the episode
    (:func:`~socnav.safety.rule.held_fallback`) -- the action is replaced by the
    :class:`~socnav.safety.cautious.CautiousController`'s, computed from the sensed observation.
@@ -26,6 +27,8 @@ windows, the previous gap and a hold run on across episodes.
 
 from __future__ import annotations
 
+import hashlib
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Mapping, Union
 
 import numpy as np
@@ -38,16 +41,25 @@ from socnav.safety.rule import (NearestHuman, RuleConditions, Thresholds, held_f
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["FallbackCounter", "SafePolicy", "fallback_percent"]
+__all__ = ["FallbackCounter", "SafePolicy", "fallback_percent", "no_uncertainty"]
 
 SPEED, HEADING = 0, 1
+
+
+def no_uncertainty(observation: Mapping[str, np.ndarray]) -> Any:
+    """An estimator that estimates nothing: zero uncertainties for every observation of the batch (for rules and
+    records that do not read them, without the cost of an estimate)."""
+    batch = np.atleast_2d(np.asarray(observation["robot"])).shape[0]
+    return SimpleNamespace(u_ep=np.zeros((batch, 2)), u_al=np.zeros((batch, 2)), u_feat=np.zeros(batch))
 
 
 class SafePolicy:
     """Wrap ``policy`` so that a cautious ORCA controller takes over when the collision rule fires.
 
     :param policy: anything with ``predict(obs, state=None, episode_start=None, deterministic=True)``, batched.
-    :param estimator: callable ``estimator(obs) -> Uncertainty``-like (``u_ep``, ``u_al``, ``u_feat``).
+    :param estimator: callable ``estimator(obs) -> Uncertainty``-like (``u_ep``, ``u_al``, ``u_feat``); None only
+        for a rule that reads no uncertainty (``thresholds.conditions == "proximity-only"``): the windows then hold
+        zeros and no estimate is computed (its cost is the point: K forward passes per step for MC-dropout).
     :param thresholds: a :class:`Thresholds`, a preset name (``mc``, ``ensemble``), a file path or a mapping;
         its ``sensing`` says what the proximity terms and the cautious controller read (module docstring).
     :param config: the env config (limits for the cautious controller).
@@ -78,6 +90,10 @@ class SafePolicy:
         self.policy = policy
         self.estimator = estimator
         self.thresholds = load_thresholds(thresholds)
+        if estimator is None and self.thresholds.uses_uncertainty:
+            raise ValueError(f"estimator=None: only a rule that reads no uncertainty (thresholds.conditions="
+                             f"'proximity-only') runs without an estimator; these thresholds have conditions="
+                             f"{self.thresholds.conditions!r}")
         self.config = load_config(config)
         self.window = int(window)
         self.cautious = CautiousController(self.config, radius_scale=radius_scale)
@@ -190,10 +206,13 @@ class SafePolicy:
                                              deterministic=deterministic)
         actions = np.array(actions, dtype=np.float32).reshape(batch, -1)
 
-        u = self.estimator(obs)
-        u_ep, u_al = np.asarray(u.u_ep, dtype=np.float64), np.asarray(u.u_al, dtype=np.float64)
-        values = np.column_stack([u_ep[:, SPEED], u_ep[:, HEADING], u_al[:, SPEED], u_al[:, HEADING],
-                                  np.asarray(u.u_feat, dtype=np.float64).reshape(batch)])
+        if self.estimator is None:  # a proximity-only rule: nothing reads the uncertainty
+            values = np.zeros((batch, 5))
+        else:
+            u = self.estimator(obs)
+            u_ep, u_al = np.asarray(u.u_ep, dtype=np.float64), np.asarray(u.u_al, dtype=np.float64)
+            values = np.column_stack([u_ep[:, SPEED], u_ep[:, HEADING], u_al[:, SPEED], u_al[:, HEADING],
+                                      np.asarray(u.u_feat, dtype=np.float64).reshape(batch)])
         windowed = self._push(values)
         self.last_uncertainty = {"u_ep_speed": windowed[:, 0], "u_ep_heading": windowed[:, 1],
                                  "u_al_speed": windowed[:, 2], "u_al_heading": windowed[:, 3],
@@ -222,19 +241,61 @@ class SafePolicy:
 
 class FallbackCounter:
     """Rollout observer (``socnav.envs.rollout.rollout_episodes(..., observer=...)``) counting, per episode id,
-    the steps on which ``safe_policy`` handed over to the fallback."""
+    the steps on which ``safe_policy`` handed over to the fallback and what the rule's conditions did there.
+
+    Per episode (:meth:`columns`): ``fallback_steps`` (the fallback drove), ``proximity_steps`` (the proximity
+    terms ``c_prox and c_ap`` held), ``vetoed_steps`` (they held but the uncertainty condition did not, so eq. (10)
+    left the policy in control: :attr:`~socnav.safety.RuleConditions.vetoed`; 0 for the rule's ablations) and
+    ``fallback_digest``, a digest of the step indices where the fallback drove: two rollouts of the same episode
+    seed made the same hand-over decisions iff their digests are equal.
+    """
 
     def __init__(self, safe_policy: SafePolicy) -> None:
         self.safe_policy = safe_policy
         self.counts: dict[int, int] = {}
+        self.proximity: dict[int, int] = {}
+        self.vetoed: dict[int, int] = {}
+        self._fallback_steps: dict[int, list[int]] = {}
+        self._steps: np.ndarray | None = None  # step index of each environment's current episode
+
+    def on_episode_start(self, envs: np.ndarray) -> None:
+        if self._steps is None:  # the first call names every environment of the rollout
+            self._steps = np.zeros(len(envs), dtype=np.int64)
+        self._steps[envs] = 0
 
     def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
-        for env in np.flatnonzero((episodes >= 0) & self.safe_policy.last_fallback):
-            self.counts[int(episodes[env])] = self.counts.get(int(episodes[env]), 0) + 1
+        live = episodes >= 0
+        conditions = self.safe_policy.last_conditions
+        for env in np.flatnonzero(live & self.safe_policy.last_fallback):
+            episode = int(episodes[env])
+            self.counts[episode] = self.counts.get(episode, 0) + 1
+            if self._steps is not None:
+                self._fallback_steps.setdefault(episode, []).append(int(self._steps[env]))
+        if conditions is not None:
+            for counts, fired in ((self.proximity, conditions.c_prox & conditions.c_ap),
+                                  (self.vetoed, conditions.vetoed)):
+                for env in np.flatnonzero(live & fired):
+                    counts[int(episodes[env])] = counts.get(int(episodes[env]), 0) + 1
+        if self._steps is not None:
+            self._steps += 1
 
     def per_episode(self, episodes: Any) -> list[int]:
         """Fallback steps of each of ``episodes`` (ids), 0 where it never acted."""
         return [self.counts.get(int(e), 0) for e in episodes]
+
+    def digest(self, episode: int) -> str:
+        """16 hex digits identifying the step indices where the fallback drove in ``episode`` (the same for the same
+        indices; an episode without a fallback step has the digest of the empty list)."""
+        steps = np.asarray(self._fallback_steps.get(int(episode), []), dtype="<i4")
+        return hashlib.blake2b(steps.tobytes(), digest_size=8).hexdigest()
+
+    def columns(self, episodes: Any) -> dict[str, list[Any]]:
+        """The per-episode columns (class docstring) of ``episodes`` (ids), in their order."""
+        episodes = [int(e) for e in episodes]
+        return {"fallback_steps": self.per_episode(episodes),
+                "proximity_steps": [self.proximity.get(e, 0) for e in episodes],
+                "vetoed_steps": [self.vetoed.get(e, 0) for e in episodes],
+                "fallback_digest": [self.digest(e) for e in episodes]}
 
 
 def fallback_percent(records: pd.DataFrame) -> float:
