@@ -246,6 +246,9 @@ def test_a_light_budget_proposes_at_the_budget_alone_and_is_not_refined(monkeypa
     assert set(pd.DataFrame(light["candidates"])["stage"]) == {"proxy"}  # no refinement stage
     full = results[0.05][1]
     assert "search" not in full and full["proxy_budgets"] == [0.05, 0.025]
+    # the light budget keeps the c_prox reading the full budget chose; the full one searched both
+    assert {row["proximity"] for row in full["candidates"]} == {"abs-relative-speed", "closing-speed"}
+    assert {row["proximity"] for row in light["candidates"]} == {results[0.05][0].proximity}
     assert calibrate_thresholds(None, None, env, 2, 0.05)[0] == results[0.05][0]  # the full budget as alone
     with pytest.raises(ValueError, match=r"light must name budgets of \[0.05\]; got \[0.2\]"):
         calibrate_budgets(None, None, env, 2, [0.05], light=[0.2])

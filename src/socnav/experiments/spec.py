@@ -256,7 +256,8 @@ class Safety(StrictModel):
                                                       "the trade-off curve; [] for none")
     tradeoff_search: Literal["full", "light"] = Field(
         "full", description="calibration at the trade-off budgets other than false_activation_budget: full (as at "
-                            "that budget) or light (one proxy budget, no refinement stage; every rule alike)")
+                            "that budget) or light (one proxy budget, the c_prox reading chosen at that budget, no "
+                            "refinement stage; every rule alike)")
     tradeoff_repeats: Optional[StrictInt] = Field(
         None, ge=1, le=MAX_SAMPLES, description="the first repeats the rules of those budgets are evaluated on "
                                                 "(null: every repeat); the curve uses the repeats all its points share")
@@ -774,11 +775,13 @@ def _relative_cost(unit: Unit) -> float:
     """A unit's rough cost relative to a one-budget MC-dropout calibration, for the plan order: the runner starts
     ready units in plan order, so the longest first keep both workers busy to the end. Measured on the 2-core
     machine (Table 3 quick): an ensemble replay costs ~1.2 MC-dropout ones, a replay without estimate ~0.2; each
-    further trade-off budget adds ~35 % replays, the uncertainty-only search has ~15 % fewer candidates."""
+    further trade-off budget adds ~35 % replays (~5 % with the light search), the uncertainty-only search has ~15 %
+    fewer candidates."""
     p = unit.params
     per_replay = {"ensemble": 1.2, "mc": 1.0}.get(p.get("estimator") or NO_ESTIMATOR, 0.2)
-    replays = (1.0 + 0.35 * len(p.get("tradeoff_budgets", []))) * (0.85 if p.get("conditions") == "uncertainty-only"
-                                                                    else 1.0)
+    per_budget = 0.05 if p.get("tradeoff_search") == "light" else 0.35
+    replays = ((1.0 + per_budget * len(p.get("tradeoff_budgets", [])))
+               * (0.85 if p.get("conditions") == "uncertainty-only" else 1.0))
     return per_replay * replays
 
 

@@ -1682,7 +1682,8 @@ def plot_tradeoff(frame: pd.DataFrame, out_base: Path) -> list[Path]:
                   label=f"paper's thresholds as printed, {estimator_label(row.estimator)}")
     axis.set_xlabel("false activation, measured (% of unperturbed steps)")
     axis.set_ylabel("prevented collisions (%, mean of the paper's columns)")
-    axis.set_ylim(bottom=min(0.0, float(np.nanmin(frame["prevented_pct"])) if len(frame) else 0.0))
+    lowest = float(frame["prevented_pct"].min())  # NaN without any collision to prevent
+    axis.set_ylim(bottom=min(0.0, lowest) if math.isfinite(lowest) else 0.0)
     axis.set_xlim(left=0.0)
     axis.grid(alpha=0.3)
     axis.legend(fontsize=8, frameon=False)
@@ -1708,8 +1709,8 @@ def _tradeoff_protocol(context: ReportContext, frame: pd.DataFrame) -> str:
     safety = context.experiment.get("safety") or {}
     search, repeats = safety.get("tradeoff_search", "full"), safety.get("tradeoff_repeats")
     text = ("The points other than the run's budget were calibrated like it" if search == "full" else
-            "The points other than the run's budget were calibrated by a lighter search (one proxy budget, no "
-            "refinement stage), every rule alike")
+            "The points other than the run's budget were calibrated by a lighter search (one proxy budget, the c_prox "
+            "reading chosen at the run's budget, no refinement stage), every rule alike")
     text += (", and every point is shown on all repeats." if repeats is None else
              f"; every point is shown on the first {repeats} repeat(s), the ones all were played on.")
     return text

@@ -873,7 +873,8 @@ def calibrate_budgets(policy: Any, estimator: Any, env: dict[str, Any], episodes
     candidate's replay are played once and shared by all budgets (a candidate proposed for two budgets is scored
     once). Each budget's result is what `calibrate_thresholds` with that budget alone returns -- except for the
     budgets in `light`, chosen by a lighter search for the points of a trade-off curve (their reports say
-    ``"search": "light"``): stage 1 at the budget itself only (not also at the other `PROXY_BUDGET_SHARES`) and no
+    ``"search": "light"``): stage 1 at the budget itself only (not also at the other `PROXY_BUDGET_SHARES`) and with
+    the c_prox reading(s) the other budgets chose (the reading is the rule's form, not a matter of budget), and no
     stage 3. Applied to every rule alike, it keeps their comparison at each budget fair at about half the replays.
 
     :return: budget -> ``(thresholds, report)``, in the order of `budgets`.
@@ -934,16 +935,22 @@ def calibrate_budgets(policy: Any, estimator: Any, env: dict[str, Any], episodes
                                       "note": "no collision in the calibration episodes: thresholds that never fire",
                                       **common(budget)})
                 for budget in budgets}
-    proposals = [_proposals(records, budget, variants, conditions, sensing,
-                            shares=PROXY_BUDGET_SHARES[:1] if budget in lighter else PROXY_BUDGET_SHARES)
-                 for budget in budgets]
-    distinct = {candidate for candidates, _ in proposals for candidate in candidates}
-    refined = len(budgets) - len(lighter)
-    played["total"] = played["done"] + per_pass * (1 + len(distinct) + refined * REFINE_ROUNDS * REFINE_PASSES)
+    full = [budget for budget in budgets if budget not in lighter]
+    proposals = {budget: _proposals(records, budget, variants, conditions, sensing) for budget in full}
+    distinct = {candidate for candidates, _ in proposals.values() for candidate in candidates}
+    most_light = len(lighter) * len(variants) * len(CALIBRATION_LEADS) * len(PROXY_HOLDS)  # before they are known
+    played["total"] = played["done"] + per_pass * (1 + len(distinct) + most_light
+                                                   + len(full) * REFINE_ROUNDS * REFINE_PASSES)
     plain_collisions = rollout_scores(None, policy, estimator, runs, window, n_envs, advance)["collisions"]
     cache: dict[Thresholds, dict[str, Any]] = {}
-    results = {}
-    for budget, (candidates, proxies) in zip(budgets, proposals):
+    results: dict[float, tuple[Thresholds, dict[str, Any]]] = {}
+    never = Thresholds.create(Thresholds.never().model_dump(), sensing=sensing)
+    for budget in full + sorted(lighter):  # a light budget reads the c_prox readings the full ones chose
+        if budget in lighter:
+            readings = [v for v in variants if any(t.proximity == v and t != never for t, _ in results.values())]
+            proposals[budget] = _proposals(records, budget, readings or variants, conditions, sensing,
+                                           shares=PROXY_BUDGET_SHARES[:1])
+        candidates, proxies = proposals[budget]
         thresholds, table = select_by_rollouts(candidates, policy, estimator, runs, budget, window, n_envs,
                                                confidence, progress=advance, plain_collisions=plain_collisions,
                                                cache=cache)
@@ -968,7 +975,7 @@ def calibrate_budgets(policy: Any, estimator: Any, env: dict[str, Any], episodes
     played["total"] = played["done"]  # the refinement may stop early: the bar ends full
     if progress is not None:
         progress(played["done"], played["total"])
-    return results
+    return {budget: results[budget] for budget in budgets}
 
 
 def _proposals(records: pd.DataFrame, budget: float, variants: Sequence[str], conditions: str, sensing: str,
