@@ -35,7 +35,7 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("train", "eval_episodes"): ("experiment `grid.validation_episodes`", "`train(eval_episodes=)`"),
     ("train", "out"): ("— (`socnav run`: `<run dir>/train/...`)", "`train(out_dir=)`"),
     ("train", "resume"): ("— (`socnav run` resumes by itself)", "`train(resume=True)`"),
-    ("train", "force"): ("—", "`socnav.rl.training.move_run_aside(out_dir)`"),
+    ("train", "force"): ("—", "`train(force=True)` (moves the run aside to `<out_dir>.old-<timestamp>`)"),
     # socnav evaluate -> socnav.envs.rollout.rollout_episodes(policy, config, n_episodes, seed, n_envs, ...)
     ("evaluate", "controller"): ("—", "`socnav.controllers.make_controller(name, config)`"),
     ("evaluate", "policy"): ("—", "hidden, deprecated: `--controller`"),

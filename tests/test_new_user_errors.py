@@ -335,3 +335,47 @@ def test_animate_draws_no_mc_dropout_bars_for_a_model_without_dropout(monkeypatc
     assert code == 2 and "dropout" in output
     code, output = run("calibrate", "--model", model, "--out", tmp_path / "t.yaml")
     assert code == 2 and "dropout" in output
+
+
+# ------------------------------------------------------------------------------------------ remaining one-liners
+
+def test_a_directory_given_as_thresholds_to_the_python_api_says_so(tmp_path):
+    from socnav.safety import ThresholdsError, load_thresholds
+
+    with pytest.raises(ThresholdsError, match="is a directory, not a thresholds file"):
+        load_thresholds(tmp_path)
+
+
+def test_report_out_under_a_file_is_one_line(afile, tmp_path):
+    from socnav.experiments.spec import load_experiment
+    from socnav.experiments.runner import prepare_run_dir
+
+    smoke = REPO / "configs" / "experiments" / "smoke.yaml"
+    root = tmp_path / "run"
+    prepare_run_dir(root, load_experiment(smoke, "quick"), smoke)  # a run directory with nothing done yet
+    code, output = run("report", root, "--out", afile / "report")
+    assert code == 2 and "cannot write the report" in output and str(afile) in output
+
+
+def test_tune_caps_its_counts_like_the_experiment_files(tmp_path):
+    from socnav.experiments.spec import MAX_EPISODES
+
+    code, output = run("tune", "--algo", "ppo", "--scenario", "circle_crossing", "--trials", "1",
+                       "--eval-episodes", MAX_EPISODES * 10, "--storage", f"sqlite:///{tmp_path}/t.db")
+    assert code == 2 and "--eval-episodes" in output and f"{MAX_EPISODES}" in output
+
+
+def test_ctrl_c_while_ray_imports_exits_130_without_a_traceback(monkeypatch, tmp_path):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def interrupted(name, *args, **kwargs):
+        if name == "ray":
+            raise KeyboardInterrupt
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    code, output = run("run", REPO / "configs" / "experiments" / "smoke.yaml", "--budget", "quick", "--backend",
+                       "ray", "--out", tmp_path / "run")
+    assert code == 130 and "interrupted" in output

@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 from socnav.cli import app
 from socnav.experiments.report import build_report
 from socnav.experiments.registry import EXECUTORS, ExecutorResult, unit_dir
-from socnav.experiments.runner import RunnerError, _file_lock, _unit_lock_path, read_plan, run_experiment, unit_states
+from socnav.experiments.runner import Reporter, RunnerError, _file_lock, _unit_lock_path, read_plan, run_experiment, unit_states
 from socnav.experiments.spec import PLANNERS, Unit, load_experiment, plan_units
 from socnav.io import read_table
 
@@ -59,9 +59,33 @@ def _check_complete(root: Path, experiment) -> dict[str, dict]:
 def local_run(tmp_path_factory) -> Path:
     """The smoke experiment (quick budget) run once on a 2-process pool."""
     root = tmp_path_factory.mktemp("local") / "run"
-    summary = run_experiment(load_experiment(SMOKE, "quick"), root, backend="local", workers=2, source=SMOKE)
+    summary = run_experiment(load_experiment(SMOKE, "quick"), root, backend="local", workers=2, source=SMOKE,
+                             reporter=_RecordingReporter())
     assert summary.ok and summary.count("done") == 6, summary.outcomes
     return root
+
+
+#: unit id -> the (done, total, what) progress reports the local_run sweep received for it
+PROGRESS_REPORTS: dict[str, list[tuple[int, int, str]]] = {}
+
+
+class _RecordingReporter(Reporter):
+    def unit_progress(self, unit, done, total, what):
+        PROGRESS_REPORTS.setdefault(unit.id, []).append((done, total, what))
+
+
+def test_running_units_report_their_progress_from_the_worker(local_run):
+    experiment = load_experiment(SMOKE, "quick")
+    trains = [unit for unit in plan_units(experiment) if unit.kind == "train"]
+    reported = [unit for unit in trains if unit.id in PROGRESS_REPORTS]
+    assert reported, PROGRESS_REPORTS  # a training of thousands of steps is polled at least once
+    for unit in reported:
+        reports = PROGRESS_REPORTS[unit.id]
+        assert {(total, what) for _, total, what in reports} == {(experiment.grid.timesteps, "steps")}
+        done = [d for d, _, _ in reports]
+        assert done == sorted(done) and 0 <= done[0] and done[-1] <= experiment.grid.timesteps
+    for unit in plan_units(experiment):  # a finished unit leaves no progress file behind
+        assert not (unit_dir(local_run, unit) / "progress.json").exists()
 
 
 def test_local_backend_end_to_end(local_run):
@@ -271,3 +295,23 @@ def test_tune_runs_trials_and_writes_a_preset(tmp_path):
 
     resolve_config("ppo", values)  # the preset is valid input for train / experiment files
     assert "best of study" in result.output
+
+
+def test_a_progress_file_is_throttled_and_an_unsound_one_reads_as_none(tmp_path):
+    from socnav.experiments.registry import UnitProgress, read_progress
+
+    bar = UnitProgress(tmp_path, 10, "episodes", every=3600.0)
+    bar.advance(3)
+    assert read_progress(tmp_path) == (3, 10, "episodes")
+    bar.advance(2)  # within the interval: not written
+    assert read_progress(tmp_path) == (3, 10, "episodes")
+    bar.advance(5)  # complete: always written
+    assert read_progress(tmp_path) == (10, 10, "episodes")
+    for text in ["{", '{"done": 11, "total": 10, "unit": "x"}', '{"done": -1, "total": 10, "unit": "x"}',
+                 '{"done": 1, "total": 0, "unit": "x"}', "[1, 2]", "[" * 100_000]:
+        (tmp_path / "progress.json").write_text(text)
+        assert read_progress(tmp_path) is None, text
+    (tmp_path / "progress.json").unlink()
+    (tmp_path / "progress.json").symlink_to(tmp_path / "elsewhere.json")
+    (tmp_path / "elsewhere.json").write_text('{"done": 1, "total": 2, "unit": "x"}')
+    assert read_progress(tmp_path) is None  # never read through a link

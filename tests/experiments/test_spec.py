@@ -125,7 +125,7 @@ def test_unknown_field_suggests_the_nearest_allowed_one():
     ({"env": {"n_humans": -1}}, ["n_humans", "circle_crossing"]),
     ({"env": {"humans": 3}}, ["humans", "unknown field"]),
     ({"grid": {"overrides": {"learning_rat": 0.1}}}, ["learning_rat", "allowed keys", "learning_rate"]),
-    ({"grid": {"seeds": 0}}, ["grid.seeds", ">= 1"]),
+    ({"grid": {"seeds": 0}}, ["grid.seeds", "[1, 10000]"]),
     ({"grid": {"seeds": [1, 1]}}, ["grid.seeds", "twice"]),
     ({"name": "table 1/x"}, ["name", "letters"]),
     ({"kind": "table9"}, ["kind", "'table9'", "table1"]),
@@ -345,3 +345,42 @@ def test_ablation_fields_name_the_problem(safety, expected):
     message = _error(_uncertainty(**safety))
     for fragment in expected:
         assert fragment in message, (fragment, message)
+
+
+def test_a_huge_seed_count_is_refused_before_it_is_expanded():
+    data = _minimal()
+    data["grid"]["seeds"] = 10**8  # list(range(10**8)) would take gigabytes before any check
+    message = _error(data)
+    assert "grid.seeds" in message and "[1, 10000]" in message and "got 100000000" in message
+
+
+def test_a_grid_above_the_unit_bound_is_refused_with_its_count(monkeypatch):
+    import socnav.experiments.spec as spec
+
+    data = _minimal()
+    data["grid"].update(algorithms=ALGOS, train_scenarios=SCENARIOS, seeds=10)
+    data["evaluation"]["scenarios"] = SCENARIOS
+    experiment = parse_experiment(data, "test")
+    assert len(plan_units(experiment)) == spec.planned_unit_count(experiment) == 5 * 3 * 10 * (1 + 3)
+    monkeypatch.setattr(spec, "MAX_UNITS", 599)
+    built = []
+    monkeypatch.setitem(spec.PLANNERS, "table1", lambda e: built.append(e) or [])
+    with pytest.raises(ExperimentError, match=r"the grid makes 600 units, above the bound of 599"):
+        plan_units(experiment)
+    assert built == []  # refused before the planner ran
+
+
+@pytest.mark.parametrize("name", ["table1", "table2", "table3"])
+def test_the_unit_count_bounds_every_shipped_plan(name):
+    from socnav.experiments.spec import planned_unit_count
+
+    for budget in [None, *yaml.safe_load((CONFIGS / f"{name}.yaml").read_text()).get("budgets", {})]:
+        experiment = load_experiment(CONFIGS / f"{name}.yaml", budget)
+        assert len(plan_units(experiment)) <= planned_unit_count(experiment)
+
+
+@pytest.mark.parametrize("budget", ["../../etc", "a/b", "", "quick fast"])
+def test_a_budget_name_that_is_not_a_directory_name_is_refused(budget):
+    data = _minimal()
+    data["budgets"] = {budget: {"episodes": 3}}
+    assert "it names a directory" in _error(data)

@@ -12,13 +12,15 @@ from typing import Any, Optional
 import typer
 
 from socnav._console import console, fail
+from socnav.experiments.spec import MAX_EPISODES, MAX_TIMESTEPS
 from socnav.extras import install_hint
 
 __all__ = ["register"]
 
 
 class _ProgressReporter:
-    """Rich progress: one bar for the sweep (units done / running / failed), a spinner line per running unit."""
+    """Rich progress: one bar for the sweep (units done / running / failed) and a bar per running unit, fed by the
+    unit's own progress file (a spinner until its first report, e.g. while a model loads)."""
 
     def __init__(self) -> None:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -49,6 +51,11 @@ class _ProgressReporter:
     def unit_started(self, unit: Any) -> None:
         self.tasks[unit.id] = self.progress.add_task(f"  [cyan]{unit.id}[/]", total=None, counts="")
         self.progress.update(self.sweep, counts=self._counts())
+
+    def unit_progress(self, unit: Any, done: int, total: int, what: str) -> None:
+        task = self.tasks.get(unit.id)
+        if task is not None:
+            self.progress.update(task, completed=done, total=total, counts=what)
 
     def unit_finished(self, unit: Any, outcome: Any) -> None:
         task = self.tasks.pop(unit.id, None)
@@ -106,9 +113,12 @@ def run(
         return
     if backend == "ray":
         try:
-            import ray  # noqa: F401
+            import ray  # noqa: F401  (takes seconds: a Ctrl-C meanwhile is an interruption, not a traceback)
         except ImportError:
             fail(f"--backend ray needs Ray: {install_hint('ray')}")
+        except KeyboardInterrupt:
+            console.print("[yellow]interrupted[/] before any unit started")
+            raise typer.Exit(code=130) from None
     reporter = _ProgressReporter()
     started = time.perf_counter()
     try:
@@ -149,6 +159,10 @@ def report(
     except (RunnerError, ValueError) as exc:
         fail(str(exc))
         return
+    except OSError as exc:  # --out under a file, unwritable, a full disk: one line naming the path
+        where = f" {exc.filename}" if exc.filename else ""
+        fail(f"cannot write the report{where}: {exc.strerror or exc} (choose another --out)")
+        return
     console.print(f"report: {page}", highlight=False)
     for name in sorted(p.name for p in page.parent.iterdir() if p.is_file() and p.name != page.name):
         console.print(f"  {page.parent / name}", highlight=False)
@@ -157,14 +171,15 @@ def report(
 def tune(
     algo: str = typer.Option(..., help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
     scenario: str = typer.Option(..., help="training scenario"),
-    trials: int = typer.Option(..., min=1, help="trials to run (added to the study if it exists)"),
+    trials: int = typer.Option(..., min=1, max=100_000, help="trials to run (added to the study if it exists)"),
     storage: str = typer.Option("sqlite:///runs/tune.db", help="Optuna storage URL (any Optuna RDB URL)"),
-    timesteps: int = typer.Option(100_000, min=1, help="training timesteps per trial"),
+    timesteps: int = typer.Option(100_000, min=1, max=MAX_TIMESTEPS, help="training timesteps per trial"),
     study_name: Optional[str] = typer.Option(None, help="study name (default <algo>_<scenario>)"),
     n_envs: int = typer.Option(16, min=1, help="training environments per trial"),
-    eval_every: Optional[int] = typer.Option(None, min=1, help="timesteps between validations reported to "
-                                                               "the pruner (default a fifth of the trial)"),
-    eval_episodes: int = typer.Option(20, min=1, help="validation episodes per evaluation"),
+    eval_every: Optional[int] = typer.Option(None, min=1, max=MAX_TIMESTEPS,
+                                             help="timesteps between validations reported to the pruner "
+                                                  "(default a fifth of the trial)"),
+    eval_episodes: int = typer.Option(20, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
     metric: str = typer.Option("return_mean", help="objective: return_mean | goal_pct | collision_pct"),
     seed: int = typer.Option(0, help="training seed of every trial (and the sampler's seed)"),
     n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),

@@ -11,7 +11,9 @@ This module imports none of them: the providers import it, never the other way r
 from __future__ import annotations
 
 import hashlib
+import json
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -19,11 +21,11 @@ from typing import Any, Callable
 import pandas as pd
 
 from socnav.experiments.spec import Unit
-from socnav.io import json_safe, read_table
+from socnav.io import json_safe, read_json, read_table, write_text_atomic
 
 __all__ = [
-    "EXECUTORS", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section", "file_digest",
-    "json_safe", "register_executor", "register_section", "single_threaded_torch", "unit_dir",
+    "EXECUTORS", "PROGRESS_FILE", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section",
+    "UnitProgress", "file_digest", "json_safe", "read_progress", "register_executor", "register_section", "single_threaded_torch", "unit_dir",
 ]
 
 
@@ -67,6 +69,42 @@ class ExecutorResult:
 
 
 Executor = Callable[[Path, Unit, Path], ExecutorResult]  # (run root, unit, unit directory) -> result
+#: A running unit's progress, read by the runner for its per-unit bars (removed when the unit is done).
+PROGRESS_FILE = "progress.json"
+
+
+class UnitProgress:
+    """How far a running unit is, in its own `unit` (steps, episodes, replays), written to ``progress.json`` in
+    its directory: the worker is another process (or a Ray node sharing the directory), so a small file is the
+    channel. Written atomically, at most every `every` seconds and once more when the work is complete."""
+
+    def __init__(self, directory: Path, total: int, unit: str, every: float = 1.0):
+        self.path, self.total, self.unit, self.every = Path(directory) / PROGRESS_FILE, int(total), unit, every
+        self.done, self._written = 0, -math.inf
+
+    def update(self, done: int, total: int | None = None) -> None:
+        """Set the work done (and, when it became known, the total)."""
+        self.done, self.total = int(done), int(total) if total is not None else self.total
+        now = time.monotonic()
+        if now - self._written >= self.every or self.done >= self.total:
+            self._written = now
+            write_text_atomic(self.path, json.dumps({"done": self.done, "total": self.total, "unit": self.unit}))
+
+    def advance(self, count: int = 1) -> None:
+        self.update(self.done + count)
+
+
+def read_progress(directory: Path) -> tuple[int, int, str] | None:
+    """``(done, total, unit)`` of a running unit's ``progress.json``; None when there is none or it is not sound
+    (the display then shows a spinner; a unit's correctness never depends on this file)."""
+    try:
+        data = read_json(Path(directory) / PROGRESS_FILE, max_bytes=4096, follow_links=False)
+        done, total, unit = data["done"], data["total"], str(data["unit"])[:20]
+    except Exception:  # absent, half-read, a link, a wrong shape: no progress to show
+        return None
+    if not (isinstance(done, int) and isinstance(total, int) and 0 <= done <= total and total > 0):
+        return None
+    return done, total, unit
 #: unit kind -> function doing the unit's work in its (prepared) directory.
 EXECUTORS: dict[str, Executor] = {}
 #: unit kind -> function(unit directory) telling whether a partial unit may be continued (else it is wiped).

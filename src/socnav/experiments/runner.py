@@ -42,7 +42,8 @@ from socnav.config import YAML_MAX_BYTES
 # Ray workers too) knows them.
 from socnav.experiments import uncertainty_units  # noqa: F401
 from socnav.experiments.registry import (
-    EXECUTORS, RESUMABLE, ExecutorResult, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
+    EXECUTORS, PROGRESS_FILE, RESUMABLE, ExecutorResult, UnitProgress, file_digest, json_safe, read_progress,
+    register_executor, single_threaded_torch, unit_dir,
 )
 from socnav.experiments.spec import Experiment, Unit, plan_units
 from socnav.extras import install_hint
@@ -181,11 +182,12 @@ def _execute_train(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 
     p = unit.params
     single_threaded_torch()
+    bar = UnitProgress(directory, p["timesteps"], "steps")
     # resume=True: a kept partial unit passed _sound_checkpoint, so train continues from its checkpoint (or starts
     # afresh when there is none) and never discards one.
     result = train(p["env"], p["algo"], p["seed"], p["timesteps"], directory, n_envs=p["n_envs"],
                    overrides=p["overrides"], eval_every=p["eval_every"], eval_episodes=p["validation_episodes"],
-                   resume=True, progress=False, tensorboard=True)
+                   resume=True, progress=lambda steps, _: bar.update(steps), tensorboard=True)
     return ExecutorResult(["model.zip", "curve.csv", "eval.csv", "run.json"],
                           extra={"timesteps": result.timesteps, "train_wall_time_s": result.wall_time_s,
                                  "resumed": result.resumed_from > 0, "final_validation": result.final_eval})
@@ -202,8 +204,9 @@ def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     (train_id,) = unit.deps
     model = unit_dir(root, train_id) / "model.zip"
     model_digest = file_digest(model)
+    bar = UnitProgress(directory, p["episodes"], "episodes")
     records = rollout_episodes(load_policy(model), p["env"], p["episodes"], seed=p["seed"], n_envs=p["n_envs"],
-                               deterministic=p["deterministic"])
+                               deterministic=p["deterministic"], progress=bar.advance)
     summary = summarize(records)
     records.insert(0, "eval_scenario", p["eval_scenario"])
     records.insert(0, "train_seed", p["train_seed"])
@@ -258,6 +261,7 @@ def _execute_locked(unit: Unit, run_root: Path, started: float) -> dict[str, Any
         _prepare_unit_dir(run_root, unit, state)
         result = EXECUTORS[unit.kind](run_root, unit, directory)
         elapsed = time.perf_counter() - started
+        (directory / PROGRESS_FILE).unlink(missing_ok=True)
         mark_done(run_root, unit, result.outputs, result.inputs,
                   {"wall_time_s": elapsed, "previous_state": state, **result.extra})
         return {"id": unit.id, "status": "done", "wall_time_s": elapsed}
@@ -282,8 +286,8 @@ def _prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
         refuse_links(root, directory)  # rmtree removes links inside without following them; never one above
         shutil.rmtree(directory)
     real_directory(root, directory)
-    (directory / ERROR_FILE).unlink(missing_ok=True)
-    (directory / DONE_FILE).unlink(missing_ok=True)
+    for name in (ERROR_FILE, DONE_FILE, PROGRESS_FILE):
+        (directory / name).unlink(missing_ok=True)
     write_text_atomic(directory / UNIT_FILE, json.dumps(unit.to_json(), indent=2, sort_keys=True))
 
 
@@ -579,6 +583,7 @@ class Reporter:
     def start(self, total: int, already_done: int, redo: dict[str, int]) -> None: ...
     def unit_started(self, unit: Unit) -> None: ...
     def unit_finished(self, unit: Unit, outcome: UnitOutcome) -> None: ...
+    def unit_progress(self, unit: Unit, done: int, total: int, what: str) -> None: ...
 
 
 def run_experiment(
@@ -663,7 +668,12 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
                 if waiting:  # cannot happen with a valid plan; never spin
                     raise RunnerError(f"units wait for dependencies that are not planned: {[u.id for u in waiting]}")
                 break
-            for handle in backend.wait(list(running), timeout=0.5):
+            finished = backend.wait(list(running), timeout=0.5)
+            for unit in running.values():  # the running units' own progress files (`UnitProgress`)
+                progress = read_progress(unit_dir(root, unit))
+                if progress is not None:
+                    reporter.unit_progress(unit, *progress)
+            for handle in finished:
                 if handle not in running:  # put back after its pool broke (below)
                     continue
                 unit = running.pop(handle)

@@ -64,6 +64,13 @@ EPISODE_SEED_LIMIT = 2**31 - 1
 MAX_TIMESTEPS = 10**10
 MAX_EPISODES = 10**7
 MAX_SAMPLES = 10_000  # MC-dropout samples, window steps, repeats
+MAX_SEEDS = 10_000  # training seeds per grid: a seed count is checked before it is expanded into a list
+MAX_STRENGTHS = 1_000  # strengths of one perturbation
+#: Units one experiment may plan: counted from the grid's sizes before any unit is built (a 2-core laptop runs
+#: ~100 units an hour, a cluster a few thousand; the bound is far above both, far below what exhausts memory).
+MAX_UNITS = 1_000_000
+#: Experiment and budget names become directory names under runs/: one safe pattern for both.
+SAFE_NAME = r"[A-Za-z0-9_.-]+"
 Seeds = Union[StrictInt, list[StrictInt]]
 
 
@@ -93,9 +100,11 @@ def _check_names(values: list[str], allowed: Any, what: str) -> list[str]:
 
 
 def _seed_list(value: Seeds) -> list[int]:
+    if isinstance(value, int) and not 1 <= value <= MAX_SEEDS:  # before range() is expanded
+        raise ValueError(f"an integer seed count must be in [1, {MAX_SEEDS}] (n means seeds 0..n-1)")
     seeds = list(range(value)) if isinstance(value, int) else list(value)
-    if isinstance(value, int) and value < 1:
-        raise ValueError("an integer seed count must be >= 1 (n means seeds 0..n-1)")
+    if len(seeds) > MAX_SEEDS:
+        raise ValueError(f"at most {MAX_SEEDS} seeds; got {len(seeds)}")
     if not seeds:
         raise ValueError("needs at least one seed")
     if any(seed < 0 or seed > TRAIN_SEED_LIMIT for seed in seeds):
@@ -168,6 +177,8 @@ def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
     for name, strengths in value.items():
         if name not in PERTURBATION_FIELDS:
             raise ValueError(f"unknown perturbation {short_repr(name)}; allowed: {', '.join(PERTURBATION_FIELDS)}")
+        if len(strengths) > MAX_STRENGTHS:
+            raise ValueError(f"{name}: at most {MAX_STRENGTHS} strengths; got {len(strengths)}")
         if len(strengths) < 2 or sorted(strengths) != list(strengths):
             raise ValueError(f"{name}: strengths must be increasing, the first being the unperturbed one (sigma(0))")
     return value
@@ -384,8 +395,17 @@ class Experiment(StrictModel):
     @field_validator("name")
     @classmethod
     def _safe_name(cls, value: str) -> str:
-        if not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+        if not re.fullmatch(SAFE_NAME, value):
             raise ValueError("must consist of letters, digits, '.', '_' or '-' (it names a directory)")
+        return value
+
+    @field_validator("budgets")
+    @classmethod
+    def _safe_budget_names(cls, value: dict[str, Budget]) -> dict[str, Budget]:
+        for name in value:  # runs/<name>-<budget> is the default run directory
+            if not re.fullmatch(SAFE_NAME, name):
+                raise ValueError(f"budget name {short_repr(name)} must consist of letters, digits, '.', '_' or "
+                                 "'-' (it names a directory)")
         return value
 
     @field_validator("kind")
@@ -785,8 +805,29 @@ def _relative_cost(unit: Unit) -> float:
     return per_replay * replays
 
 
+def planned_unit_count(experiment: Experiment) -> int:
+    """An upper bound of the units `plan_units` builds, from the grid's sizes alone (nothing expanded)."""
+    grid = experiment.grid
+    trainings = len(grid.train_scenarios) * len(grid.algorithms) * len(grid.seeds)  # type: ignore[arg-type]
+    if experiment.kind == "table1":
+        return trainings * (1 + len(experiment.evaluation.scenarios))
+    count = trainings
+    if experiment.study is not None:
+        count += len(experiment.study.estimators) * len(experiment.study.perturbations)
+    if experiment.safety is not None:
+        safety = experiment.safety
+        rules = (len(safety.estimators) + 1) * (1 + len(safety.ablation))
+        count += rules * (len(safety.sensing) + len(safety.perturbations))
+    return count
+
+
 def plan_units(experiment: Experiment) -> list[Unit]:
-    """The units of a resolved experiment, every unit after the units it depends on."""
+    """The units of a resolved experiment, every unit after the units it depends on; refused (with the count)
+    above `MAX_UNITS`, counted before any unit is built."""
+    count = planned_unit_count(experiment)
+    if count > MAX_UNITS:
+        raise ExperimentError(f"experiment {experiment.name!r}: the grid makes {count:,} units, above the bound of "
+                              f"{MAX_UNITS:,}; reduce grid.seeds, grid.algorithms or the scenarios")
     units = PLANNERS[experiment.kind](experiment)
     seen: set[str] = set()
     for unit in units:

@@ -54,7 +54,6 @@ Definitions:
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -63,11 +62,12 @@ import numpy as np
 import pandas as pd
 
 from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, PAPER_GRIDS, PERTURBATION_FIELDS, strength_zero
-from socnav.experiments import uncertainty_information  # noqa: F401  (its section registers on import)
 from socnav.experiments.registry import ReportContext, register_section, unit_dir
 from socnav.experiments.spec import NO_ESTIMATOR
 from socnav.experiments.statistics import Interval
-from socnav.io import read_table, save_figure, write_table_atomic, write_text_atomic
+from socnav.io import (
+    UntrustedInputError, read_json, read_table, save_figure, write_table_atomic, write_text_atomic,
+)
 
 __all__ = [
     "KIND", "ablation_markdown", "ablation_records", "cost_frame", "cost_markdown", "decisions_frame",
@@ -1759,14 +1759,12 @@ def _calibrations(context: ReportContext) -> dict[tuple[str, str, str, float], d
         found = {}
         for pattern in ("calibrate*/*/calibration.json", "calibrate*/*/calibration-budget*.json"):
             for path in _record_files(context, pattern):
-                try:
-                    data = json.loads(path.read_text())
-                except (OSError, ValueError):
+                try:  # bounded (size, depth), never through a link: an unsound file is left out, the report goes on
+                    data = read_json(path, follow_links=False)
+                    budget = (math.nan if path.name == "calibration.json"
+                              else float(data.get("false_activation_budget", math.nan)))
+                except (OSError, UntrustedInputError, AttributeError, TypeError, ValueError):
                     continue
-                if not isinstance(data, dict):
-                    continue
-                budget = math.nan if path.name == "calibration.json" else float(data.get("false_activation_budget",
-                                                                                         math.nan))
                 found[(str(data.get("estimator", path.parent.name)), str(data.get("sensing", "perceived")),
                        str(data.get("conditions", "paper")), budget)] = data
         context._cache["uncertainty_calibration"] = found
@@ -1855,3 +1853,7 @@ def calibration_section(context: ReportContext) -> str:
                                           _number_text(row["false_activation_rate"])]) + " |")
     lines += ["", "Data: [calibration.csv](calibration.csv)."]
     return "\n".join(lines)
+
+
+# Registered last, so its section follows Table 2's and Table 3's in the report.
+from socnav.experiments import uncertainty_information  # noqa: E402,F401  (its section registers on import)

@@ -15,7 +15,7 @@ import pandas as pd
 from socnav.envs.perturbations import PAPER_GRIDS, perturbed_config, strength_zero
 from socnav.envs.rollout import rollout_episodes
 from socnav.experiments.registry import (
-    ExecutorResult, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
+    ExecutorResult, UnitProgress, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
 )
 from socnav.experiments.spec import NO_ESTIMATOR, Unit, calibration_unit_id, tradeoff_thresholds_file
 from socnav.io import write_table_atomic, write_text_atomic
@@ -54,12 +54,13 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     single_threaded_torch()
     policies, inputs = _policies(root, unit)
     steps_parts, episode_parts, summary = [], [], {}
+    bar = UnitProgress(directory, len(p["strengths"]) * p["episodes"], "episodes")
     for strength in p["strengths"]:
         config = perturbed_config(p["env"], p["perturbation"], strength)
         # a fresh, seeded estimator per strength: the dropout masks do not depend on which strengths ran before
         estimator = _estimator(p["estimator"], policies, p["k"], p["p_test"])
         steps, episodes = record_uncertainty(policies[0], estimator, config, p["episodes"], seed=p["seed"],
-                                             n_envs=p["n_envs"], window=p["window"])
+                                             n_envs=p["n_envs"], window=p["window"], progress=bar.advance)
         tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength)}
         steps_parts.append(_tag(steps, **tags))
         episode_parts.append(_tag(episodes, **tags))
@@ -88,7 +89,8 @@ def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResul
     budgets = [p["budget"], *p.get("tradeoff_budgets", [])]
     light = p.get("tradeoff_budgets", []) if p.get("tradeoff_search") == "light" else []
     results = calibrate_budgets(policies[0], estimator, p["env"], p["episodes"], budgets, p["proximity"],
-                                p["window"], sensing=p["sensing"], conditions=conditions, light=light)
+                                p["window"], sensing=p["sensing"], conditions=conditions, light=light,
+                                progress=UnitProgress(directory, 1, "replays").update)
     files = []
     for budget, (thresholds, report) in results.items():
         if conditions != "paper":  # the directory does not name the estimator of an ablated rule
@@ -126,10 +128,12 @@ def _calibrated(root: Path, unit: Unit, inputs: dict[str, str], calibration: str
 
 
 def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimator: Callable[[Any], Any],
-          tags: dict[str, Any], ablation: bool, unperturbed: bool = True) -> pd.DataFrame:
+          tags: dict[str, Any], ablation: bool, unperturbed: bool = True,
+          progress: UnitProgress | None = None) -> pd.DataFrame:
     """The plain policy and every variant on the same episodes, at every strength and repeat (the records of
     `_execute_safety`); with `ablation` also the ``rule`` and ``budget`` tags and :data:`ABLATION_COLUMNS`, and the
-    unperturbed strength only if ``unperturbed`` is true (the same world and episodes in every safety unit)."""
+    unperturbed strength only if ``unperturbed`` is true (the same world and episodes in every safety unit);
+    `progress` counts the (strength, repeat) settings played."""
     from socnav.safety import FallbackCounter, SafePolicy
 
     parts = []
@@ -169,7 +173,17 @@ def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimat
                 extra = {"rule": variant.rule, "budget": variant.budget} if ablation else {}
                 parts.append(_tag(played[key].copy(), **block, variant=variant.name, sensing=thresholds.sensing,
                                   **extra))
+            if progress is not None:
+                progress.advance()
     return pd.concat(parts, ignore_index=True)
+
+
+def _settings(p: dict[str, Any], unperturbed: bool = True) -> int:
+    """The (strength, repeat) settings `_play` plays for the unit parameters `p`."""
+    kind = p["perturbation"]
+    skipped = (not unperturbed and kind in PAPER_GRIDS
+               and any(math.isclose(strength, strength_zero(kind)) for strength in p["strengths"]))
+    return max(1, (len(p["strengths"]) - skipped) * p["repeats"])
 
 
 @register_executor("safety_eval")
@@ -208,9 +222,10 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
             calibration = calibration_unit_id(p["estimator"], sensing, rule)
             variants.append(_Variant("calibrated", _calibrated(root, unit, inputs, calibration, "thresholds.yaml",
                                                                sensing), rule=rule, budget=main_budget))
+    unperturbed = ablation.get("unperturbed", True) if ablation else True
     records = _play(p, policies[0], variants, lambda _: _estimator(p["estimator"], policies, p["k"]),
                     {"estimator": p["estimator"]}, ablation=bool(ablation),
-                    unperturbed=ablation.get("unperturbed", True) if ablation else True)
+                    unperturbed=unperturbed, progress=UnitProgress(directory, _settings(p, unperturbed), "settings"))
     write_table_atomic(records, directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)
 
@@ -235,6 +250,7 @@ def _execute_safety_proximity(root: Path, unit: Unit, directory: Path) -> Execut
     # nothing estimated; a calibration that found no rule within its budget wrote thresholds that never fire (an
     # uncertainty rule with infinite thresholds), which read the zero uncertainty
     records = _play(p, policies[0], variants, lambda t: no_uncertainty if t.uses_uncertainty else None,
-                    {"estimator": NO_ESTIMATOR}, ablation=True, unperturbed=p["unperturbed"])
+                    {"estimator": NO_ESTIMATOR}, ablation=True, unperturbed=p["unperturbed"],
+                    progress=UnitProgress(directory, _settings(p, p["unperturbed"]), "settings"))
     write_table_atomic(records, directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)

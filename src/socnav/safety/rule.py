@@ -206,6 +206,9 @@ def load_thresholds(path_or_name: Union[str, Path, Mapping[str, Any], Thresholds
     if not path.is_file():
         if isinstance(path_or_name, str) and path_or_name in THRESHOLD_PRESETS:
             return Thresholds.preset(path_or_name)
+        if path.is_dir():
+            raise ThresholdsError(f"{path} is a directory, not a thresholds file (a YAML or JSON file, or a preset "
+                                  f"name: {', '.join(THRESHOLD_PRESETS)})")
         raise ThresholdsError(
             f"thresholds file not found: {path} (or use a preset name: {', '.join(THRESHOLD_PRESETS)})"
         )

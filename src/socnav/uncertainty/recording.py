@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -79,15 +79,17 @@ def record_uncertainty(
     n_envs: int = 50,
     window: int = 4,
     deterministic: bool = True,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Play `n_episodes` (episode k from seed `seed + k`) with `policy`, estimating uncertainty at every step.
+    """Play `n_episodes` (episode k from seed `seed + k`) with `policy`, estimating uncertainty at every step;
+    `progress(n)` is told the episodes finished, as in `rollout_episodes`.
 
     :return: ``(steps, episodes)``: one row per step (see `UncertaintyRecorder`) and one per episode
         (`rollout_episodes` records).
     """
     recorder = UncertaintyRecorder(estimator, window)
     episodes = rollout_episodes(policy, config, n_episodes, seed=seed, n_envs=n_envs, deterministic=deterministic,
-                                observer=recorder)
+                                observer=recorder, progress=progress)
     return recorder.frame(), episodes
 
 
