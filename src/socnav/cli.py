@@ -864,9 +864,13 @@ def export(
     model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained'"),
     out: Path = typer.Option(Path("navigator.onnx"), help="the ONNX navigator file to write"),
     thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE"),
-    k: int = typer.Option(20, min=2, help="MC-dropout samples per decision"),
-    p_test: Optional[float] = typer.Option(None, min=0.0, max=0.99, help="MC-dropout p (default: the policy's)"),
-    window: int = typer.Option(4, min=1, help="uncertainty window in steps"),
+    # k, p-test and window are read as text and checked by socnav.export.check_settings: one line naming the
+    # option and its allowed range (socnav.runtime.format's MAX_K, MAX_WINDOW) for any bad value, 1e9 included.
+    # typer does not enforce min / max on text: they document the range (docs/configuration_table.py reads them).
+    k: str = typer.Option("20", min=2, max=1000, metavar="INTEGER", help="MC-dropout samples per decision"),
+    p_test: Optional[str] = typer.Option(None, metavar="FLOAT", help="MC-dropout p, in (0, 1) (default: the "
+                                                                     "policy's; 0 would disable the uncertainty)"),
+    window: str = typer.Option("4", min=1, max=10_000, metavar="INTEGER", help="uncertainty window in steps"),
     value: bool = typer.Option(False, "--value", help="also export the critic (output 'value')"),
 ) -> None:
     """Export a policy, its MC-dropout settings and safety thresholds as ONNX for the torch-free socnav.runtime."""
@@ -877,16 +881,23 @@ def export(
     missing = [name for name in ("onnx", "onnxruntime") if importlib.util.find_spec(name) is None]
     if missing:
         fail(f"socnav export needs {' and '.join(missing)}: {install_hint('export')}")
+    from socnav.export import ExportError, check_settings, export_onnx
+    from socnav.safety import ThresholdsError
+
+    try:
+        k_value, p_test_value, window_value = check_settings(
+            k, p_test, window, names={"k": "--k", "p_test": "--p-test", "window": "--window"})
+    except ExportError as exc:
+        fail(str(exc))
     _check_out_file("--out", out)
     if Path(thresholds).is_dir():
         fail(f"--thresholds {thresholds} is a directory; name a thresholds file (from socnav calibrate) or a preset: "
              "mc, ensemble")
-    from socnav.export import ExportError, export_onnx
-    from socnav.safety import ThresholdsError
 
     policy = _load_learned_policy(model)
     try:
-        path = export_onnx(policy, out, thresholds=thresholds, k=k, p_test=p_test, window=window, with_value=value)
+        path = export_onnx(policy, out, thresholds=thresholds, k=k_value, p_test=p_test_value, window=window_value,
+                           with_value=value)
     except (ExportError, ThresholdsError, OSError) as exc:
         fail(str(exc))
     console.print(f"navigator: {path}  (run it with socnav.runtime.SafeNavigator.load({str(path)!r}))")

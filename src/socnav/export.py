@@ -10,7 +10,9 @@ In the file, the LSTM layers are ONNX ``LSTM`` nodes fed each row's number of hu
 pays a per-node cost on every call of the deployed navigator (see :func:`_encoder`).
 Export uses torch's TorchScript-based ``torch.onnx.export(..., dynamo=False)``: in torch 2.13 the dynamo exporter
 turns the LSTM's sequence length into a constant on every export after the first in a process, which would break
-the dynamic number of humans. The written file is checked against the torch policy before it replaces ``out``.
+the dynamic number of humans. The file is sealed with its sha256 checksum, loaded back as the runtime loads it
+(checksum, metadata schema, graph) and checked against the torch policy (finite outputs, within
+:data:`EXPORT_TOLERANCE`) before it replaces ``out``.
 """
 
 from __future__ import annotations
@@ -18,27 +20,35 @@ from __future__ import annotations
 import io
 import json
 import logging
-import math
+import numbers
+import operator
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
+from pydantic import ValidationError
 from torch import nn
 
 from socnav.runtime.format import (
+    CHECKSUM_KEY,
     FORMAT_NAME,
     FORMAT_VERSION,
+    MAX_K,
+    MAX_WINDOW,
     METADATA_KEY,
     OBSERVATION_INPUTS,
     OUTPUTS,
     VALUE_OUTPUT,
+    NavigatorMetadata,
+    metadata_message,
+    seal,
 )
 
-__all__ = ["ExportError", "NavigatorGraph", "export_onnx"]
+__all__ = ["ExportError", "NavigatorGraph", "check_settings", "export_onnx"]
 
 #: ONNX opset of the written graph (LSTM, Clip, ...: every op it uses exists since opset 14).
 OPSET = 17
@@ -48,6 +58,55 @@ EXPORT_TOLERANCE = 1e-4
 
 class ExportError(ValueError):
     """The policy cannot be exported (unsupported network, missing metadata) or the export does not match it."""
+
+
+#: What p_test = 0 would do, said wherever it is refused.
+_P_TEST_ZERO = "0 keeps every unit: the K samples would be identical and the uncertainty estimate disabled"
+
+
+def check_settings(k: Any, p_test: Any, window: Any,
+                   names: Mapping[str, str] | None = None) -> tuple[int, float | None, int]:
+    """``(k, p_test, window)`` checked against the bounds of the navigator format (those the runtime enforces at
+    load: `socnav.runtime.format.NavigatorMetadata`), text converted as the command line gives it. ``p_test`` None
+    stays None (the policy's own, checked once the policy is loaded).
+
+    :param names: how the messages name the arguments (``socnav export``: ``--k``, ``--p-test``, ``--window``).
+    :raises ExportError: one line naming the argument, the allowed range and the value given.
+    """
+    names = {"k": "k", "p_test": "p_test", "window": "window", **(names or {})}
+    k = _integer(k, names["k"], 2, MAX_K)
+    window = _integer(window, names["window"], 1, MAX_WINDOW)
+    if p_test is not None:
+        p_test = _probability(p_test, names["p_test"])
+    return k, p_test, window
+
+
+def _integer(value: Any, name: str, low: int, high: int) -> int:
+    """An integer in [low, high] from an int or its text (no float: 1e9 or 2.5 are refused, not truncated)."""
+    allowed = f"{name} must be an integer in [{low}, {high}]"
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        number = int(value.strip()) if isinstance(value, str) else operator.index(value)
+    except (TypeError, ValueError):
+        raise ExportError(f"{allowed}, got {value!r:.60}") from None
+    if not low <= number <= high:
+        raise ExportError(f"{allowed}, got {number:.3g}" if abs(number) > 10**6 else f"{allowed}, got {number}")
+    return number
+
+
+def _probability(value: Any, name: str) -> float:
+    """A number in (0, 1) from a real number or its text."""
+    try:
+        if isinstance(value, bool) or not isinstance(value, (str, numbers.Real)):
+            raise TypeError
+        number = float(value.strip()) if isinstance(value, str) else float(value)
+    except (TypeError, ValueError):
+        raise ExportError(f"{name} must be a number in (0, 1), got {value!r:.60}") from None
+    if not 0.0 < number < 1.0:  # NaN fails too
+        hint = f" ({_P_TEST_ZERO})" if number == 0.0 else ""
+        raise ExportError(f"{name} must be a number in (0, 1), got {number:g}{hint}")
+    return number
 
 
 class NavigatorGraph(nn.Module):
@@ -278,13 +337,15 @@ def export_onnx(
     :param out: the ``.onnx`` file to write.
     :param thresholds: safety thresholds: a preset name (``mc``, ``ensemble``), a ``socnav calibrate`` file, a
         mapping or a :class:`~socnav.safety.Thresholds`.
-    :param k: MC-dropout samples K the runtime draws per decision (>= 2).
-    :param p_test: MC-dropout probability (None: the policy's stored ``p_test``).
-    :param window: uncertainty window in steps (paper: 4).
+    :param k: MC-dropout samples K the runtime draws per decision (2 ... :data:`~socnav.runtime.format.MAX_K`).
+    :param p_test: MC-dropout probability in (0, 1) (None: the policy's stored ``p_test``); 0 is refused: it
+        would disable the uncertainty estimate.
+    :param window: uncertainty window in steps (paper: 4; 1 ... :data:`~socnav.runtime.format.MAX_WINDOW`).
     :param with_value: also export the critic (output ``value``).
     :param env_config: the env config the policy acts in (None: the one stored in the policy file).
-    :raises ExportError: an unsupported network, a missing env config, bad arguments, or an exported graph
-        whose outputs differ from the torch policy's by more than :data:`EXPORT_TOLERANCE`.
+    :raises ExportError: an unsupported network, non-finite weights, a missing env config, bad arguments, metadata
+        the runtime would refuse, a written file that does not load, or an exported graph whose outputs are not
+        finite or differ from the torch policy's by more than :data:`EXPORT_TOLERANCE`.
     :raises socnav.rl.persistence.PolicyLoadError: an unreadable policy file.
     :raises socnav.safety.ThresholdsError: invalid thresholds.
     """
@@ -294,14 +355,14 @@ def export_onnx(
     from socnav.io import atomic_path
     from socnav.safety.rule import load_thresholds
 
+    k, p_test, window = check_settings(k, p_test, window)  # before the policy loads: cheap checks first
     policy = _load(model)
-    if k < 2:
-        raise ExportError(f"MC-dropout needs k >= 2 samples, got k={k}")
-    if window < 1:
-        raise ExportError(f"window must be >= 1, got {window}")
-    p_test = float(policy.p_test if p_test is None else p_test)
-    if not 0.0 <= p_test < 1.0:
-        raise ExportError(f"p_test must lie in [0, 1), got {p_test}")
+    if p_test is None:
+        p_test = float(policy.p_test)
+        if not 0.0 < p_test < 1.0:
+            hint = f": {_P_TEST_ZERO}" if p_test == 0.0 else ""
+            raise ExportError(f"the policy's stored p_test is {p_test:g}, outside (0, 1){hint}; pass p_test "
+                              "(socnav export --p-test) in (0, 1)")
     if env_config is None:
         stored = getattr(policy, "socnav_metadata", {}).get("env_config")
         if stored is None:
@@ -316,6 +377,9 @@ def export_onnx(
     thresholds = load_thresholds(thresholds)
 
     graph = NavigatorGraph(policy, with_value=with_value)
+    for name, parameter in graph.named_parameters():  # a NaN weight would give NaN commands on the robot
+        if not bool(th.isfinite(parameter).all()):
+            raise ExportError(f"the policy's weights hold NaN or inf values (in {name}): it cannot be exported")
     output_names = [*OUTPUTS, *([VALUE_OUTPUT] if with_value else [])]
     input_names = [*OBSERVATION_INPUTS, *(spec["name"] for spec in graph.dropout_inputs)]
     # Rows and human rows are dynamic: K samples run as one call and the runtime trims the padding rows.
@@ -323,6 +387,10 @@ def export_onnx(
     for name in ("humans", "humans_mask", *(spec["name"] for spec in graph.dropout_inputs if spec["per_human"])):
         dynamic[name] = {0: "rows", 1: "human_rows"}
     metadata = _metadata(policy, graph, env_config, thresholds, source, k, p_test, window)
+    try:  # the runtime's schema: what it would refuse at load is refused here, before anything is written
+        NavigatorMetadata.model_validate(metadata)
+    except ValidationError as exc:
+        raise ExportError(f"the navigator metadata would be invalid: {metadata_message(exc)}") from None
 
     modes = [(module, module.training) for module in graph.modules()]
     graph.train(False)
@@ -334,10 +402,12 @@ def export_onnx(
             proto = onnx.load_from_string(buffer.getvalue())
             _drop_unused_outputs(proto)
             proto.metadata_props.add(key=METADATA_KEY, value=json.dumps(metadata))
+            proto.metadata_props.add(key=CHECKSUM_KEY, value="0" * 64)  # filled in by `seal`
+            data = seal(proto.SerializeToString())
             path = Path(out)
             with atomic_path(path) as temporary:
-                onnx.save(proto, str(temporary))
-                _check(graph, temporary, input_names, env_config.max_humans)
+                temporary.write_bytes(data)
+                _check(graph, temporary, input_names, output_names, env_config.max_humans)
     finally:
         for module, mode in modes:
             module.training = mode
@@ -371,16 +441,45 @@ def _quiet_exporter() -> Iterator[None]:
         logger.setLevel(level)
 
 
-def _check(graph: NavigatorGraph, path: Path, input_names: list[str], max_humans: int) -> None:
-    """Run the written file with onnxruntime on random inputs; raise :class:`ExportError` unless it matches."""
-    import onnxruntime
+def _check(graph: NavigatorGraph, path: Path, input_names: list[str], output_names: list[str],
+           max_humans: int) -> None:
+    """Load the written file as the runtime will (checksum, metadata, graph) and run it on random inputs; raise
+    :class:`ExportError` unless it loads and matches the torch graph."""
+    from socnav.runtime.network import ExportedPolicy, NavigatorLoadError
 
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    try:
+        session = ExportedPolicy.load(path).session
+    except NavigatorLoadError as exc:
+        raise ExportError(f"the written navigator does not load: {exc}") from None
     for rows, steps in ((1, 1), (7, max_humans)):
         inputs = _example_inputs(graph, rows, steps, seed=rows)
-        expected = graph(*inputs)
+        expected = [tensor.numpy() for tensor in graph(*inputs)]
         got = session.run(None, {name: value.numpy() for name, value in zip(input_names, inputs)})
-        error = max(float(np.abs(g - e.numpy()).max()) for g, e in zip(got, expected))
-        if not math.isfinite(error) or error > EXPORT_TOLERANCE:
+        error = _largest_difference(got, expected, output_names, f"rows={rows}, human rows={steps}")
+        if error > EXPORT_TOLERANCE:
             raise ExportError(f"the exported graph differs from the torch policy by {error:.2e} "
                               f"(rows={rows}, human rows={steps}); tolerance {EXPORT_TOLERANCE:g}")
+
+
+def _largest_difference(got: Sequence[np.ndarray], expected: Sequence[np.ndarray], names: Sequence[str],
+                        where: str) -> float:
+    """The largest |ONNX - torch| over all outputs. A NaN / inf output (either side) or a missing or misshapen one
+    is an :class:`ExportError`, never a number: ``max`` would silently drop a NaN difference (``nan > x`` is
+    False), so the outputs are checked for finiteness before any difference is taken."""
+    if not len(got) == len(expected) == len(names):
+        raise ExportError(f"the exported graph gives {len(got)} outputs, the torch policy {len(expected)} "
+                          f"({where})")
+    largest = 0.0
+    for name, onnx_value, torch_value in zip(names, got, expected):
+        onnx_value, torch_value = np.asarray(onnx_value), np.asarray(torch_value)
+        if onnx_value.shape != torch_value.shape:
+            raise ExportError(f"the exported graph's {name!r} has shape {onnx_value.shape}, the torch policy's "
+                              f"{torch_value.shape} ({where})")
+        for side, value in (("exported graph", onnx_value), ("torch policy", torch_value)):
+            if not np.isfinite(value).all():
+                raise ExportError(f"the {side}'s {name!r} output is not finite (NaN or inf) on the check inputs "
+                                  f"({where}): the export does not give usable commands")
+        if onnx_value.size:
+            difference = float(np.abs(onnx_value.astype(np.float64) - torch_value.astype(np.float64)).max())
+            largest = max(largest, difference)  # both finite (float64: no overflow), so no NaN can be dropped
+    return largest

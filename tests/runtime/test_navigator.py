@@ -148,6 +148,7 @@ def test_command_and_window(navigator_file):
     ({**ROBOT, "position": [0.0, 1.0, 2.0]}, None, r"robot.position must have shape \(2,\)"),
     ({**ROBOT, "heading": float("nan")}, None, "robot.heading must be a finite number"),
     ({**ROBOT, "v_pref": [1.0, 2.0]}, None, "robot.v_pref must be a finite number"),
+    ({**ROBOT, "v_pref": 1.5}, None, r"robot.v_pref must be > 0.0 and <= 1.0"),  # the env config's fastest
     ({**ROBOT, "v_pref": 0.0}, None, "robot.v_pref must be > 0"),
     ({**ROBOT, "radius": -0.1}, None, "robot.radius must be >= 0"),
     ({key: value for key, value in ROBOT.items() if key != "goal"}, None, "lacks"),
@@ -196,7 +197,7 @@ def test_bad_files_are_clear_errors(navigator_file, tmp_path):
     with pytest.raises(NavigatorLoadError, match="not a socnav navigator"):
         SafeNavigator.load(foreign)
     future = onnx.load(str(navigator_file))
-    future.metadata_props[0].value = future.metadata_props[0].value.replace('"version": 1', '"version": 99')
+    future.metadata_props[0].value = future.metadata_props[0].value.replace('"version": 2', '"version": 99')
     onnx.save(future, str(tmp_path / "future.onnx"))
     with pytest.raises(NavigatorLoadError, match="version 99 is not supported"):
         SafeNavigator.load(tmp_path / "future.onnx")

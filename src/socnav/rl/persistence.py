@@ -329,8 +329,10 @@ def _tensor_kind_problem(tensor: th.Tensor) -> str | None:
 
 
 def _finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
-    """All values finite, except the feature-range sentinel: h_min = +inf where h_max = -inf (nothing seen yet)."""
-    if not tensor.is_floating_point():
+    """All values finite, except the feature-range sentinel: h_min = +inf where h_max = -inf (nothing seen yet).
+    Floating AND complex tensors are checked (`torch.isfinite` of a complex value checks its real and imaginary
+    parts); integer and bool tensors hold no NaN or inf (their dtype is checked against the network's apart)."""
+    if not (tensor.is_floating_point() or tensor.is_complex()):
         return True
     if name.endswith("features_extractor.h_min") or name.endswith("features_extractor.h_max"):
         prefix = name.rsplit(".", 1)[0]

@@ -12,19 +12,29 @@ Example (one control step; a ROS 2 node would call `act` from its timer callback
         {"positions": [[0.2, 1.0]], "velocities": [[0, -1]], "radii": [0.3]},
     )
     v, dtheta = decision.command                                 # decision.fallback, decision.uncertainty
+    # decision.fault is None unless the network's output was not finite (then: fallback, or a stop)
+
+`SafeNavigator.load` refuses (`NavigatorLoadError`, at load) a file that is corrupted (its sha256 checksum), of
+another format version, or whose metadata or graph is invalid; `act` refuses invalid states (`InputError`).
 """
 
-from socnav.runtime.navigator import Decision, HumansState, InputError, RobotState, SafeNavigator
+from socnav.runtime.format import NavigatorMetadata
+from socnav.runtime.navigator import (NON_FINITE_OBSERVATION, NON_FINITE_OUTPUT, STOPPED, Decision, HumansState,
+                                      InputError, RobotState, SafeNavigator)
 from socnav.runtime.network import DropoutStream, ExportedPolicy, NavigatorLoadError, NetworkOutput
 from socnav.uncertainty.stats import Uncertainty
 
 __all__ = [
+    "NON_FINITE_OBSERVATION",
+    "NON_FINITE_OUTPUT",
+    "STOPPED",
     "Decision",
     "DropoutStream",
     "ExportedPolicy",
     "HumansState",
     "InputError",
     "NavigatorLoadError",
+    "NavigatorMetadata",
     "NetworkOutput",
     "RobotState",
     "SafeNavigator",

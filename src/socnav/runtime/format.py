@@ -1,5 +1,5 @@
-"""The socnav navigator file format: an ONNX graph of the policy network plus a JSON metadata record.
-Shared by the exporter (`socnav.export`, torch) and the runtime (`socnav.runtime`, no torch).
+"""The socnav navigator file format: an ONNX graph of the policy network plus a JSON metadata record, sealed with a
+sha256 checksum. Shared by the exporter (`socnav.export`, torch) and the runtime (`socnav.runtime`, no torch).
 
 Graph inputs (``N`` rows, ``L`` human rows, dynamic both; ``L`` may be trimmed to the real rows)::
 
@@ -9,17 +9,352 @@ Each ``keep_*`` input multiplies its layer's input: ``keep = [u >= p] / (1 - p)`
 [0, 1)), all ones for the deterministic network. They are listed in ``metadata["dropout_inputs"]`` in forward order
 (``per_human``: shaped (N, L, width), else (N, width)), the order of ``policy.dropout_layers()``.
 Outputs: ``h`` (N, H) the LSTM state before dropout, ``mean`` (N, 2), ``log_std`` (N, 2), optionally ``value`` (N, 1).
+
 The metadata (ONNX ``metadata_props`` key :data:`METADATA_KEY`, JSON) also carries the observation layout, the
-action limits, the env config, ``p_test``, ``K``, the feature range, the safety thresholds and the socnav version.
+action limits, the env config, ``p_test``, ``K``, the feature range, the safety thresholds and the socnav version;
+:class:`NavigatorMetadata` is its schema, with the bounds and the consistency rules the runtime relies on.
+
+The checksum (``metadata_props`` key :data:`CHECKSUM_KEY`, 64 lowercase hex digits) is the sha256 of the whole file
+with those 64 digits read as ``0``: it covers the graph, its weights and the metadata, so that a file damaged on its
+way to the robot (a flipped bit, a truncated copy) is refused at load instead of driving it (:func:`seal`,
+:func:`verify`). It is no signature: anyone can recompute it.
+
+Version 2 added the checksum; version-1 files are refused with a request to re-export them.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+import math
+import re
+from typing import Annotated, Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from socnav.config import EnvConfig, short_repr
+from socnav.envs.spaces import ACTION_NAMES, HUMAN_FEATURE_NAMES, ROBOT_FEATURE_NAMES
+from socnav.safety.rule import Thresholds
+
+__all__ = [
+    "CHECKSUM_KEY", "FORMAT_NAME", "FORMAT_VERSION", "MAX_DROPOUT_INPUTS", "MAX_HUMANS", "MAX_K", "MAX_WIDTH",
+    "MAX_WINDOW", "METADATA_KEY", "METADATA_MAX_BYTES", "METADATA_MAX_DEPTH", "NAVIGATOR_MAX_BYTES",
+    "NavigatorLoadError", "NavigatorMetadata", "OBSERVATION_INPUTS", "OUTPUTS", "VALUE_OUTPUT", "metadata_entries",
+    "metadata_message", "seal", "verify",
+]
+
 FORMAT_NAME = "socnav-navigator"
-FORMAT_VERSION = 1
+#: 2: the file carries a sha256 checksum (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
+FORMAT_VERSION = 2
 METADATA_KEY = "socnav"
+CHECKSUM_KEY = "socnav_sha256"
 OBSERVATION_INPUTS = ("robot", "humans", "humans_mask")
 OUTPUTS = ("h", "mean", "log_std")
 VALUE_OUTPUT = "value"
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "METADATA_KEY", "OBSERVATION_INPUTS", "OUTPUTS", "VALUE_OUTPUT"]
+# Bounds of the metadata (and of `socnav export`'s options): well above anything socnav trains or the paper uses
+# (K = 20, window 4, 10 human rows, 64 LSTM units), low enough that a crafted value cannot make the runtime allocate
+# gigabytes at its first decision. The widths are the training presets' (`socnav.rl.presets`).
+MAX_K = 1000
+MAX_WINDOW = 10_000
+MAX_HUMANS = 1000
+MAX_WIDTH = 4096
+MAX_DROPOUT_INPUTS = 64
+MAX_RADIUS_SCALE = 10.0
+#: The largest navigator file read (the shipped policy's is ~0.4 MB; a 4096-wide network a few hundred MB).
+NAVIGATOR_MAX_BYTES = 512 << 20
+#: The metadata's JSON text: a few KB, mostly the feature range (two lists of H numbers); nesting 3 deep.
+METADATA_MAX_BYTES = 1 << 20
+METADATA_MAX_DEPTH = 16
+
+
+class NavigatorLoadError(ValueError):
+    """A file that is not a usable socnav navigator: missing, unreadable, not ONNX, foreign, corrupted (checksum),
+    incompatible or with invalid metadata. The message is one line naming the file."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The checksum: a minimal reader of the ONNX file's top-level protobuf fields (no `onnx` package in the runtime)
+# --------------------------------------------------------------------------------------------------------------
+
+_METADATA_PROPS = 14  # ModelProto.metadata_props: repeated StringStringEntryProto {key = 1, value = 2}
+_UNSEALED = b"0" * 64
+#: More top-level fields (or fields of one metadata entry) than any ONNX file has (a dozen or so): refused rather
+#: than walked, so that a crafted file of millions of tiny fields costs no more than reading it.
+_MAX_FIELDS = 100_000
+_DIGEST = re.compile(rb"[0-9a-f]{64}")
+
+
+class _Malformed(ValueError):
+    """The bytes are not a protobuf message (this reader's own error; callers turn it into theirs)."""
+
+
+def _varint(data: bytes, position: int, end: int) -> tuple[int, int]:
+    """The varint at `position` and the position after it."""
+    value = shift = 0
+    while True:
+        if position >= end or shift > 63:
+            raise _Malformed("a truncated or overlong varint")
+        byte = data[position]
+        position += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, position
+        shift += 7
+
+
+def _fields(data: bytes, start: int, end: int):
+    """``(field number, wire type, value start, value end)`` of every field of the message ``data[start:end]``."""
+    position, count = start, 0
+    while position < end:
+        count += 1
+        if count > _MAX_FIELDS:
+            raise _Malformed(f"more than {_MAX_FIELDS:,} fields")
+        tag, position = _varint(data, position, end)
+        number, wire = tag >> 3, tag & 7
+        if number == 0:
+            raise _Malformed("field number 0")
+        if wire == 0:
+            _, after = _varint(data, position, end)
+        elif wire == 1:
+            after = position + 8
+        elif wire == 2:
+            length, position = _varint(data, position, end)
+            after = position + length
+        elif wire == 5:
+            after = position + 4
+        else:  # groups (3, 4) are not used by ONNX; 6 and 7 do not exist
+            raise _Malformed(f"wire type {wire}")
+        if after > end:
+            raise _Malformed("a field runs past the end")
+        yield number, wire, position, after
+        position = after
+
+
+def metadata_entries(data: bytes) -> dict[str, tuple[int, int]]:
+    """Where the value of each ``metadata_props`` entry lies in the ONNX file ``data``: ``{key: (start, end)}``.
+    Walks the top-level fields only (linear time, nothing decoded but the keys).
+
+    :raises NavigatorLoadError: not a protobuf message, or a key that is not UTF-8 or occurs twice (message
+        without the file's name: the caller adds it).
+    """
+    entries: dict[str, tuple[int, int]] = {}
+    try:
+        for number, wire, start, end in _fields(data, 0, len(data)):
+            if number != _METADATA_PROPS:
+                continue
+            if wire != 2:
+                raise _Malformed("metadata_props is not a message")
+            key, value = b"", (end, end)
+            for inner, inner_wire, inner_start, inner_end in _fields(data, start, end):
+                if inner in (1, 2) and inner_wire != 2:
+                    raise _Malformed("a metadata entry's key or value is not a string")
+                if inner == 1:
+                    key = data[inner_start:inner_end]
+                elif inner == 2:
+                    value = (inner_start, inner_end)
+            name = key.decode("utf-8")
+            if name in entries:
+                raise _Malformed(f"the metadata key {short_repr(name, 60)} occurs twice")
+            entries[name] = value
+    except (_Malformed, UnicodeDecodeError) as exc:
+        raise NavigatorLoadError(f"not a readable ONNX model ({exc})") from None
+    return entries
+
+
+def _digest(data: bytes, start: int) -> str:
+    """The sha256 of ``data`` with the 64 checksum digits at ``start`` read as ``0``."""
+    hasher = hashlib.sha256()
+    view = memoryview(data)
+    hasher.update(view[:start])
+    hasher.update(_UNSEALED)
+    hasher.update(view[start + 64:])
+    return hasher.hexdigest()
+
+
+def seal(data: bytes) -> bytes:
+    """``data`` (a serialized ONNX model with a :data:`CHECKSUM_KEY` entry of 64 ``0``, as the exporter writes it)
+    with its checksum filled in."""
+    entries = metadata_entries(data)
+    if CHECKSUM_KEY not in entries:
+        raise ValueError(f"the model has no {CHECKSUM_KEY!r} metadata entry to fill")
+    start, end = entries[CHECKSUM_KEY]
+    if end - start != 64:
+        raise ValueError(f"the {CHECKSUM_KEY!r} entry must hold 64 characters, has {end - start}")
+    return data[:start] + _digest(data, start).encode() + data[end:]
+
+
+def verify(data: bytes, entries: dict[str, tuple[int, int]]) -> None:
+    """Check the checksum of the ONNX file ``data`` (``entries``: :func:`metadata_entries` of it).
+
+    :raises NavigatorLoadError: no checksum (an older format, or not written by `socnav export`), a malformed one,
+        or one that does not match the contents (message without the file's name: the caller adds it).
+    """
+    if CHECKSUM_KEY not in entries:
+        raise NavigatorLoadError(f"no {CHECKSUM_KEY!r} checksum (navigator format {FORMAT_VERSION} carries one)")
+    start, end = entries[CHECKSUM_KEY]
+    stored = data[start:end]
+    if end - start != 64 or not _DIGEST.fullmatch(stored):
+        raise NavigatorLoadError(f"its {CHECKSUM_KEY!r} checksum is malformed (not 64 lowercase hex digits): "
+                                 "the file is corrupted; export or copy it again")
+    if not hmac.compare_digest(stored, _digest(data, start).encode()):
+        raise NavigatorLoadError("the file is corrupted: its sha256 checksum does not match its contents; export "
+                                 "or copy it again")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The metadata's schema
+# --------------------------------------------------------------------------------------------------------------
+
+Name = Annotated[str, Field(max_length=200)]
+Text = Annotated[str, Field(max_length=2000)]
+# The feature range may hold the "nothing seen" sentinel (h_min = +inf where h_max = -inf); never NaN.
+Bound = Annotated[float, Field(allow_inf_nan=True)]
+
+
+class _Record(BaseModel):
+    """Strict: unknown fields refused, no type coercion (``"0.5"`` and ``true`` are not numbers), floats finite."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
+
+
+class ObservationRecord(_Record):
+    robot: list[Name] = Field(max_length=64)
+    human: list[Name] = Field(max_length=64)
+    max_humans: int = Field(ge=1, le=MAX_HUMANS)
+    layout: Text
+
+    @model_validator(mode="after")
+    def _layout(self) -> ObservationRecord:
+        # The runtime builds the observation with this socnav's kernel: the file must expect that very layout.
+        if tuple(self.robot) != ROBOT_FEATURE_NAMES or tuple(self.human) != HUMAN_FEATURE_NAMES:
+            raise ValueError(f"the observation features {self.robot} / {self.human} are not this socnav's "
+                             f"{list(ROBOT_FEATURE_NAMES)} / {list(HUMAN_FEATURE_NAMES)}")
+        return self
+
+
+class ActionRecord(_Record):
+    names: list[Name] = Field(max_length=16)
+    low: float
+    high: float
+    command: Text
+    max_heading_change: float = Field(gt=0, le=math.pi)
+    time_step: float = Field(gt=0, le=10)
+
+    @model_validator(mode="after")
+    def _unit_box(self) -> ActionRecord:
+        if tuple(self.names) != ACTION_NAMES or (self.low, self.high) != (-1.0, 1.0):
+            raise ValueError(f"the action must be {list(ACTION_NAMES)} in [-1, 1], got {self.names} in "
+                             f"[{self.low}, {self.high}]")
+        return self
+
+
+class PolicyRecord(_Record):
+    algo: Optional[Name]
+    timesteps: Optional[int] = Field(ge=0, le=10**15)
+    seed: Optional[int] = Field(ge=-(2**63), lt=2**64)
+    odv: bool
+    dropout_p: float = Field(ge=0, lt=1)
+    lstm_hidden_size: int = Field(ge=1, le=MAX_WIDTH)
+
+
+class MCDropoutRecord(_Record):
+    k: int = Field(ge=2, le=MAX_K, description="MC-dropout samples per decision")
+    # 0 would keep every unit: K identical samples, an uncertainty that is always 0 (the safety rule blind)
+    p_test: float = Field(gt=0, lt=1, description="MC-dropout probability")
+
+
+class DropoutInput(_Record):
+    name: str = Field(pattern=r"^keep_[a-z0-9_]{1,64}$")
+    per_human: bool
+    width: int = Field(ge=1, le=MAX_WIDTH)
+
+
+class FeatureRange(_Record):
+    h_min: list[Bound] = Field(max_length=MAX_WIDTH)
+    h_max: list[Bound] = Field(max_length=MAX_WIDTH)
+
+    @model_validator(mode="after")
+    def _pairs(self) -> FeatureRange:
+        if len(self.h_min) != len(self.h_max):
+            raise ValueError(f"h_min has {len(self.h_min)} values, h_max {len(self.h_max)}")
+        for index, (low, high) in enumerate(zip(self.h_min, self.h_max)):
+            unseen = low == math.inf and high == -math.inf
+            if not unseen and not (math.isfinite(low) and math.isfinite(high) and low <= high):
+                raise ValueError(f"element {index} is [{low}, {high}]: a finite range (h_min <= h_max) or the "
+                                 "unseen sentinel [inf, -inf] required")
+        return self
+
+
+class SafetyRecord(_Record):
+    thresholds: Thresholds
+    source: Text
+    window: int = Field(ge=1, le=MAX_WINDOW, description="uncertainty window in steps")
+    radius_scale: float = Field(gt=0, le=MAX_RADIUS_SCALE, description="the cautious controller's radius scale")
+
+    @field_validator("thresholds", mode="before")
+    @classmethod
+    def _thresholds_mapping(cls, value: Any) -> Any:
+        # Never a preset name or a path: the runtime would read whatever file the metadata names.
+        if not isinstance(value, dict):
+            raise ValueError(f"must be a mapping of the threshold fields, got {type(value).__name__}")
+        return value
+
+
+class NavigatorMetadata(_Record):
+    """The metadata record of a navigator file, validated: every field bounded and the parts consistent with
+    each other (the graph's inputs and outputs are checked against it by `ExportedPolicy`)."""
+
+    format: Literal[FORMAT_NAME]  # type: ignore[valid-type]  (a constant: pydantic reads it)
+    version: Literal[FORMAT_VERSION]  # type: ignore[valid-type]
+    socnav_version: Name
+    observation: ObservationRecord
+    action: ActionRecord
+    env_config: EnvConfig
+    policy: PolicyRecord
+    mc_dropout: MCDropoutRecord
+    dropout_inputs: list[DropoutInput] = Field(min_length=2, max_length=MAX_DROPOUT_INPUTS)
+    outputs: list[Name] = Field(max_length=8)
+    feature_range: FeatureRange
+    safety: SafetyRecord
+
+    @model_validator(mode="after")
+    def _consistent(self) -> NavigatorMetadata:
+        env = self.env_config
+        if self.observation.max_humans != env.max_humans:
+            raise ValueError(f"observation.max_humans={self.observation.max_humans} but "
+                             f"env_config.max_humans={env.max_humans}")
+        if (self.action.max_heading_change, self.action.time_step) != (env.max_heading_change, env.time_step):
+            raise ValueError("action.max_heading_change / time_step differ from the env config's")
+        if self.outputs not in (list(OUTPUTS), [*OUTPUTS, VALUE_OUTPUT]):
+            raise ValueError(f"outputs must be {list(OUTPUTS)}, optionally followed by {VALUE_OUTPUT!r}; got "
+                             f"{self.outputs}")
+        hidden = self.policy.lstm_hidden_size
+        names = [spec.name for spec in self.dropout_inputs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"dropout_inputs: repeated names in {names}")
+        # Forward order: the LSTM layers' inputs (the human features, then H wide), then h (H), then the actor's.
+        lstm = [spec for spec in self.dropout_inputs if spec.per_human]
+        rest = self.dropout_inputs[len(lstm):]
+        if not lstm or any(spec.per_human for spec in rest) or not rest:
+            raise ValueError("dropout_inputs: the per-human (LSTM input) masks come first, then at least the one "
+                             "on h")
+        widths = [spec.width for spec in lstm]
+        if widths != [len(HUMAN_FEATURE_NAMES)] + [hidden] * (len(lstm) - 1) or rest[0].width != hidden:
+            raise ValueError(f"dropout_inputs: widths {[spec.width for spec in self.dropout_inputs]} do not fit "
+                             f"{len(HUMAN_FEATURE_NAMES)} human features and lstm_hidden_size={hidden}")
+        if len(self.feature_range.h_min) != hidden:
+            raise ValueError(f"feature_range has {len(self.feature_range.h_min)} values per bound, "
+                             f"lstm_hidden_size={hidden}")
+        return self
+
+
+def metadata_message(error: ValidationError) -> str:
+    """pydantic's errors as one line naming each field and the value it got (the first five)."""
+    parts = []
+    for item in error.errors()[:5]:
+        field = ".".join(str(part) for part in item["loc"]) or "<root>"
+        got = "" if item["type"] == "missing" else f" (got {short_repr(item.get('input'), 60)})"
+        parts.append(f"{field}: {item['msg'].removeprefix('Value error, ')}{got}")
+    more = len(error.errors()) - 5
+    return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")

@@ -13,6 +13,10 @@ One decision:
    `socnav.safety.SafePolicy` does for one robot (tested step for step against it), without its batch bookkeeping;
 4. the action turned into ``(v, dtheta)`` by the simulator's own command kernel.
 
+No NaN reaches a command: the inputs are checked (:class:`InputError`), and should the network's outputs still not
+be finite, the policy's action is not used: the cautious controller acts, or the robot stops
+(:attr:`Decision.fault`).
+
 The humans handed to :meth:`SafeNavigator.act` are the robot's tracked state: the policy, the rule's proximity
 terms and the fallback all read them (the runtime counterpart of the safety layer's ``perceived`` sensing; a
 thresholds file's ``sensing`` field therefore changes nothing here).
@@ -28,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from socnav.config import load_config
+from socnav.config import short_repr
+from socnav.runtime.format import MAX_K
 from socnav.runtime.network import DropoutStream, ExportedPolicy, MCBatch, Uniforms, keep_from_uniforms
 from socnav.safety.cautious import CautiousController
 from socnav.safety.rule import (RuleConditions, Thresholds, held_fallback, load_thresholds, nearest_human,
@@ -37,18 +42,46 @@ from socnav.sim.observation import observe_robot, robot_command
 from socnav.uncertainty.stats import Uncertainty
 from socnav.uncertainty.window import WindowedUncertainty
 
-__all__ = ["Decision", "HumansState", "InputError", "RobotState", "SafeNavigator"]
+__all__ = ["NON_FINITE_OBSERVATION", "NON_FINITE_OUTPUT", "STOPPED", "Decision", "HumansState", "InputError",
+           "RobotState", "SafeNavigator"]
+
+#: `Decision.fault` when the network's outputs (or the uncertainty computed from them) are not finite.
+NON_FINITE_OUTPUT = "non-finite network output"
+#: `Decision.fault` when the observation handed to `SafeNavigator.act_observation` is not finite (the robot stops).
+NON_FINITE_OBSERVATION = "non-finite observation"
+#: Appended to `Decision.fault` when no trustworthy finite command exists: the robot is told to stop, (0, 0).
+STOPPED = "stopped: no finite command"
+#: The environment's action for the command (0, 0): speed v_pref (a0 + 1) / 2 = 0, no turn.
+_STOP_ACTION = np.array([-1.0, 0.0], dtype=np.float32)
 
 
 class InputError(ValueError):
     """A robot or human state that the navigator cannot act on (wrong shape, NaN / inf, impossible value)."""
 
 
-def _vector(owner: str, name: str, value: Any, size: int) -> np.ndarray:
+def _shown(value: Any, limit: int = 80) -> str:
+    """A value for a one-line message: its repr, shortened, on one line (NumPy prints arrays over several)."""
+    return " ".join(short_repr(value, limit).split())
+
+
+def _real_array(owner: str, name: str, value: Any) -> np.ndarray:
+    """``value`` as a float64 array, refused unless it holds real numbers (int or float): NumPy would turn text
+    (``"1.5"``) into a number, and a complex array into its real part, without a word."""
     try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{owner}.{name} must be numeric, got {value!r} ({exc})") from None
+        array = value if isinstance(value, np.ndarray) else np.asarray(value)
+    except (TypeError, ValueError) as exc:  # e.g. ragged nested lists
+        raise InputError(f"{owner}.{name} must be numeric (int or float numbers), got {_shown(value)} "
+                         f"({exc})") from None
+    if array.dtype.kind not in "iuf":
+        what = {"b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes"}.get(array.dtype.kind,
+                                                                                      f"{array.dtype} values")
+        raise InputError(f"{owner}.{name} must be numeric (int or float numbers), got {what}: "
+                         f"{_shown(value)}")
+    return array.astype(np.float64, copy=False)
+
+
+def _vector(owner: str, name: str, value: Any, size: int) -> np.ndarray:
+    array = _real_array(owner, name, value)
     if array.shape != (size,):
         raise InputError(f"{owner}.{name} must have shape ({size},), got {array.shape}")
     if not _finite(array):
@@ -62,18 +95,31 @@ def _finite(array: np.ndarray) -> bool:
     return math.isfinite(np.vdot(array, array)) or bool(np.isfinite(array).all())
 
 
-def _scalar(owner: str, name: str, value: Any, minimum: float = -math.inf, strict: bool = False) -> float:
-    try:
-        if type(value) is float or type(value) is int:  # the common case, without NumPy's per-call overhead
+def _scalar(owner: str, name: str, value: Any, minimum: float = -math.inf, strict: bool = False,
+            maximum: float = math.inf) -> float:
+    """A finite real number in [minimum, maximum] (``strict``: above ``minimum``). An int, a float, or a NumPy
+    integer / float scalar (0-d array); a bool, text, a complex number or a sequence is refused."""
+    if type(value) is float or type(value) is int:  # the common case, without NumPy's per-call overhead
+        try:
             number = float(value)
-        else:
-            number = float(value) if np.ndim(value) == 0 else math.nan
-    except (TypeError, ValueError, OverflowError):
-        number = math.nan
+        except OverflowError:  # an int beyond float's range
+            number = math.nan
+    elif isinstance(value, (bool, np.bool_, str, bytes, complex, np.complexfloating)):
+        raise InputError(f"{owner}.{name} must be a finite number (a real int or float), got "
+                         f"{type(value).__name__} {_shown(value, 60)}")
+    else:
+        array = np.asarray(value) if isinstance(value, (np.generic, np.ndarray)) else None
+        if array is None or array.ndim != 0 or array.dtype.kind not in "iuf":
+            raise InputError(f"{owner}.{name} must be a finite number (a real int or float), got "
+                             f"{type(value).__name__} {_shown(value, 60)}")
+        number = float(array)
     if not math.isfinite(number):
         raise InputError(f"{owner}.{name} must be a finite number, got {value!r}")
-    if number < minimum or (strict and number == minimum):
-        raise InputError(f"{owner}.{name} must be {'>' if strict else '>='} {minimum}, got {number}")
+    below = number < minimum or (strict and number == minimum)
+    if below or number > maximum:
+        low = f"{'>' if strict else '>='} {minimum}"
+        allowed = low if maximum == math.inf else f"{low} and <= {maximum}"
+        raise InputError(f"{owner}.{name} must be {allowed}, got {number}")
     return number
 
 
@@ -82,7 +128,9 @@ class RobotState:
     """The robot's state in any fixed world frame (metres, seconds, radians).
 
     :param position: (2,) position. :param velocity: (2,) current velocity. :param heading: yaw (rad).
-    :param goal: (2,) goal position. :param v_pref: preferred (maximum) speed, > 0. :param radius: body radius, >= 0.
+    :param goal: (2,) goal position. :param v_pref: preferred (maximum) speed, > 0 (and at most the navigator's
+        env config allows: its ``preferred_speed`` range, what the policy was trained with).
+    :param radius: body radius, >= 0.
     """
 
     position: Any
@@ -93,8 +141,11 @@ class RobotState:
     radius: float
 
     @classmethod
-    def parse(cls, robot: RobotState | Mapping[str, Any]) -> RobotState:
-        """A validated copy with float64 arrays; :class:`InputError` names the bad field."""
+    def parse(cls, robot: RobotState | Mapping[str, Any], max_speed: float = math.inf) -> RobotState:
+        """A validated copy with float64 arrays; :class:`InputError` names the bad field and the allowed values.
+        ``max_speed``: the largest ``v_pref`` accepted."""
+        if not isinstance(robot, (Mapping, RobotState)):
+            raise InputError(f"robot must be a RobotState or a mapping of its fields, got {type(robot).__name__}")
         fields = robot if isinstance(robot, Mapping) else robot.__dict__
         missing = {"position", "velocity", "heading", "goal", "v_pref", "radius"} - fields.keys()
         if missing:
@@ -104,7 +155,7 @@ class RobotState:
             velocity=_vector("robot", "velocity", fields["velocity"], 2),
             heading=_scalar("robot", "heading", fields["heading"]),
             goal=_vector("robot", "goal", fields["goal"], 2),
-            v_pref=_scalar("robot", "v_pref", fields["v_pref"], minimum=0.0, strict=True),
+            v_pref=_scalar("robot", "v_pref", fields["v_pref"], minimum=0.0, strict=True, maximum=max_speed),
             radius=_scalar("robot", "radius", fields["radius"], minimum=0.0),
         )
 
@@ -122,16 +173,16 @@ class HumansState:
         """A validated copy with float64 arrays; :class:`InputError` says which array and row is wrong."""
         if humans is None:
             return cls()
+        if not isinstance(humans, (Mapping, HumansState)):
+            raise InputError(f"humans must be a HumansState, a mapping of its fields or None, got "
+                             f"{type(humans).__name__}")
         fields = humans if isinstance(humans, Mapping) else humans.__dict__
         unknown = fields.keys() - {"positions", "velocities", "radii"}
         if unknown:
             raise InputError(f"unknown human fields {sorted(unknown)}; allowed: positions, velocities, radii")
         arrays = {}
         for name, width in (("positions", 2), ("velocities", 2), ("radii", 0)):
-            try:
-                array = np.asarray(fields.get(name, ()), dtype=np.float64)
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"humans.{name} must be numeric ({exc})") from None
+            array = _real_array("humans", name, fields.get(name, ()))
             if array.size == 0:
                 array = array.reshape((0, width) if width else (0,))
             expected = f"(n, {width})" if width else "(n,)"
@@ -162,6 +213,12 @@ class Decision:
     :param windowed: the windowed values the rule read: ``u_ep_speed``, ``u_ep_heading``, ``u_al_speed``,
         ``u_al_heading``, ``u_feat``. :param conditions: the rule's conditions (``c_ep``, ... as (1,) arrays).
     :param observation: the observation the network saw (batch of one).
+    :param fault: None when the network's output was usable. Otherwise why it was not (:data:`NON_FINITE_OUTPUT`:
+        the network gave NaN / inf): the policy's action is then never used; the cautious controller acts
+        (``fallback`` True) if its command is finite, else the robot stops (command ``(0, 0)``, ``fallback`` False,
+        :data:`STOPPED` appended to the fault). The uncertainty window is not fed that step (``windowed`` holds
+        NaN) and the fallback is held as if the rule had fired. A non-finite observation (only
+        :meth:`SafeNavigator.act_observation` takes one) stops the robot: :data:`NON_FINITE_OBSERVATION`.
     """
 
     speed: float
@@ -172,6 +229,7 @@ class Decision:
     windowed: dict[str, float]
     conditions: RuleConditions
     observation: dict[str, np.ndarray]
+    fault: str | None = None
 
     @property
     def command(self) -> tuple[float, float]:
@@ -196,17 +254,21 @@ class SafeNavigator:
 
     def __init__(self, network: ExportedPolicy, thresholds: Thresholds | str | Path | Mapping[str, Any] | None = None,
                  k: int | None = None, uniforms: Uniforms | None = None, seed: int | None = None) -> None:
-        metadata = network.metadata
+        record = network.record  # validated at load: env config, thresholds, window, radius scale
         self.network = network
-        self.config = load_config(metadata["env_config"])
-        safety = metadata["safety"]
-        self.thresholds = load_thresholds(safety["thresholds"] if thresholds is None else thresholds)
-        self.k = network.k if k is None else int(k)
-        if self.k < 2:
-            raise ValueError(f"MC-dropout needs k >= 2 samples, got k={self.k}")
+        self.config = record.env_config
+        self.thresholds = record.safety.thresholds if thresholds is None else load_thresholds(thresholds)
+        if k is None:
+            self.k = network.k
+        elif isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or not 2 <= k <= MAX_K:
+            raise ValueError(f"k (MC-dropout samples per decision) must be an integer in [2, {MAX_K}], got {k!r}")
+        else:
+            self.k = int(k)
         self.uniforms = DropoutStream(seed) if uniforms is None else uniforms
-        self._window = WindowedUncertainty(1, window=int(safety["window"]))
-        self.cautious = CautiousController(self.config, radius_scale=float(safety["radius_scale"]))
+        self._window = WindowedUncertainty(1, window=record.safety.window)
+        self.cautious = CautiousController(self.config, radius_scale=record.safety.radius_scale)
+        # v_pref above the trained range would give the policy an observation it never saw (and faster commands)
+        self.max_speed = float(self.config.preferred_speed[1])
         self._previous_gap = np.full(1, np.nan)  # d(t-1) of this episode; NaN: none yet (c_ap holds)
         self._hold_left = np.zeros(1, dtype=np.int64)  # held fallback steps still owed (thresholds.hold_steps)
         self._batches: dict[tuple[int, int, bool], MCBatch] = {}  # per (K, human rows, any human)
@@ -233,8 +295,11 @@ class SafeNavigator:
              threads: int = 1) -> SafeNavigator:
         """Open a navigator file written by ``socnav export`` (onnxruntime with ``threads`` intra-op threads).
 
-        :raises socnav.runtime.NavigatorLoadError: a missing, unreadable, non-ONNX, foreign or incompatible file.
+        :raises socnav.runtime.NavigatorLoadError: a missing, unreadable, non-ONNX, foreign, corrupted (checksum) or
+            incompatible file, invalid metadata, or a graph that fails or gives non-finite outputs on a test call:
+            every problem of the file shows here, none at the first :meth:`act`.
         :raises socnav.safety.ThresholdsError: invalid ``thresholds``.
+        :raises ValueError: ``k`` outside [2, :data:`~socnav.runtime.format.MAX_K`].
         """
         return cls(ExportedPolicy.load(path, threads=threads), thresholds=thresholds, k=k, uniforms=uniforms,
                    seed=seed)
@@ -260,39 +325,72 @@ class SafeNavigator:
             None for nobody around. With more than :attr:`max_humans` humans, the ``max_humans`` closest (by gap
             to the robot) are kept — the simulator's own rule; the others are ignored by the policy, the rule
             and the fallback alike.
-        :raises InputError: a wrong shape, a NaN / inf, ``v_pref <= 0`` or a negative radius (nothing reaches
-            onnxruntime).
+        :return: the decision; its command is always finite (see :attr:`Decision.fault` for what happens when
+            the network's output is not).
+        :raises InputError: a wrong shape or type (text, bool, complex), a NaN / inf, ``v_pref <= 0`` or above
+            the env config's largest preferred speed, a negative radius, or states so large that the observation
+            overflows float32 (nothing reaches onnxruntime).
         """
-        robot = RobotState.parse(robot)
+        robot = RobotState.parse(robot, max_speed=self.max_speed)
         humans = HumansState.parse(humans)
         observation = observe_robot(robot.position, robot.velocity, robot.heading, robot.goal, robot.v_pref,
                                     robot.radius, humans.positions, humans.velocities, humans.radii,
                                     self.network.max_humans)
+        for key, value in observation.items():  # finite float64 states can still overflow float32
+            if not _finite(value):
+                raise InputError(f"the robot's and humans' states give a non-finite observation ({key}): "
+                                 "positions or velocities beyond float32's range (about 3.4e38)")
         return self.act_observation(observation)
 
     def act_observation(self, observation: Mapping[str, np.ndarray]) -> Decision:
         """One decision from an observation already in the environment's layout (batch of one, float32), e.g.
-        one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` it is not checked."""
-        action, estimate = self._policy_and_uncertainty(observation)
-        windowed = self._window.update(estimate)
+        one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` its input is not checked, but
+        its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot)."""
+        # onnxruntime's LSTM can turn a NaN input into finite outputs: a broken observation is caught here, not
+        # by the output check. Neither the policy nor the fallback (which would ignore a NaN human) acts on it.
+        observed = all(_finite(np.asarray(value)) for value in observation.values())
+        if observed:
+            action, estimate, usable = self._policy_and_uncertainty(observation)
+        else:  # not run at all (an inf humans_mask has no row count): the uncertainty is unknown
+            nan = np.full((1, 2), np.nan)
+            action, estimate, usable = _STOP_ACTION.copy(), Uncertainty(nan, nan, nan, np.full(1, np.nan)), False
+        fault = None if usable else (NON_FINITE_OUTPUT if observed else NON_FINITE_OBSERVATION)
         nearest = nearest_human(observation)
-        conditions = rule_conditions(windowed.u_ep_heading, windowed.u_feat, nearest.gap,
-                                     nearest.speed(self.thresholds.proximity), self._previous_gap, self.thresholds)
+        speed_term = nearest.speed(self.thresholds.proximity)
+        if fault is None:
+            windowed = self._window.update(estimate)
+            conditions = rule_conditions(windowed.u_ep_heading, windowed.u_feat, nearest.gap, speed_term,
+                                         self._previous_gap, self.thresholds)
+            (u_ep_speed, u_ep_heading), (u_al_speed, u_al_heading) = (windowed.u_ep[0].tolist(),
+                                                                      windowed.u_al[0].tolist())
+            values = {"u_ep_speed": u_ep_speed, "u_ep_heading": u_ep_heading, "u_al_speed": u_al_speed,
+                      "u_al_heading": u_al_heading, "u_feat": float(windowed.u_feat[0])}
+            fire = conditions.p_col
+        else:
+            # A NaN would stay in the window for `window` steps and make every uncertainty comparison False (the
+            # rule blind): the window is not fed. The uncertainty is unknown, read as high in the conditions, and
+            # the fallback takes over now, held as if the rule had fired.
+            conditions = rule_conditions(math.inf, math.inf, nearest.gap, speed_term, self._previous_gap,
+                                         self.thresholds)
+            values = dict.fromkeys(("u_ep_speed", "u_ep_heading", "u_al_speed", "u_al_heading", "u_feat"), math.nan)
+            fire = np.ones(1, dtype=bool)
         self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)  # no human: nothing to compare next
-        held, self._hold_left = held_fallback(conditions.p_col, self._hold_left, self.thresholds.hold_steps)
+        held, self._hold_left = held_fallback(fire, self._hold_left, self.thresholds.hold_steps)
         fallback = bool(held[0])
-        if fallback:
-            action = self.cautious.predict(observation)[0][0]
-        speed, turn = robot_command(action, float(observation["robot"][0, 3]), self.config.max_heading_change)
-        (u_ep_speed, u_ep_heading), (u_al_speed, u_al_heading) = windowed.u_ep[0].tolist(), windowed.u_al[0].tolist()
-        values = {"u_ep_speed": u_ep_speed, "u_ep_heading": u_ep_heading, "u_al_speed": u_al_speed,
-                  "u_al_heading": u_al_heading, "u_feat": float(windowed.u_feat[0])}
+        speed = turn = math.nan
+        if observed:
+            if fallback:
+                action = self.cautious.predict(observation)[0][0]
+            speed, turn = robot_command(action, float(observation["robot"][0, 3]), self.config.max_heading_change)
+        if not (math.isfinite(speed) and math.isfinite(turn)):  # the last guard: never a NaN command
+            speed, turn, action, fallback = 0.0, 0.0, _STOP_ACTION.copy(), False
+            fault = f"{fault}; {STOPPED}" if fault else STOPPED
         return Decision(speed=speed, turn=turn, action=action, fallback=fallback, uncertainty=estimate,
-                        windowed=values, conditions=conditions, observation=dict(observation))
+                        windowed=values, conditions=conditions, observation=dict(observation), fault=fault)
 
-    def _policy_and_uncertainty(self, observation: Mapping[str, np.ndarray]) -> tuple[np.ndarray, Uncertainty]:
+    def _policy_and_uncertainty(self, observation: Mapping[str, np.ndarray]) -> tuple[np.ndarray, Uncertainty, bool]:
         """ONE graph call on ``1 + K`` rows: row 0 without dropout (the action, clipped to [-1, 1]), rows 1..K with
-        MC-dropout masks from the stream (this step's uncertainty)."""
+        MC-dropout masks from the stream (this step's uncertainty); and whether all of it is finite."""
         network = self.network
         robot, humans, mask, any_human = network.trim(observation)
         key = (self.k, humans.shape[1], any_human)
@@ -301,7 +399,10 @@ class SafeNavigator:
             batch = self._batches[key] = network.mc_batch(self.k, humans.shape[1], any_human, deterministic_rows=1)
         batch.run(robot, humans, mask, self.uniforms, network.p_test)
         estimate = network.summarise(batch.h[1:, None], batch.mean[1:, None], batch.log_std[1:, None])
-        return np.minimum(np.maximum(batch.mean[0], -1.0), 1.0), estimate  # np.clip costs more at this size
+        # All rows' raw outputs: a NaN in an MC row poisons the uncertainty as surely as one in row 0 the action
+        usable = (_finite(batch.mean) and _finite(batch.log_std) and _finite(batch.h) and _finite(estimate.u_ep)
+                  and _finite(estimate.u_al) and _finite(estimate.u_feat))
+        return np.minimum(np.maximum(batch.mean[0], -1.0), 1.0), estimate, usable  # np.clip costs more here
 
     def __repr__(self) -> str:
         return f"SafeNavigator({self.network!r}, K={self.k}, thresholds={self.thresholds!r})"

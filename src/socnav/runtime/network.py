@@ -10,7 +10,6 @@ observation has a human): fed the same stream, `MCDropoutEstimator(policy, unifo
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,18 +18,34 @@ from typing import Any
 import numba
 import numpy as np
 import onnxruntime
+from pydantic import ValidationError
 
-from socnav.runtime.format import FORMAT_NAME, FORMAT_VERSION, METADATA_KEY, OBSERVATION_INPUTS, OUTPUTS
+from socnav.config import short_repr
+from socnav.envs.spaces import HUMAN_FEATURE_NAMES, ROBOT_FEATURE_NAMES
+from socnav.io import UntrustedInputError, parse_json, read_bounded
+from socnav.runtime.format import (
+    CHECKSUM_KEY,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    METADATA_KEY,
+    METADATA_MAX_BYTES,
+    METADATA_MAX_DEPTH,
+    NAVIGATOR_MAX_BYTES,
+    OBSERVATION_INPUTS,
+    VALUE_OUTPUT,
+    NavigatorLoadError,
+    NavigatorMetadata,
+    metadata_entries,
+    metadata_message,
+    verify,
+)
 from socnav.uncertainty.stats import Uncertainty, _apply_feature_map, _feature_map, summarise_samples
 
-__all__ = ["DropoutStream", "ExportedPolicy", "MCBatch", "NavigatorLoadError", "NetworkOutput", "Uniforms"]
+__all__ = ["DropoutStream", "ExportedPolicy", "MCBatch", "NavigatorLoadError", "NetworkOutput", "Uniforms",
+           "read_metadata"]
 
 #: ``uniforms(layer, shape) -> array`` of U[0, 1) samples (the hook `MCDropoutEstimator` accepts too).
 Uniforms = Callable[[int, tuple[int, ...]], np.ndarray]
-
-
-class NavigatorLoadError(ValueError):
-    """A file that is not a usable socnav navigator: missing, unreadable, not ONNX, foreign or incompatible."""
 
 
 class DropoutStream:
@@ -93,32 +108,95 @@ class NetworkOutput:
     value: np.ndarray | None
 
 
-def _session(path: Path, threads: int) -> onnxruntime.InferenceSession:
+def _session(data: bytes, path: Path, threads: int) -> onnxruntime.InferenceSession:
+    """An onnxruntime session of the model ``data`` (the bytes whose checksum was verified: the file is read once)."""
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.log_severity_level = 3  # errors only: a navigator should not print warnings per load
     try:
-        return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        return onnxruntime.InferenceSession(data, options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own exception types (InvalidProtobuf, Fail, ...)
-        raise NavigatorLoadError(f"{path} is not a readable ONNX model ({type(exc).__name__}: {exc})") from None
+        message = " ".join(str(exc).split())[:300]
+        raise NavigatorLoadError(f"{path} is not a readable ONNX model ({type(exc).__name__}: {message})") from None
 
 
-def _read_metadata(session: onnxruntime.InferenceSession, path: Path) -> dict[str, Any]:
-    text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
-    if text is None:
+def _read_file(path: Path) -> bytes:
+    """The file's bytes, at most :data:`NAVIGATOR_MAX_BYTES` of them."""
+    if not path.is_file():
+        raise NavigatorLoadError(f"no navigator file at {path}")
+    try:
+        return read_bounded(path, NAVIGATOR_MAX_BYTES)
+    except UntrustedInputError as exc:
+        raise NavigatorLoadError(str(exc)) from None
+    except OSError as exc:
+        raise NavigatorLoadError(f"{path} cannot be read ({exc.strerror or exc})") from None
+
+
+def _declared_version(text: bytes) -> Any:
+    """The ``version`` the metadata text declares, None when it cannot be read (best effort, for the messages
+    about files of another format version; nothing else is taken from an unverified file)."""
+    try:
+        metadata = parse_json(text, "metadata", METADATA_MAX_DEPTH)
+    except UntrustedInputError:
+        return None
+    return metadata.get("version") if isinstance(metadata, dict) else None
+
+
+def read_metadata(data: bytes, path: Path) -> dict[str, Any]:
+    """The metadata record of the navigator file ``data`` as parsed JSON, after its checksum was verified; the
+    record's schema is checked by `ExportedPolicy` (:class:`socnav.runtime.format.NavigatorMetadata`).
+
+    :raises NavigatorLoadError: not ONNX, not a navigator, another format version, no or a wrong checksum,
+        metadata that is too large, too deep, not UTF-8 or not JSON.
+    """
+    try:
+        entries = metadata_entries(data)
+    except NavigatorLoadError as exc:
+        raise NavigatorLoadError(f"{path}: {exc}") from None
+    if METADATA_KEY not in entries:
         raise NavigatorLoadError(f"{path} is an ONNX model but not a socnav navigator (no {METADATA_KEY!r} "
                                  "metadata; write one with `socnav export`)")
+    start, end = entries[METADATA_KEY]
+    if end - start > METADATA_MAX_BYTES:
+        raise NavigatorLoadError(f"{path}: the {METADATA_KEY!r} metadata is larger than {METADATA_MAX_BYTES:,} bytes, "
+                                 "the most a navigator holds")
+    text = data[start:end]
+    # Another format version first: it may seal its file differently (or not at all, as version 1 did).
+    version = _declared_version(text)
+    if type(version) is int and version != FORMAT_VERSION:
+        if version < FORMAT_VERSION:
+            raise NavigatorLoadError(
+                f"{path}: navigator format version {version} is not supported; allowed: {FORMAT_VERSION} (version "
+                f"{FORMAT_VERSION} adds a checksum against corrupted files): re-export it with `socnav export`")
+        raise NavigatorLoadError(f"{path}: navigator format version {version} is not supported; allowed: "
+                                 f"{FORMAT_VERSION} (written by a newer socnav)")
     try:
-        metadata = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise NavigatorLoadError(f"{path}: the {METADATA_KEY!r} metadata is not valid JSON ({exc})") from None
+        verify(data, entries)
+    except NavigatorLoadError as exc:
+        raise NavigatorLoadError(f"{path}: {exc}; re-export it with `socnav export`" if CHECKSUM_KEY not in entries
+                                 else f"{path}: {exc}") from None
+    try:
+        metadata = parse_json(text, f"{path}: the {METADATA_KEY!r} metadata", METADATA_MAX_DEPTH)
+    except UntrustedInputError as exc:
+        raise NavigatorLoadError(str(exc)) from None
     if not isinstance(metadata, dict) or metadata.get("format") != FORMAT_NAME:
         raise NavigatorLoadError(f"{path}: the metadata does not declare format {FORMAT_NAME!r}")
     if metadata.get("version") != FORMAT_VERSION:
-        raise NavigatorLoadError(f"{path}: navigator format version {metadata.get('version')!r} is not supported; "
-                                 f"allowed: {FORMAT_VERSION}")
+        raise NavigatorLoadError(f"{path}: navigator format version {short_repr(metadata.get('version'), 40)} is "
+                                 f"not supported; allowed: {FORMAT_VERSION}")
     return metadata
+
+
+def _expected_shape(spec: Mapping[str, Any]) -> tuple[int | str, ...]:
+    """A keep input's shape: ``"rows"`` / ``"human_rows"`` stand for the dynamic dimensions."""
+    return ("rows", "human_rows", spec["width"]) if spec["per_human"] else ("rows", spec["width"])
+
+
+def _shape_fits(actual: Sequence[Any], expected: Sequence[int | str]) -> bool:
+    """The graph declares ``expected``: each fixed width exactly, each dynamic dimension as not fixed."""
+    return len(actual) == len(expected) and all(
+        (dim == want) if isinstance(want, int) else not isinstance(dim, int) for dim, want in zip(actual, expected))
 
 
 class ExportedPolicy:
@@ -126,40 +204,88 @@ class ExportedPolicy:
 
     :meth:`predict` gives the deterministic action (SB3-style, clipped to [-1, 1]); :meth:`samples` and
     :meth:`uncertainty` the MC-dropout samples and their uncertainty (`MCDropoutEstimator`'s equations);
-    :meth:`run` is the raw graph call. ``metadata`` is the file's JSON record (see `socnav.runtime.format`).
+    :meth:`run` is the raw graph call. ``metadata`` is the file's JSON record (see `socnav.runtime.format`),
+    ``record`` the same validated (:class:`~socnav.runtime.format.NavigatorMetadata`: env config and thresholds
+    as `EnvConfig` and `Thresholds`).
+
+    :raises NavigatorLoadError: metadata that does not validate, a graph whose inputs or outputs do not match it,
+        or a graph that fails or gives non-finite outputs on a test observation (all found here, at load).
     """
 
     def __init__(self, session: onnxruntime.InferenceSession, metadata: Mapping[str, Any], path: Path) -> None:
         self.session, self.metadata, self.path = session, dict(metadata), path
         try:
-            self.dropout_inputs: list[dict[str, Any]] = list(metadata["dropout_inputs"])
-            self.n_lstm = sum(1 for spec in self.dropout_inputs if spec["per_human"])
-            self.max_humans = int(metadata["observation"]["max_humans"])
-            self.k = int(metadata["mc_dropout"]["k"])
-            self.p_test = float(metadata["mc_dropout"]["p_test"])
-            h_min = np.asarray(metadata["feature_range"]["h_min"], dtype=np.float64)
-            h_max = np.asarray(metadata["feature_range"]["h_max"], dtype=np.float64)
-            self.output_names = list(metadata["outputs"])
-            self.hidden_size = int(metadata["policy"]["lstm_hidden_size"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise NavigatorLoadError(f"{path}: incomplete navigator metadata ({type(exc).__name__}: {exc})") from None
+            self.record = NavigatorMetadata.model_validate(self.metadata)
+        except ValidationError as exc:
+            raise NavigatorLoadError(f"{path}: invalid navigator metadata: {metadata_message(exc)}") from None
+        record = self.record
+        self.dropout_inputs: list[dict[str, Any]] = [spec.model_dump() for spec in record.dropout_inputs]
+        self.n_lstm = sum(1 for spec in self.dropout_inputs if spec["per_human"])
+        self.max_humans = record.observation.max_humans
+        self.k = record.mc_dropout.k
+        self.p_test = record.mc_dropout.p_test
+        self.output_names = list(record.outputs)
+        self.hidden_size = record.policy.lstm_hidden_size
         self.input_names = [*OBSERVATION_INPUTS, *(spec["name"] for spec in self.dropout_inputs)]
-        graph_inputs = [node.name for node in session.get_inputs()]
-        graph_outputs = [node.name for node in session.get_outputs()]
-        if graph_inputs != self.input_names or graph_outputs != self.output_names \
-                or self.output_names[:len(OUTPUTS)] != list(OUTPUTS):
-            raise NavigatorLoadError(f"{path}: the graph's inputs {graph_inputs} / outputs {graph_outputs} do not "
-                                     f"match its metadata ({self.input_names} / {self.output_names})")
-        self.feature_map = _feature_map(h_min, h_max)
+        self._check_graph()
+        self.feature_map = _feature_map(np.asarray(record.feature_range.h_min, dtype=np.float64),
+                                        np.asarray(record.feature_range.h_max, dtype=np.float64))
+        self._probe()
+
+    def _check_graph(self) -> None:
+        """The graph's inputs and outputs are the metadata's: names, order, float32, shapes (fixed widths equal,
+        the rows and human rows dynamic)."""
+        shapes: dict[str, tuple[int | str, ...]] = {
+            "robot": ("rows", len(ROBOT_FEATURE_NAMES)), "humans": ("rows", "human_rows", len(HUMAN_FEATURE_NAMES)),
+            "humans_mask": ("rows", "human_rows"),
+            **{spec["name"]: _expected_shape(spec) for spec in self.dropout_inputs},
+            "h": ("rows", self.hidden_size), "mean": ("rows", 2), "log_std": ("rows", 2), VALUE_OUTPUT: ("rows", 1)}
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        graph_inputs, graph_outputs = [node.name for node in inputs], [node.name for node in outputs]
+        if graph_inputs != self.input_names or graph_outputs != self.output_names:
+            raise NavigatorLoadError(f"{self.path}: the graph's inputs {graph_inputs} / outputs {graph_outputs} do "
+                                     f"not match its metadata ({self.input_names} / {self.output_names})")
+        for node in (*inputs, *outputs):
+            if node.type != "tensor(float)" or not _shape_fits(node.shape, shapes[node.name]):
+                raise NavigatorLoadError(f"{self.path}: the graph's {node.name!r} is {node.type} {node.shape}; its "
+                                         f"metadata needs tensor(float) {list(shapes[node.name])}")
+
+    def _probe(self) -> None:
+        """One call on two test rows (one human, none): the graph runs, with the declared output shapes, and its
+        outputs are finite. A graph with NaN weights, or one onnxruntime cannot run, is refused here rather than
+        at the robot's first decision."""
+        robot = np.array([[4.0, 0.5, 0.5, 1.0, 0.3]] * 2, np.float32)
+        humans = np.zeros((2, 2, len(HUMAN_FEATURE_NAMES)), np.float32)
+        humans[0, 0] = [1.0, 0.5, -0.5, 0.0, 0.3, 0.6, 0.5]
+        mask = np.array([[1.0, 0.0], [0.0, 0.0]], np.float32)
+        try:
+            output = self.run(robot, humans, mask)
+        except Exception as exc:  # onnxruntime's own exception types
+            message = " ".join(str(exc).split())[:300]
+            raise NavigatorLoadError(f"{self.path}: the graph fails on a test observation ({type(exc).__name__}: "
+                                     f"{message})") from None
+        widths = {"h": self.hidden_size, "mean": 2, "log_std": 2, VALUE_OUTPUT: 1}
+        arrays = {"h": output.h, "mean": output.mean, "log_std": output.log_std, VALUE_OUTPUT: output.value}
+        for name in self.output_names:
+            array = arrays[name]
+            if array.shape != (2, widths[name]):
+                raise NavigatorLoadError(f"{self.path}: the graph's {name!r} has shape {array.shape} for 2 rows, "
+                                         f"not (2, {widths[name]})")
+            if not np.isfinite(array).all():
+                raise NavigatorLoadError(f"{self.path}: the graph's {name!r} is not finite (NaN or inf) on a test "
+                                         "observation: its weights are damaged; re-export it")
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 1) -> ExportedPolicy:
-        """Open a navigator file; :class:`NavigatorLoadError` if it is missing, not ONNX, foreign or incompatible."""
+        """Open a navigator file: read it (bounded), verify its checksum, validate its metadata and its graph.
+
+        :raises NavigatorLoadError: missing, unreadable, not ONNX, foreign, corrupted, of another format version,
+            with invalid or inconsistent metadata, or a graph that fails a test call (one line naming the file).
+        """
         path = Path(path)
-        if not path.is_file():
-            raise NavigatorLoadError(f"no navigator file at {path}")
-        session = _session(path, threads)
-        return cls(session, _read_metadata(session, path), path)
+        data = _read_file(path)
+        metadata = read_metadata(data, path)
+        return cls(_session(data, path, threads), metadata, path)
 
     # ---------------------------------------------------------------------------------------------- raw graph
 
@@ -208,6 +334,7 @@ class ExportedPolicy:
         humans = np.asarray(observation["humans"], dtype=np.float32).reshape(len(robot), -1, 7)
         mask = np.asarray(observation["humans_mask"], dtype=np.float32).reshape(len(robot), -1)
         longest = round(float(mask.sum(axis=1).max())) if len(mask) else 0  # (round is monotonic)
+        longest = min(longest, mask.shape[1])  # a mask of values above 1 must not ask for rows that do not exist
         steps = max(longest, 1)
         return robot, np.ascontiguousarray(humans[:, :steps]), np.ascontiguousarray(mask[:, :steps]), longest > 0
 
