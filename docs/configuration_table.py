@@ -172,11 +172,12 @@ def named_values() -> dict[str, tuple[str, ...]]:
     from socnav.envs.perturbations import PERTURBATION_FIELDS
     from socnav.experiments.spec import PLANNERS
     from socnav.rl.presets import ALGOS
+    from socnav.sim.humans import human_model_names
     from socnav.sim.scenarios import scenario_names
 
     scenarios = tuple(scenario_names())
     return {
-        "scenario": scenarios, "kind": tuple(PLANNERS), "scenario_env": scenarios, "grid.algorithms": ALGOS,
+        "scenario": scenarios, "humans.model": tuple(human_model_names()), "kind": tuple(PLANNERS), "scenario_env": scenarios, "grid.algorithms": ALGOS,
         "grid.train_scenarios": scenarios, "grid.algo_overrides": ALGOS, "evaluation.scenarios": scenarios,
         "study.perturbations": tuple(PERTURBATION_FIELDS), "safety.perturbations": tuple(PERTURBATION_FIELDS),
         "safety.thresholds": ("mc", "ensemble"), "budgets.<name>.algorithms": ALGOS,

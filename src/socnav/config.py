@@ -9,7 +9,9 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_serializer, model_validator,
+)
 
 
 class ConfigError(ValueError):
@@ -181,15 +183,30 @@ RENAMED_FIELDS: dict[str, str] = {"dropout_p": "p_train"}  # the paper's (and SP
 _SHORT_LIST = 8
 
 
+def close_names(name: str, allowed: Sequence[str]) -> list[str]:
+    """The allowed names closest to `name`, best first (difflib, ignoring case; at most 3): every did-you-mean of
+    socnav."""
+    import difflib
+
+    by_lower = {option.lower(): option for option in allowed}
+    return [by_lower[match] for match in difflib.get_close_matches(name.lower(), list(by_lower), n=3, cutoff=0.6)]
+
+
+def unknown_name_message(what: str, name: Any, allowed: Sequence[str]) -> str:
+    """The message for a value that must be one of the registered names `allowed`, e.g. unknown human model
+    'socail_force'; allowed: orca, social_force; did you mean social_force? (the validation error names the field)."""
+    close = close_names(name, allowed) if isinstance(name, str) else []
+    message = f"unknown {what} {short_repr(name)}; allowed: {', '.join(allowed)}"
+    return f"{message}; did you mean {' or '.join(close)}?" if close else message
+
+
 def unknown_field_message(name: str, allowed: Sequence[str]) -> str:
     """'unknown field; allowed fields: a, b, c; did you mean b?' (difflib's closest allowed names). A long list of
     allowed names is left out when a close one exists (not what a user with a typo wants to read)."""
-    import difflib
-
     allowed = list(allowed)
     if RENAMED_FIELDS.get(name) in allowed:
         return f"renamed: write {RENAMED_FIELDS[name]} ({name} is its old name)"
-    close = difflib.get_close_matches(name, allowed, n=3, cutoff=0.6)
+    close = close_names(name, allowed)
     hint = f"did you mean {' or '.join(close)}?"
     if close and len(allowed) > _SHORT_LIST:
         return f"unknown field; {hint}"
@@ -321,6 +338,68 @@ class PerturbationConfig(_Strict):
         return min(value, 1.0)
 
 
+class SocialForceConfig(_Strict):
+    """Extended social force humans (``humans.model: social_force``; Helbing & Molnár 1995, Moussaïd et al. 2009),
+    as PySocialForce 1.1.2 implements them; the defaults are its published ones (its default.toml section in
+    brackets). Its step width is the env's ``time_step``; obstacles and groups are left out."""
+
+    relaxation_time: float = Field(
+        0.5, gt=0, le=10, description="s: tau of the desired force (desired_force.relaxation_time)"
+    )
+    goal_threshold: float = Field(
+        0.2, ge=0, le=10, description="m: within this of its goal the desired force brakes, -v / tau "
+        "(desired_force.goal_threshold)"
+    )
+    desired_force_factor: float = Field(
+        1.0, ge=0, le=100, description="weight of the desired force (desired_force.factor)"
+    )
+    social_force_factor: float = Field(
+        5.1, ge=0, le=100, description="weight of the social force (social_force.factor)"
+    )
+    lambda_importance: float = Field(
+        2.0, ge=0, le=100, description="weight of the relative velocity in the interaction vector D (social_force)"
+    )
+    gamma: float = Field(0.35, gt=0, le=10, description="range B = gamma |D| of the social force (social_force)")
+    n: float = Field(2.0, ge=0, le=100, description="angular narrowness of the turning term (social_force)")
+    n_prime: float = Field(3.0, ge=0, le=100, description="angular narrowness of the slowing term (social_force)")
+    wrap_theta: bool = Field(
+        False, description="wrap the interaction angle theta to [-pi, pi) as in Moussaid et al.; PySocialForce does "
+        "not, so a pair whose t and p_i - p_j straddle the -x direction loses most of its force (false: as it)"
+    )
+    max_speed_multiplier: float = Field(
+        1.3, gt=0, le=10, description="max speed = this x v_pref; humans walk at it (scene.max_speed_multiplier)"
+    )
+    stop_distance: float = Field(
+        0.5, ge=0, le=10, description="m: a human this close to its goal stops (fixed in PySocialForce's step)"
+    )
+    field_of_view: bool = Field(
+        False, description="weight forces from outside the view cone by fov_factor (PySocialForce's simulator: off)"
+    )
+    fov_phi: float = Field(
+        100.0, gt=0, le=180, description="degrees: half-angle of that view cone (ped_repulsive_force.fov_phi)"
+    )
+    fov_factor: float = Field(
+        0.5, ge=0, le=1, description="weight of forces from outside the view cone (ped_repulsive_force.fov_factor)"
+    )
+
+
+class HumansConfig(_Strict):
+    """How the humans walk: the model (`socnav.sim.humans` registry) and its parameters. ORCA humans read the
+    ``orca`` section, shared with the ORCA robot controller."""
+
+    model: str = Field("orca", description="human model: orca (RVO2) or social_force (or a registered one)")
+    social_force: SocialForceConfig = Field(default_factory=SocialForceConfig)
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        from socnav.sim.humans import human_model_names
+
+        if value not in human_model_names():
+            raise ValueError(unknown_name_message("human model", value, human_model_names()))
+        return value
+
+
 class EnvConfig(_Strict):
     """Everything that defines a socnav world and its Gymnasium environment."""
 
@@ -368,6 +447,7 @@ class EnvConfig(_Strict):
     robot_orca_safety_margin: float = Field(0.1, ge=0, le=2, description="metres the ORCA robot adds to human radii")
 
     orca: OrcaConfig = Field(default_factory=OrcaConfig)
+    humans: HumansConfig = Field(default_factory=HumansConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
     perturbation: PerturbationConfig = Field(default_factory=PerturbationConfig)
 
@@ -417,6 +497,15 @@ class EnvConfig(_Strict):
                 f"raise max_humans to at least {most}"
             )
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        # The default humans (ORCA) are left out: dumps -- model metadata, record-file names, unit hashes -- stay
+        # what they were before other human models existed.
+        if data.get("humans") == HumansConfig().model_dump(mode=getattr(handler, "mode", "python")):
+            del data["humans"]
+        return data
 
     def humans_range(self) -> tuple[int, int]:
         """Inclusive [min, max] number of humans per episode, after perturbations and scenario defaults."""
@@ -473,6 +562,8 @@ def describe_world(config: EnvConfig, with_perturbation: bool = True) -> str:
     perturbed: heading_noise=0.4'."""
     low, high = config.humans_range()
     parts = [config.scenario, f"{low} human{'s' if low != 1 else ''}" if low == high else f"{low}-{high} humans"]
+    if config.humans.model != "orca":
+        parts.append(f"{config.humans.model} humans")
     if not config.robot_visible:
         parts.append("humans ignore the robot")
     perturbed = perturbation_text(config)

@@ -126,7 +126,8 @@ class SocialNavEnv(gym.Env):
     ## Description
 
     The robot (agent 0) drives to its goal on a 2-D open plane among humans who walk to their own goals with ORCA
-    (exact RVO2 semantics, van den Berg et al. 2011) and react to the robot as individuals: each keeps its personal
+    (exact RVO2 semantics, van den Berg et al. 2011; or social force, ``humans.model``, docs/humans.md) and react
+    to the robot as individuals: each keeps its personal
     space `r_prox` free of the robot, takes its own share of the avoidance (cooperation), and may be inattentive to
     the robot or notice it only inside its view cone. None of this is observable, so the task is the POMDP of paper
     eq. (1); the reward is the socially integrated reward of Flögel et al. (IROS 2024) that the paper trains

@@ -1,1 +1,2 @@
-"""Batched crowd simulator: ORCA humans, scenarios and sensing noise."""
+"""Batched crowd simulator: the world, human models (ORCA, social force; `socnav.sim.humans`), scenarios and sensing
+noise."""

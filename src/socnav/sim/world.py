@@ -1,14 +1,16 @@
-"""The batched crowd world: a unicycle robot among ORCA humans with personal space, cooperation and attention (SPEC 1).
+"""The batched crowd world: a unicycle robot among humans with personal space, cooperation and attention (SPEC 1).
 
 `CrowdWorld` holds the state of E environments as arrays and advances all of them in one call; every environment's
-episode depends only on its own seed, so results are bit-identical whatever the batch size.
+episode depends only on its own seed, so results are bit-identical whatever the batch size. How the humans walk is
+a plug-in `socnav.sim.humans.HumanModel` (``humans.model``: ORCA by default, or the social force model); the world
+gives it its arrays (`CrowdWorld.crowd`) and moves every human by the velocity it returns.
 
 Attention (SPEC section 1, "Attention"): each human is, per episode, attentive to the robot or not (probability
 `inattentive_share` of not); an inattentive human plans as if the robot were absent (RVO2 `collabCoeff = 0`), and
 with `human_fov_deg < 360` an attentive human reacts only once the robot has entered its view cone, and keeps
-reacting while the robot stays within the ORCA interaction range (`orca.neighbor_dist`). Attentiveness is drawn from
-the episode's counter-based noise key, not from the episode generator, so switching it on or off leaves starts,
-goals and every other draw of an episode unchanged.
+reacting while the robot stays within the model's interaction range (ORCA: `orca.neighbor_dist`). Attentiveness is
+drawn from the episode's counter-based noise key, not from the episode generator, so switching it on or off leaves
+starts, goals and every other draw of an episode unchanged.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ import numpy as np
 
 from socnav.config import EnvConfig, RewardConfig
 from socnav.sim.noise import ATTENTION_STREAM, HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
-from socnav.sim.orca import orca_velocities
+from socnav.sim.humans import Crowd, make_human_model
+from socnav.sim.orca import default_social_arrays
 from socnav.sim.scenarios import InitialState, get_scenario, n_slots
 
 ROBOT_FEATURES = 5  # distance to goal, heading relative to goal direction, speed, v_pref, radius
@@ -76,26 +79,6 @@ def _robot_command(actions, preferred_speed, max_heading_change, keys, steps, he
 
 
 @numba.njit(cache=True)
-def _human_preferred_velocities(positions, goals, max_speeds, active, time_step):
-    """v_pref * unit(goal - p) for humans, slowing down to stop exactly on the goal; zero for the robot slot."""
-    n_envs, n_agents = active.shape
-    preferred = np.zeros((n_envs, n_agents, 2))
-    for env in range(n_envs):
-        for agent in range(1, n_agents):
-            if not active[env, agent]:
-                continue
-            dx = goals[env, agent, 0] - positions[env, agent, 0]
-            dy = goals[env, agent, 1] - positions[env, agent, 1]
-            distance = math.sqrt(dx * dx + dy * dy)
-            if distance < 1e-9:
-                continue
-            speed = min(max_speeds[env, agent], distance / time_step)
-            preferred[env, agent, 0] = speed * dx / distance
-            preferred[env, agent, 1] = speed * dy / distance
-    return preferred
-
-
-@numba.njit(cache=True)
 def _closest_approach(rel_x, rel_y, rel_vx, rel_vy, time_step):
     """Smallest centre distance while two agents move linearly over one step (catches pass-throughs at high speed)."""
     speed_sq = rel_vx * rel_vx + rel_vy * rel_vy
@@ -113,7 +96,7 @@ def _integrate(positions, velocities, radii, goals, active, heading, speed, turn
     """Move every agent one step and sweep the robot's path against every human's (SPEC section 1).
 
     Robot (unicycle): theta <- wrap(theta + dtheta), p <- p + v [cos theta, sin theta] dt; humans (holonomic) take
-    their ORCA velocity, p <- p + v dt. Updates positions, velocities, heading, path length and time in place.
+    the human model's velocity, p <- p + v dt. Updates positions, velocities, heading, path length and time in place.
     Returns per environment the smallest robot-human gap at any moment of the step (the swept closest approach, so a
     human that passes through the robot between two steps still collides) and the progress d_goal(t-1) - d_goal(t).
     """
@@ -184,7 +167,7 @@ def _score(
 
         r = -w_time dt + w_prog (d_goal(t-1) - d_goal(t))
             - sum_{i: gap_i < r_prox,i} w_prox (1 - gap_i / r_prox,i)            personal space, per intruded human
-            - sum_{i near the robot} w_dist |v_i - v_i^0| / v_pref,i             disturbance, v_i^0 robot-free ORCA
+            - sum_{i near the robot} w_dist |v_i - v_i^0| / v_pref,i             disturbance, v_i^0 robot-free
             + w_goal [goal] - w_col [collision]
 
     `near_robot`: the humans within `reward.social_radius` at the start of the step, whose robot-free velocity v_i^0
@@ -242,7 +225,7 @@ def _score(
 @numba.njit(cache=True)
 def _advance_and_score(
     positions, velocities, radii, goals, max_speeds, personal_space, active, heading, time, time_limit,  # world
-    speed, turn, human_velocities, unhindered_velocities, near_robot,  # this step's robot command and ORCA velocities
+    speed, turn, human_velocities, unhindered_velocities, near_robot,  # this step's robot command, human velocities
     time_step, goal_tolerance, weights,  # dt, goal radius, `reward_weights(config.reward)`
     was_intruded, episode_return, path_length, min_gap, intrusion_steps, intrusion_events, disturbance_total,  # episode
 ):
@@ -430,10 +413,9 @@ class CrowdWorld:
         self.time_limit = np.zeros(n_envs)
         self.starts = np.zeros((n_envs, 2))
         self.noise_keys = np.zeros(n_envs, dtype=np.uint64)
-        # per-pair ORCA social arrays (constant within an episode)
-        self.radius_pad = np.zeros((n_envs, self.n_slots, self.n_slots))
-        self.avoidance_share = np.full((n_envs, self.n_slots, self.n_slots), 0.5)
-        self.sees = np.ones((n_envs, self.n_slots, self.n_slots), dtype=bool)
+        # per-pair social arrays every human model reads (`Crowd`); constant within an episode but for `sees`
+        # (neutral between humans, as in RVO2: no pad, even shares, everyone seen)
+        self.radius_pad, self.avoidance_share, self.sees = default_social_arrays(n_envs, self.n_slots)
         self.sees_without_robot = np.ones_like(self.sees)
         self.sees_without_robot[:, :, 0] = False
         # episode accumulators
@@ -452,6 +434,9 @@ class CrowdWorld:
         self.facing = np.zeros(shape)
         self.has_field_of_view = config.human_fov_deg < 360.0
         self.cos_half_fov = math.cos(math.radians(config.human_fov_deg) / 2.0)
+        self.human_model = make_human_model(config)
+        # a human within this of its goal has arrived: scenarios with `redraw_goals` give it a new one
+        self.arrival_distance = max(config.goal_tolerance, self.human_model.arrival_distance)
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -525,18 +510,19 @@ class CrowdWorld:
 
     # ---------------------------------------------------------------------------------------------------- step
 
+    def crowd(self, without_robot: bool = False) -> Crowd:
+        """The world's arrays as the human model reads them (views); `without_robot`: no human sees the robot."""
+        return Crowd(
+            positions=self.positions, velocities=self.velocities, goals=self.goals, radii=self.radii,
+            max_speeds=self.max_speeds, active=self.active, radius_pad=self.radius_pad,
+            avoidance_share=self.avoidance_share, sees=self.sees_without_robot if without_robot else self.sees,
+        )
+
     def human_velocities(self, without_robot: bool = False, only: np.ndarray | None = None) -> np.ndarray:
-        """ORCA velocities of all humans this step (optionally as if the robot were absent, for `only` some)."""
-        cfg = self.config
-        preferred = _human_preferred_velocities(
-            self.positions, self.goals, self.max_speeds, self.active, cfg.time_step
-        )
+        """The human model's velocities of all humans this step (optionally as if the robot were absent, for `only`
+        some); the others keep their current velocity."""
         compute = self.active & self.humans_slots if only is None else only
-        return orca_velocities(
-            self.positions, self.velocities, self.radii, preferred, self.max_speeds, self.active, compute,
-            self.radius_pad, self.avoidance_share, self.sees_without_robot if without_robot else self.sees,
-            cfg.orca.time_horizon, cfg.orca.neighbor_dist, cfg.orca.max_neighbors, cfg.time_step,
-        )
+        return self.human_model.velocities(self.crowd(without_robot), compute)
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Advance every environment by one step with the robot actions `actions` in [-1, 1]^2, shape (E, 2)."""
@@ -548,7 +534,7 @@ class CrowdWorld:
         )
         if self.has_field_of_view:
             _notice_robot(self.positions, self.velocities, self.goals, self.active, self.facing, self.noticed,
-                          self.cos_half_fov, cfg.orca.neighbor_dist)
+                          self.cos_half_fov, self.human_model.interaction_range)
             self._update_robot_visibility()
         humans = self.human_velocities()
         near = self._humans_near_robot(rew.social_radius)
@@ -580,7 +566,7 @@ class CrowdWorld:
 
     def _redraw_reached_goals(self) -> None:
         reached = self.active & self.humans_slots
-        reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.config.goal_tolerance
+        reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.arrival_distance
         for env, agent in zip(*np.nonzero(reached)):
             self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config, self.positions[env, agent])
 

@@ -1,0 +1,167 @@
+"""Social force humans: the extended social force model (Helbing & Molnár 1995; Moussaïd et al. 2009) as PySocialForce
+1.1.2 implements it, without obstacles or groups, one numba kernel over every human of every environment.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from socnav.sim.humans.base import Crowd, HumanSettings
+
+#: The parameters of `SocialForceHumans`, in the kernel's order; `socnav.config.SocialForceConfig` validates them
+#: and holds their defaults, PySocialForce's published ones (its default.toml and `PedState.step`).
+PARAMETERS = (
+    "relaxation_time", "goal_threshold", "desired_force_factor", "social_force_factor", "lambda_importance",
+    "gamma", "n", "n_prime", "wrap_theta", "max_speed_multiplier", "stop_distance", "field_of_view", "fov_phi",
+    "fov_factor",
+)
+
+
+@numba.njit(cache=True)
+def _sign(x):
+    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
+
+
+@numba.njit(cache=True)
+def social_force_velocities_kernel(
+    positions, velocities, goals, max_speeds, active, compute, radius_pad, sees,  # the `Crowd`
+    time_step, relaxation_time, goal_threshold, desired_force_factor, social_force_factor, lambda_importance,
+    gamma, n, n_prime, wrap_theta, max_speed_multiplier, stop_distance, field_of_view, cos_fov_phi, fov_factor,
+    out,
+):
+    """Write every computed agent's new velocity into `out` (E, N, 2); the others keep their current velocity.
+
+    Per agent i: the desired force plus the social force of every agent j it sees, then PySocialForce's velocity
+    step. PySocialForce's sign convention is kept (vectors point from j to i) so that its unwrapped angle difference
+    theta, and with it every force, comes out the same (`wrap_theta` wraps it to [-pi, pi) instead).
+    """
+    n_envs, n_agents = active.shape
+    for env in range(n_envs):
+        for i in range(n_agents):
+            vx, vy = velocities[env, i, 0], velocities[env, i, 1]
+            if not (active[env, i] and compute[env, i]):
+                out[env, i, 0], out[env, i, 1] = vx, vy
+                continue
+            # PySocialForce: max speed = max_speed_multiplier * initial speed; v_pref plays the initial speed.
+            max_speed = max_speed_multiplier * max_speeds[env, i]
+
+            # Desired direction e_i = (g_i - p_i) / |g_i - p_i| (zero on the goal).
+            gx = goals[env, i, 0] - positions[env, i, 0]
+            gy = goals[env, i, 1] - positions[env, i, 1]
+            goal_distance = math.sqrt(gx * gx + gy * gy)
+            ex, ey = (gx / goal_distance, gy / goal_distance) if goal_distance > 0.0 else (0.0, 0.0)
+
+            # Desired force, relaxation to the desired velocity within tau (PySocialForce walks at its max speed):
+            #   F0_i = (v_max e_i - v_i) / tau,   or F0_i = -v_i / tau (brake) within goal_threshold of the goal.
+            if goal_distance > goal_threshold:
+                fx, fy = (max_speed * ex - vx) / relaxation_time, (max_speed * ey - vy) / relaxation_time
+            else:
+                fx, fy = -vx / relaxation_time, -vy / relaxation_time
+            fx, fy = desired_force_factor * fx, desired_force_factor * fy
+
+            # Social force of every seen agent j (Moussaïd et al. 2009), written with u = (p_i - p_j) / d:
+            #   D = lambda (v_j - v_i) + u,   t = D / |D|,   B = gamma |D|,   theta = angle(t) - angle(u),
+            #   f_ij = exp(-d/B - (n' B theta)^2) t - sign(theta) exp(-d/B - (n B theta)^2) normal_left(t).
+            # (The paper's D_ij = lambda (v_i - v_j) + e_ij is -D here, and f_ij = -exp(-d/B) [...] there.)
+            sx, sy = 0.0, 0.0
+            for j in range(n_agents):
+                if j == i or not active[env, j] or not sees[env, i, j]:
+                    continue  # an unseen agent (e.g. the robot of an inattentive human) exerts no force
+                dx = positions[env, i, 0] - positions[env, j, 0]
+                dy = positions[env, i, 1] - positions[env, j, 1]
+                distance = math.sqrt(dx * dx + dy * dy)
+                ux, uy = (dx / distance, dy / distance) if distance > 0.0 else (0.0, 0.0)
+                # Personal space: j seems nearer by i's pad (0 between humans), never nearer than touching.
+                distance = max(distance - radius_pad[env, i, j], 0.0)
+
+                Dx = lambda_importance * (velocities[env, j, 0] - vx) + ux
+                Dy = lambda_importance * (velocities[env, j, 1] - vy) + uy
+                D_length = math.sqrt(Dx * Dx + Dy * Dy)
+                B = gamma * D_length
+                if B == 0.0:
+                    continue  # exp(-d / 0) = 0: no force (PySocialForce: 0, or NaN for coincident agents)
+                tx, ty = Dx / D_length, Dy / D_length
+                theta = math.atan2(ty, tx) - math.atan2(uy, ux)  # in (-2 pi, 2 pi): PySocialForce does not wrap
+                if wrap_theta:
+                    # Moussaïd et al.'s angle between t and u, in [-pi, pi): without it a pair whose t and u straddle
+                    # the -x direction gets |theta| near 2 pi, and its force all but vanishes.
+                    theta = (theta + math.pi) % (2.0 * math.pi) - math.pi
+
+                along = math.exp(-distance / B - (n_prime * B * theta) ** 2)  # velocity term, along t
+                across = -_sign(theta) * math.exp(-distance / B - (n * B * theta) ** 2)  # angle term, along normal
+                pair_x = along * tx - across * ty  # normal_left(t) = (-t_y, t_x)
+                pair_y = along * ty + across * tx
+
+                # Field of view (PySocialForce's FieldOfView, Helbing & Molnár's w): full weight if the force comes
+                # from inside the cone of half-angle phi around e_i, e_i . (-f) > |f| cos(phi), else the factor C.
+                weight = 1.0
+                if field_of_view and not (-(ex * pair_x + ey * pair_y)
+                                          > math.sqrt(pair_x * pair_x + pair_y * pair_y) * cos_fov_phi):
+                    weight = fov_factor
+                sx += weight * pair_x
+                sy += weight * pair_y
+            fx += social_force_factor * sx
+            fy += social_force_factor * sy
+
+            # Velocity step (PySocialForce's PedState.step): v <- v + dt F, capped at the max speed,
+            #   v <- v min(1, v_max / |v|)  (0 if |v| = 0),  and v <- 0 within stop_distance of the goal.
+            # The world then moves the human by p <- p + v dt (semi-implicit Euler, as PySocialForce).
+            wx, wy = vx + time_step * fx, vy + time_step * fy
+            speed = math.sqrt(wx * wx + wy * wy)
+            scale = min(1.0, max_speed / speed) if speed > 0.0 else 0.0
+            if goal_distance < stop_distance:
+                scale = 0.0
+            out[env, i, 0], out[env, i, 1] = wx * scale, wy * scale
+
+
+class SocialForceHumans:
+    """`HumanModel` "social_force": the `Crowd`'s inputs as the social force can use them.
+
+    Attention: an agent a human does not see (``sees``; the robot while the human is inattentive or has not
+    noticed it) exerts no force on it. Personal space: ``radius_pad`` shortens the distance d in the robot's force
+    (never below 0), so a human with a larger personal space is pushed harder and from farther away. The social
+    force acts between centres, so body radii play no part (as in PySocialForce), and it has no reciprocal
+    avoidance to share: ``avoidance_share`` (cooperation) is unused. The robot is one more agent, moved by the
+    policy, not by this model. With ``field_of_view``, forces from outside the human's view cone are weighted by
+    ``fov_factor`` (PySocialForce applies this weighting to its older pedestrian repulsion only, which its simulator
+    leaves out; off by default, as there). The interaction angle theta is left unwrapped, as PySocialForce leaves
+    it, unless ``wrap_theta``.
+    """
+
+    name = "social_force"
+    #: The force fades as exp(-d / B) and has no cut-off: a noticed robot is reacted to at any distance.
+    interaction_range = math.inf
+
+    def __init__(self, time_step: float, *, relaxation_time: float, goal_threshold: float,
+                 desired_force_factor: float, social_force_factor: float, lambda_importance: float, gamma: float,
+                 n: float, n_prime: float, wrap_theta: bool, max_speed_multiplier: float, stop_distance: float,
+                 field_of_view: bool, fov_phi: float, fov_factor: float):
+        self.time_step = float(time_step)
+        self.parameters = {
+            "relaxation_time": float(relaxation_time), "goal_threshold": float(goal_threshold),
+            "desired_force_factor": float(desired_force_factor), "social_force_factor": float(social_force_factor),
+            "lambda_importance": float(lambda_importance), "gamma": float(gamma), "n": float(n),
+            "n_prime": float(n_prime), "wrap_theta": bool(wrap_theta),
+            "max_speed_multiplier": float(max_speed_multiplier), "stop_distance": float(stop_distance),
+            "field_of_view": bool(field_of_view), "fov_phi": float(fov_phi), "fov_factor": float(fov_factor),
+        }
+        self.arrival_distance = self.parameters["stop_distance"]
+        # The kernel's scalar arguments in `PARAMETERS` order, the view cone's half-angle as its cosine.
+        self._arguments = tuple(math.cos(math.radians(self.parameters[name])) if name == "fov_phi"
+                                else self.parameters[name] for name in PARAMETERS)
+
+    @classmethod
+    def from_config(cls, config: HumanSettings) -> "SocialForceHumans":
+        section = config.humans.social_force
+        return cls(config.time_step, **{name: getattr(section, name) for name in PARAMETERS})
+
+    def velocities(self, crowd: Crowd, compute: np.ndarray) -> np.ndarray:
+        out = np.empty_like(crowd.velocities)
+        social_force_velocities_kernel(
+            crowd.positions, crowd.velocities, crowd.goals, crowd.max_speeds, crowd.active, compute,
+            crowd.radius_pad, crowd.sees, self.time_step, *self._arguments, out,
+        )
+        return out
