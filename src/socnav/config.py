@@ -330,12 +330,34 @@ class PerturbationConfig(_Strict):
         None, ge=2, le=65,
         description="'more humans': position swap becomes circle crossing with this many agents in total",
     )
+    human_model: str | None = Field(
+        None, description="'behaviour shift': the humans walk by this model (`socnav.sim.humans` registry) instead "
+        "of humans.model, e.g. social_force humans for a policy trained with ORCA humans (null: humans.model)",
+    )
 
     @field_validator("speed_noise")
     @classmethod
     def _clip_speed_noise(cls, value: float) -> float:
         # SPEC section 2: sigma_vel is clipped to [0, 1], so the paper's grid 0 ... 2 is valid (s > 1 acts as s = 1).
         return min(value, 1.0)
+
+    @field_validator("human_model")
+    @classmethod
+    def _known_human_model(cls, value: str | None) -> str | None:
+        from socnav.sim.humans import human_model_names
+
+        if value is not None and value not in human_model_names():
+            raise ValueError(unknown_name_message("human model", value, human_model_names()))
+        return value
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        # No behaviour shift is left out: dumps -- model metadata, record-file names, unit hashes -- stay what they
+        # were before the field existed.
+        if data.get("human_model") is None:
+            data.pop("human_model", None)
+        return data
 
 
 class SocialForceConfig(_Strict):
@@ -383,21 +405,123 @@ class SocialForceConfig(_Strict):
     )
 
 
-class HumansConfig(_Strict):
-    """How the humans walk: the model (`socnav.sim.humans` registry) and its parameters. ORCA humans read the
-    ``orca`` section, shared with the ORCA robot controller."""
+#: At most this many trajectory files in ``humans.replay.files``.
+REPLAY_MAX_FILES = 1000
 
-    model: str = Field("orca", description="human model: orca (RVO2) or social_force (or a registered one)")
+
+class ReplayConfig(_Strict):
+    """Replayed humans (``humans.model: replay`` with ``scenario: replay``): pedestrians follow recorded trajectories
+    and do not react (docs/humans.md). The files are ETH/UCY-style text, one ``frame_id ped_id x y`` per line."""
+
+    files: list[str] = Field(
+        default_factory=list, description="trajectory files (frame_id ped_id x y per line, whitespace-separated), "
+        "checked line by line when the config is read; relative paths are taken from the working directory and "
+        "stored absolute",
+    )
+    sample_rate: float = Field(2.5, gt=0, le=1000, description="Hz: recorded samples per second (ETH/UCY: 2.5)")
+    frame_step: StrictInt | None = Field(
+        None, ge=1, le=10**9, description="frame ids between two samples; null: inferred per file (the greatest "
+        "common divisor of its frame id steps; ETH/UCY: 10)",
+    )
+    robot_distance: float = Field(
+        10.0, gt=0, le=200, description="m: the robot's start-goal distance, its path through the centre of the "
+        "recorded scene in a direction drawn per episode",
+    )
+
+    @field_validator("files")
+    @classmethod
+    def _files_exist(cls, value: list[str]) -> list[str]:
+        import os
+
+        from socnav.sim.humans import replay
+
+        if len(value) > REPLAY_MAX_FILES:
+            raise ValueError(f"{len(value):,} files; at most {REPLAY_MAX_FILES:,}")
+        checked = []
+        for name in value:
+            path = Path(os.path.expanduser(name))
+            shown = short_repr(name)
+            if not path.exists():
+                raise ValueError(f"trajectory file not found: {shown}")
+            if not path.is_file():
+                raise ValueError(f"trajectory file {shown} is not a regular file")
+            size = path.stat().st_size
+            if size > replay.MAX_FILE_BYTES:
+                raise ValueError(f"trajectory file {shown} has {size:,} bytes; socnav reads trajectory files of at "
+                                 f"most {replay.MAX_FILE_BYTES:,}")
+            try:
+                replay.check_trajectory_file(path)  # its content: the first bad line is named
+            except OSError as exc:
+                raise ValueError(f"trajectory file {shown} cannot be read: {exc.strerror or exc}") from None
+            checked.append(str(path.resolve()))
+        return checked
+
+
+class HumansConfig(_Strict):
+    """How the humans walk: the model (`socnav.sim.humans` registry) and its parameters, or a mix of models. ORCA
+    humans read the ``orca`` section, shared with the ORCA robot controller."""
+
+    model: str = Field(
+        "orca", description="human model: orca (RVO2), social_force, replay (recorded trajectories, with scenario: "
+        "replay), a registered one, or mix (set by humans.mix)",
+    )
     social_force: SocialForceConfig = Field(default_factory=SocialForceConfig)
+    mix: dict[str, float] | None = Field(
+        None, description="a mixed crowd: each human's model drawn per episode with these shares, e.g. "
+        "{orca: 0.5, social_force: 0.5} (shares >= 0 summing to 1; sets model: mix)",
+    )
+    replay: ReplayConfig = Field(default_factory=ReplayConfig)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _mix_sets_the_model(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("mix") is not None and "model" not in data:
+            data = {**data, "model": "mix"}
+        return data
 
     @field_validator("model")
     @classmethod
     def _known_model(cls, value: str) -> str:
+        from socnav.sim.humans import MIX, human_model_names
+
+        allowed = [*human_model_names(), MIX]
+        if value not in allowed:
+            raise ValueError(unknown_name_message("human model", value, allowed))
+        return value
+
+    @field_validator("mix")
+    @classmethod
+    def _valid_shares(cls, value: dict[str, float] | None) -> dict[str, float] | None:
         from socnav.sim.humans import human_model_names
 
-        if value not in human_model_names():
-            raise ValueError(unknown_name_message("human model", value, human_model_names()))
+        if value is None:
+            return value
+        if not value:
+            raise ValueError("give at least one model and its share, e.g. {orca: 0.5, social_force: 0.5}")
+        mixable = [name for name in human_model_names() if name != "replay"]
+        for name, share in value.items():
+            if name == "replay":
+                raise ValueError("replay cannot be mixed: replayed humans need the replay scenario")
+            if name not in mixable:
+                raise ValueError(unknown_name_message("human model", name, mixable))
+            if share < 0:
+                raise ValueError(f"the share of {name} is {share}; shares must be >= 0")
+        total = sum(value.values())
+        if abs(total - 1.0) > 1e-6:
+            raise ValueError(f"the shares sum to {total:g}; they must sum to 1")
         return value
+
+    @model_validator(mode="after")
+    def _model_fits_its_settings(self) -> "HumansConfig":
+        if self.model == "mix" and self.mix is None:
+            raise ValueError("model: mix needs humans.mix, the share of each model, e.g. {orca: 0.5, social_force: "
+                             "0.5}")
+        if self.mix is not None and self.model != "mix":
+            raise ValueError(f"humans.mix mixes models per human; leave humans.model out (or write mix), not "
+                             f"{self.model!r}")
+        if self.model == "replay" and not self.replay.files:
+            raise ValueError("model: replay needs humans.replay.files, the recorded trajectories to replay")
+        return self
 
 
 class EnvConfig(_Strict):
@@ -487,6 +611,23 @@ class EnvConfig(_Strict):
         if lo < 0 or lo > hi:
             raise ValueError("must be >= 0, and a range [min, max] needs min <= max")
         return value
+
+    @model_validator(mode="after")
+    def _replay_needs_its_scenario(self) -> "EnvConfig":
+        # Recorded people need the scene the replay scenario builds around them, and that scene has no goals for
+        # reactive humans: the two go together, in both directions (a behaviour shift to replay included).
+        replayed = {"humans.model": self.humans.model == "replay",
+                    "perturbation.human_model": self.perturbation.human_model == "replay"}
+        for field, uses in replayed.items():
+            if uses and self.scenario != "replay":
+                raise ValueError(f"{field}: replay humans need scenario: replay (got scenario {self.scenario!r})")
+        if self.scenario == "replay" and self.humans.model != "replay":
+            raise ValueError(f"scenario: replay needs humans.model: replay (got {self.humans.model!r}); the "
+                             "recorded pedestrians are the humans of that scenario")
+        if self.scenario == "replay" and self.perturbation.human_model not in (None, "replay"):
+            raise ValueError("perturbation.human_model: the replay scenario's humans are recorded, they cannot walk "
+                             f"by {self.perturbation.human_model!r}")
+        return self
 
     @model_validator(mode="after")
     def _humans_fit_observation(self) -> "EnvConfig":

@@ -11,7 +11,7 @@ import socnav
 from socnav.sim.scenarios import scenario_names
 
 
-@pytest.mark.parametrize("scenario", scenario_names())
+@pytest.mark.parametrize("scenario", scenario_names(self_contained=True))  # replay: test_replay_and_mix.py
 def test_gymnasium_checker_passes(scenario):
     env = socnav.make_env({"scenario": scenario}, render_mode="rgb_array")
     gym_check_env(env, skip_render_check=False)

@@ -123,7 +123,7 @@ def test_unknown_field_suggests_the_nearest_allowed_one():
     ({"evaluation": {"scenarios": ["mall"]}}, ["evaluation.scenarios", "'mall'", "circle_crossing"]),
     ({"scenario_env": {"mall": {}}}, ["scenario_env", "'mall'", "random"]),
     ({"env": {"n_humans": -1}}, ["n_humans", "circle_crossing"]),
-    ({"env": {"humans": 3}}, ["humans", "unknown field"]),
+    ({"env": {"humns": 3}}, ["humns", "unknown field", "humans"]),
     ({"grid": {"overrides": {"learning_rat": 0.1}}}, ["learning_rat", "allowed keys", "learning_rate"]),
     ({"grid": {"seeds": 0}}, ["grid.seeds", "[1, 10000]"]),
     ({"grid": {"seeds": [1, 1]}}, ["grid.seeds", "twice"]),

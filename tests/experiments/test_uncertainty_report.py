@@ -470,7 +470,9 @@ def test_ablation_compares_every_rule_with_proximity_only_episode_by_episode():
     view = ablation_records(_ablation_records(), "true", 0.05)
     paired = paired_frame(view).set_index(["estimator", "row", "column"])
     assert set(paired.index) == {("mc", row, column) for row in ("paper", "uncertainty-only", "calibrated")
-                                 for column in ("all", "observation_noise")}
+                                 for column in ("all", "observation_noise", "unperturbed")}
+    unperturbed = paired.loc[("mc", "calibrated", "unperturbed")]  # no collision there: nothing to tell apart
+    assert (unperturbed["episodes"], unperturbed["collisions_none"], unperturbed["difference"]) == (4, 0, 0)
     gated = paired.loc[("mc", "calibrated", "all")]
     # proximity-only collides in 0-11, the gated rule in 0-1: it alone prevents 2-11 (10), never the reverse
     assert (gated["row_only_prevented"], gated["reference_only_prevented"], gated["difference"]) == (10, 0, 10)
@@ -489,7 +491,7 @@ def test_ablation_compares_every_rule_with_proximity_only_episode_by_episode():
     assert (same["difference"], same["low_pct"], same["high_pct"]) == (0, 0.0, 0.0)
     assert same["verdict"] == "cannot tell at this budget"
     # per column: Bonferroni over rows x columns (here one column)
-    assert paired.loc[("mc", "calibrated", "observation_noise"), "comparisons"] == 3
+    assert paired.loc[("mc", "calibrated", "observation_noise"), "comparisons"] == 6
 
     decisions = decisions_frame(view).set_index(["estimator", "row"])
     gated = decisions.loc[("mc", "calibrated")]
@@ -570,3 +572,54 @@ def test_calibration_table_names_the_rule_and_hides_what_it_ignores(tmp_path):
             in text)
     assert ("| MC-dropout | calibrated, uncertainty only (true state), 2 % budget | 0.2 | ∞ | – | – |" in text)
     assert "| MC-dropout | calibrated | 0.05 | 0.25 | 1 | 0.25 |" in text  # the paper's rule as before
+
+
+# ------------------------------------------------------------------------------------------------ behaviour shift
+
+def test_behaviour_shift_is_a_column_of_ours_in_tables_2_and_3_and_not_in_the_papers_claims(tmp_path):
+    """The behaviour shift (strength 0: the humans as trained, 1: social force humans) gets its own "(ours)"
+    columns from the registry; the paper's claims and columns stay as they were."""
+    root = _run_dir(tmp_path / "run")
+    for estimator in ("mc", "ensemble"):
+        steps = _steps(estimator, "observation_noise")
+        steps = steps[steps["strength"] <= 1.0].assign(perturbation="behaviour_shift")
+        write_table_atomic(steps, root / "study" / estimator / "behaviour_shift" / "steps.parquet")
+    write_table_atomic(_safety("mc", "heading_noise").assign(perturbation="behaviour_shift"),
+                       root / "safety" / "mc" / "behaviour_shift" / "episodes.parquet")
+    page = build_report(root)
+    text, out = page.read_text(), page.parent
+    header = (out / "table2.md").read_text().splitlines()[0]
+    assert header.endswith("| More humans: MC | More humans: Ens | Behaviour shift (ours): MC | "
+                           "Behaviour shift (ours): Ens |")
+    table2 = pd.read_csv(out / "table2.csv").set_index(["estimator", "perturbation", "uncertainty"])
+    row = table2.loc[("mc", "behaviour_shift", "u_feat")]  # episode means (2, 4) -> 3; (5, 5) -> 5
+    assert (row["sigma0"], row["sigma_max"]) == (0.0, 1.0) and row["sensitivity"] == pytest.approx(2 / 3)
+    assert np.isnan(row["paper"])
+    claims = pd.read_csv(out / "table2_claims.csv")
+    assert "behaviour_shift" not in set(claims["perturbation"]) and "the paper claims nothing about them" in text
+    paper_table, own_table = (out / "table3.md").read_text().strip().split("\n\n")
+    assert "Behaviour shift" not in paper_table
+    assert own_table.splitlines()[0] == ("| Approach | Thresholds | Heading noise alone (ours) | "
+                                         "Speed noise alone (ours) | Behaviour shift (ours) |")
+    assert _cells(own_table)[0] == ["MC-dropout", "paper thresholds", "25.0 ± 25.0", "100.0 ± 0.0 (1 of 2)",
+                                    "25.0 ± 25.0"]
+    assert "no behaviour shift" in text
+    curves = pd.read_csv(out / "uncertainty_vs_strength.csv")
+    assert set(curves.loc[curves["perturbation"] == "behaviour_shift", "strength"]) == {0.0, 1.0}
+
+
+def test_vetoes_are_counted_per_setting_with_the_unperturbed_episodes_together():
+    from socnav.experiments.uncertainty_report import vetoes_frame, vetoes_markdown
+
+    rows = []
+    for perturbation, strength, proximity, vetoed in [("observation_noise", 0.0, 10, 3), ("observation_noise", 2.0, 8, 0),
+                                                      ("more_humans", 2.0, 5, 2), ("more_humans", 7.0, 4, 1)]:
+        for variant in ("calibrated", "proximity-only", "none"):
+            rows.append({"estimator": "mc" if variant == "calibrated" else "none", "variant": variant,
+                         "perturbation": perturbation, "strength": strength, "proximity_steps": proximity,
+                         "vetoed_steps": vetoed if variant == "calibrated" else 0})
+    vetoes = vetoes_frame(pd.DataFrame(rows))
+    assert vetoes["setting"].tolist() == ["unperturbed", "more_humans 7", "observation_noise 2"]
+    assert vetoes["proximity_steps"].tolist() == [15, 4, 8]  # obs 0 and N 2 are both unperturbed: 10 + 5
+    assert vetoes["vetoed_pct"].tolist() == pytest.approx([100 * 5 / 15, 25.0, 0.0])
+    assert "| MC-dropout, calibrated | 33.3 | 25.0 | 0.0 |" in vetoes_markdown(vetoes)

@@ -264,3 +264,47 @@ def test_a_trade_off_budget_plays_only_its_first_repeats():
     records = _play(p, load_policy("pretrained"), variants, lambda _: None, {"estimator": "none"}, ablation=True)
     repeats = records.groupby("budget", dropna=False)["repeat"].apply(set).to_dict()
     assert repeats[0.05] == {0, 1} and repeats[0.1] == {0}  # the trade-off budget: the first repeat only
+
+
+# ------------------------------------------------------------------------------------------------ behaviour shift
+
+SHIFT = {**TINY, "name": "tiny-behaviour-shift", "grid": {**TINY["grid"], "seeds": 1},
+         "study": {"estimators": ["mc"], "perturbations": {"behaviour_shift": [0, 1]}, "k": 4},
+         "safety": {"estimators": ["mc"], "perturbations": {"behaviour_shift": [0, 1]}, "repeats": 1,
+                    "calibration_episodes": 2, "k": 4}}
+
+
+def test_behaviour_shift_grids_are_validated_and_not_a_default():
+    from socnav.experiments.spec import Safety, Study
+
+    assert "behaviour_shift" not in Study().perturbations and "behaviour_shift" not in Safety().perturbations
+    for bad in ([0, 0.5], [0, 3]):
+        with pytest.raises(ExperimentError, match="behaviour_shift: strength .* names no level"):
+            parse_experiment({**SHIFT, "study": {"perturbations": {"behaviour_shift": bad}}})
+    # a world whose humans already walk by social force: strength 1 (social force) would shift nothing
+    same = {**SHIFT, "env": {"humans": {"model": "social_force"}}}
+    with pytest.raises(ExperimentError, match="strength 1.0 gives an invalid env:\n.*so nothing shifts"):
+        parse_experiment(same)
+    # the calibration unit is the same with or without a behaviour shift column: it never sees the shift
+    plain = {**SHIFT, "safety": {**SHIFT["safety"], "perturbations": {"heading_noise": [0.0, 1.5]}}}
+    calibrations = [{unit.id: unit for unit in plan_units(parse_experiment(spec))}["calibrate/mc"]
+                    for spec in (SHIFT, plain)]
+    assert calibrations[0].spec_hash == calibrations[1].spec_hash
+
+
+def test_a_tiny_behaviour_shift_experiment_runs_with_social_force_humans(tmp_path):
+    """Trained with ORCA humans, studied and evaluated (paper thresholds) with social force humans at strength 1."""
+    from socnav.experiments.report import build_report
+
+    spec = {**SHIFT, "safety": {**SHIFT["safety"], "calibrate": False}}
+    units = {unit.id: unit for unit in plan_units(parse_experiment(spec))}
+    assert {"study/mc/behaviour_shift", "safety/mc/behaviour_shift"} <= set(units)
+    summary = run_experiment(parse_experiment(spec), tmp_path, workers=0)
+    assert summary.ok, [outcome.error for outcome in summary.failed]
+    steps = pd.read_parquet(tmp_path / "study" / "mc" / "behaviour_shift" / "steps.parquet")
+    episodes = pd.read_parquet(tmp_path / "study" / "mc" / "behaviour_shift" / "episodes.parquet")
+    assert set(steps["strength"]) == {0.0, 1.0} and len(episodes) == 6 and len(steps) == episodes["length"].sum()
+    safety = pd.read_parquet(tmp_path / "safety" / "mc" / "behaviour_shift" / "episodes.parquet")
+    assert set(safety["variant"]) == {"none", "paper"} and set(safety["strength"]) == {0.0, 1.0}
+    text = build_report(tmp_path).read_text()
+    assert "Behaviour shift (ours): MC" in text and "| Behaviour shift (ours) |" in text

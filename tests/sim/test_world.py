@@ -11,7 +11,7 @@ from socnav.envs.rollout import rollout_episodes
 from socnav.sim.scenarios import get_scenario, scenario_names
 from socnav.sim.world import CrowdWorld
 
-scenarios = st.sampled_from(scenario_names())
+scenarios = st.sampled_from(scenario_names(self_contained=True))  # replay: test_replay_and_mix.py
 
 
 @given(scenario=scenarios, seed=st.integers(0, 2**31), n_humans=st.integers(0, 6), n_envs=st.integers(1, 4),
@@ -118,7 +118,7 @@ def test_action_noise_perturbs_motion():
     assert slowed_path < plain_path
 
 
-@pytest.mark.parametrize("scenario", scenario_names())
+@pytest.mark.parametrize("scenario", scenario_names(self_contained=True))
 def test_scenario_sampling_rules(scenario):
     config = load_config({"scenario": scenario})
     state = get_scenario(scenario).sample(np.random.default_rng(0), 50, config)

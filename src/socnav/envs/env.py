@@ -116,8 +116,19 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
         trails=np.stack(trail) if trail else None,
         caption=caption,
         attentive=None if getattr(world, "attentive", None) is None else world.attentive[env].copy(),
+        models=world.human_model_names(env) if hasattr(world, "human_model_names") else None,
         **extra,
     )
+
+
+def scene_extent(config: EnvConfig) -> float:
+    """Half the side of the square a rendered scene shows (metres around the origin): the circle scenarios'
+    circle, the random scenario's square, the replayed robot's path, plus a margin."""
+    if config.scenario == "random":
+        return config.square_size / 2 + 1.5
+    if config.scenario == "replay":
+        return config.humans.replay.robot_distance / 2 + 1.5
+    return config.circle_radius + 1.5
 
 
 class SocialNavEnv(gym.Env):
@@ -126,8 +137,9 @@ class SocialNavEnv(gym.Env):
     ## Description
 
     The robot (agent 0) drives to its goal on a 2-D open plane among humans who walk to their own goals with ORCA
-    (exact RVO2 semantics, van den Berg et al. 2011; or social force, ``humans.model``, docs/humans.md) and react
-    to the robot as individuals: each keeps its personal
+    (exact RVO2 semantics, van den Berg et al. 2011; or social force, ``humans.model``, docs/humans.md; the
+    behaviour-shift perturbation ``perturbation.human_model`` swaps the model) and react to the robot as
+    individuals: each keeps its personal
     space `r_prox` free of the robot, takes its own share of the avoidance (cooperation), and may be inattentive to
     the robot or notice it only inside its view cone. None of this is observable, so the task is the POMDP of paper
     eq. (1); the reward is the socially integrated reward of Flögel et al. (IROS 2024) that the paper trains
@@ -282,7 +294,7 @@ class SocialNavEnv(gym.Env):
             self.world.seed(0, seed if seed is not None else int(self.np_random.integers(2**63)))
         self._started = True
         self.world.reset([0])
-        self._trail = [self.world.positions[0].copy()]
+        self._trail = [self._trail_point()]
         info = {"time": 0.0}
         if self.render_mode == "human":
             self.render()
@@ -292,7 +304,9 @@ class SocialNavEnv(gym.Env):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         result = self.world.step(check_actions(action, 1))
-        self._trail.append(self.world.positions[0].copy())
+        if self.world.entered[0].any():  # a new (replayed) human in a slot: its trail starts here
+            self._trail[-1] = np.where(self.world.entered[0][:, None], np.nan, self._trail[-1])
+        self._trail.append(self._trail_point())
         info = step_infos(self.world, result)[0]
         if self.render_mode == "human":
             self.render()
@@ -303,6 +317,10 @@ class SocialNavEnv(gym.Env):
             bool(result.truncated[0]),
             info,
         )
+
+    def _trail_point(self) -> np.ndarray:
+        """Every agent's position now, NaN for the inactive slots (a break in their trail)."""
+        return np.where(self.world.active[0][:, None], self.world.positions[0], np.nan)
 
     def _observation(self) -> dict[str, np.ndarray]:
         return {key: value[0] for key, value in self.world.observe().items()}
@@ -318,8 +336,7 @@ class SocialNavEnv(gym.Env):
         from socnav.viz.render import SceneRenderer
 
         if self._renderer is None:
-            self._renderer = SceneRenderer(extent=self.config.circle_radius + 1.5
-                                           if self.config.scenario != "random" else self.config.square_size / 2 + 1.5)
+            self._renderer = SceneRenderer(extent=scene_extent(self.config))
         return self._renderer.render(self.scene_frame(caption=caption))
 
     def render(self):

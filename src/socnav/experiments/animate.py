@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from socnav.config import ConfigLike, EnvConfig, describe_world, load_config, perturbation_text
-from socnav.envs.env import SocialNavEnv
+from socnav.envs.env import SocialNavEnv, scene_extent
 from socnav.uncertainty import WindowedUncertainty
 from socnav.viz import save_animation
 from socnav.viz.render import SceneRenderer
@@ -107,7 +107,7 @@ def animate_episode(
     """
     config = load_config(config)
     env = SocialNavEnv(config)
-    extent = config.circle_radius + 1.5 if config.scenario != "random" else config.square_size / 2 + 1.5
+    extent = scene_extent(config)
     safe = None
     if thresholds is not None:
         from socnav.safety import SafePolicy, load_thresholds

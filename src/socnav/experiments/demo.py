@@ -93,7 +93,7 @@ def baseline_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
     from socnav.sim.scenarios import scenario_names
 
     rows = []
-    for scenario in scenario_names():
+    for scenario in scenario_names(self_contained=True):
         config = load_config({"scenario": scenario})
         for name in BASELINES:
             label = f"{name} / {scenario}"

@@ -172,23 +172,29 @@ class Evaluation(StrictModel):
 
 
 def _perturbation_grid(value: dict[str, list[float]]) -> dict[str, list[float]]:
-    from socnav.envs.perturbations import PERTURBATION_FIELDS
+    from socnav.envs.perturbations import PERTURBATIONS
 
     for name, strengths in value.items():
-        if name not in PERTURBATION_FIELDS:
-            raise ValueError(f"unknown perturbation {short_repr(name)}; allowed: {', '.join(PERTURBATION_FIELDS)}")
+        if name not in PERTURBATIONS:
+            raise ValueError(f"unknown perturbation {short_repr(name)}; allowed: {', '.join(PERTURBATIONS)}")
         if len(strengths) > MAX_STRENGTHS:
             raise ValueError(f"{name}: at most {MAX_STRENGTHS} strengths; got {len(strengths)}")
         if len(strengths) < 2 or sorted(strengths) != list(strengths):
             raise ValueError(f"{name}: strengths must be increasing, the first being the unperturbed one (sigma(0))")
+        PERTURBATIONS[name].check_strengths(strengths)
     return value
 
 
 def _paper_grids() -> dict[str, list[float]]:
-    from socnav.envs.perturbations import PAPER_GRIDS
+    """The default grids: every registered perturbation type marked ``default`` (not the behaviour shift)."""
+    from socnav.envs.perturbations import DEFAULT_GRIDS
 
-    return {name: list(values) for name, values in PAPER_GRIDS.items()}
+    return {name: list(values) for name, values in DEFAULT_GRIDS.items()}
 
+
+PERTURBATIONS_DESCRIPTION = ("perturbation -> strengths, sigma(0) first; behaviour_shift (humans of another model "
+                             "than trained with, not in the default grids) numbers its models: 0 = as trained, "
+                             "1 = social_force, 2 = orca")
 
 Estimator = Literal["mc", "ensemble"]
 
@@ -201,7 +207,7 @@ class Study(StrictModel):
     estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
                                         description="uncertainty estimators studied")
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
-                                                  description="perturbation -> strengths, sigma(0) first")
+                                                  description=PERTURBATIONS_DESCRIPTION)
     k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
     p_test: Optional[float] = Field(None, ge=0, lt=1, description="MC-dropout probability (null: the policy's)")
     window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES, description="steps of the windowed uncertainty")
@@ -234,7 +240,7 @@ class Safety(StrictModel):
     estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
                                         description="uncertainty estimators driving the safety layer")
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
-                                                  description="perturbation -> strengths, sigma(0) first")
+                                                  description=PERTURBATIONS_DESCRIPTION)
     repeats: StrictInt = Field(3, ge=1, le=MAX_SAMPLES,
                                description="independent blocks of evaluation.episodes episodes (mean +- std)")
     thresholds: dict[str, str] = Field(default_factory=lambda: {"mc": "mc", "ensemble": "ensemble"},

@@ -61,7 +61,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, PAPER_GRIDS, PERTURBATION_FIELDS, strength_zero
+from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, PERTURBATIONS, strength_zero
 from socnav.experiments.registry import ReportContext, register_section, unit_dir
 from socnav.experiments.spec import NO_ESTIMATOR
 from socnav.experiments.statistics import Interval
@@ -81,13 +81,19 @@ KIND = "uncertainty"
 ESTIMATOR_LABELS = {"mc": "MC-dropout", "ensemble": "Ensemble"}
 ESTIMATOR_SHORT = {"mc": "MC", "ensemble": "Ens"}
 ESTIMATOR_ORDER = ["mc", "ensemble"]
-PERTURBATION_ORDER = list(PERTURBATION_FIELDS)
-PERTURBATION_LABELS = {"observation_noise": "Observation noise", "heading_noise": "Heading noise",
-                       "speed_noise": "Speed noise", "faster_humans": "Faster humans", "more_humans": "More humans",
-                       "action_noise": "Action noise (heading + speed)"}
-STRENGTH_LABELS = {"observation_noise": "observation noise σ_obs", "heading_noise": "heading noise σ_head",
-                   "speed_noise": "speed noise s (factor U(1 − s, 1))", "faster_humans": "human speed factor l_vel",
-                   "more_humans": "agents N (robot included)"}
+# Perturbation types, their order, labels and columns: the registry (socnav.envs.perturbations.PERTURBATIONS).
+PERTURBATION_ORDER = list(PERTURBATIONS)
+#: Report columns that pool perturbation types (`Perturbation.pooled`) -> their label.
+POOLED_LABELS = {"action_noise": "Action noise (heading + speed)"}
+#: Pooled column -> the perturbation types it pools, in registry order.
+POOLED: dict[str, list[str]] = {
+    pool: [name for name, p in PERTURBATIONS.items() if p.pooled == pool]
+    for pool in dict.fromkeys(p.pooled for p in PERTURBATIONS.values() if p.pooled is not None)
+}
+PERTURBATION_LABELS = {**{name: p.label for name, p in PERTURBATIONS.items()}, **POOLED_LABELS}
+STRENGTH_LABELS = {name: p.strength_label for name, p in PERTURBATIONS.items()}
+#: Perturbation types beyond the paper (labelled "(ours)"): the paper's Table 2 claims do not cover them.
+BEYOND_PAPER = [name for name, p in PERTURBATIONS.items() if p.ours]
 VARIANT_LABELS = {"none": "none (plain policy)", "paper": "paper thresholds", "calibrated": "calibrated thresholds"}
 
 #: Table 2 rows: raw uncertainty column -> label.
@@ -122,9 +128,10 @@ _PAPER_TABLE3 = {"obs": {"mc": (100.0, 0.0), "ensemble": (79.0, 11.0)},
                  "action": {"mc": (6.0, 5.0), "ensemble": (0.0, 0.0)},
                  "velocity": {"mc": (56.0, 2.0), "ensemble": (16.0, 1.0)},
                  "humans": {"mc": (81.0, 8.0), "ensemble": (59.0, 13.0)}}
-#: Our perturbation type -> the paper's column ("action noise" is heading and speed noise, "velocity" faster humans).
-PAPER_COLUMN = {"observation_noise": "obs", "heading_noise": "action", "speed_noise": "action",
-                "action_noise": "action", "faster_humans": "velocity", "more_humans": "humans"}
+#: Our perturbation type (or pooled column) -> the paper's column ("action noise" is heading and speed noise,
+#: "velocity" faster humans); types beyond the paper have none.
+PAPER_COLUMN = {name: p.paper_column for name, p in PERTURBATIONS.items() if not p.ours}
+PAPER_COLUMN.update({pool: PERTURBATIONS[kinds[0]].paper_column for pool, kinds in POOLED.items()})
 PAPER_COLUMN_LABELS = {"obs": "Observation noise", "action": "Action noise", "velocity": "Velocity",
                        "humans": "New humans"}
 #: Paper thresholds (lambda_ep, lambda_feat, lambda_prox, beta1), as in socnav.safety.rule.THRESHOLD_PRESETS.
@@ -252,8 +259,8 @@ def safety_records(context: ReportContext) -> pd.DataFrame:
 
 
 def _sigma_zero(perturbation: str, strengths: Iterable[float]) -> float:
-    """The unperturbed strength of a perturbation type (PAPER_GRIDS), or the smallest strength of an unknown type."""
-    if perturbation in PAPER_GRIDS:
+    """The unperturbed strength of a registered perturbation type, or the smallest strength of an unknown type."""
+    if perturbation in PERTURBATIONS:
         return strength_zero(perturbation)
     return float(min(strengths))
 
@@ -435,7 +442,7 @@ def _strength_notes(table: pd.DataFrame) -> list[str]:
             first = rows[rows["estimator"] == estimator].iloc[0]
             parts.append(f"{estimator_label(estimator)} σ(0) = {first['sigma0']:g} ({first['episodes_sigma0']} "
                          f"episode(s)), σ(max) = {first['sigma_max']:g} ({first['episodes_sigma_max']} episode(s))")
-            if perturbation in PAPER_GRIDS and not math.isclose(first["sigma0"], strength_zero(perturbation)):
+            if perturbation in PERTURBATIONS and not math.isclose(first["sigma0"], strength_zero(perturbation)):
                 parts[-1] += f" — note: the unperturbed strength {strength_zero(perturbation):g} was not recorded"
         line = f"- {perturbation_label(perturbation)}: " + "; ".join(parts)
         sigma_max = float(rows["sigma_max"].max())
@@ -650,7 +657,9 @@ def _claim_row(claim: str, estimator: str, perturbation: str, uncertainty: str, 
 def table2_claims_frame(episode_means: pd.DataFrame, n_resamples: int = TABLE2_RESAMPLES,
                         seed: int = 0) -> pd.DataFrame:
     """Every Table 2 claim test (one row each): MC vs ensemble per cell, heading vs speed per estimator, kind and
-    perturbation, more humans per estimator and uncertainty."""
+    perturbation, more humans per estimator and uncertainty. The paper's claims are about its perturbations: the
+    types beyond the paper (:data:`BEYOND_PAPER`, the behaviour shift) are left out."""
+    episode_means = episode_means[~episode_means["perturbation"].isin(BEYOND_PAPER)]
     frames = [f(episode_means, n_resamples, seed) for f in (mc_vs_ensemble_frame, heading_vs_speed_frame,
                                                             more_humans_frame)]
     frames = [frame for frame in frames if not frame.empty]
@@ -738,7 +747,8 @@ def table2_claims_section(context: ReportContext) -> str:
         "0, *does not hold* if below (for MC vs ensemble: the ensemble responds more strongly), else *cannot tell "
         "at this budget*. A claim made for every cell holds only if every test holds. The intervals are over "
         "episodes for ONE acting policy (training seed): variation between policies is covered only by the "
-        "replication with other training seeds.",
+        "replication with other training seeds. Perturbations beyond the paper (marked (ours)) are left out: the "
+        "paper claims nothing about them.",
         "",
         markdown,
         "",
@@ -953,12 +963,11 @@ TABLE3_COLUMNS = ["estimator", "variant", "sensing", "column", "repeats", "repea
                   "collisions_variant", "prevented_mean", "prevented_std", "paper_mean", "paper_std"]
 #: The paper's Table III columns, in its order: observation noise, action noise (our heading and speed noise
 #: pooled: the paper perturbs the action), velocity (our faster humans), new humans (our more humans).
-PAPER_TABLE3_COLUMNS = ["observation_noise", "action_noise", "faster_humans", "more_humans"]
-#: Our columns that the paper has no column for (it reports heading and speed noise only pooled, as action noise).
-OWN_TABLE3_COLUMNS = ["heading_noise", "speed_noise"]
-TABLE3_COLUMN_LABELS = {"observation_noise": "Observation noise", "action_noise": "Action noise (heading + speed)",
-                        "faster_humans": "Velocity (faster humans)", "more_humans": "New humans (more humans)",
-                        "heading_noise": "Heading noise alone (ours)", "speed_noise": "Speed noise alone (ours)"}
+PAPER_TABLE3_COLUMNS = list(dict.fromkeys(p.pooled or name for name, p in PERTURBATIONS.items() if not p.ours))
+#: Our columns that the paper has no column for: heading and speed noise alone (it reports them only pooled, as
+#: action noise) and the perturbations beyond the paper (the behaviour shift).
+OWN_TABLE3_COLUMNS = [name for name, p in PERTURBATIONS.items() if p.ours or p.pooled is not None]
+TABLE3_COLUMN_LABELS = {**{name: p.table3_label for name, p in PERTURBATIONS.items()}, **POOLED_LABELS}
 #: Episode seeds the development of Table 3 looked at before the held-out range: the earlier evaluations (seeds
 #: 0-999, the paper budget's 5 x 200) and the fresh-episodes check (100,000-100,449). The calibration's seeds
 #: (CALIBRATION_SEED...) are added per run.
@@ -968,14 +977,16 @@ DEFAULT_BUDGET = 0.05
 
 
 def _table3_groups(perturbations: Iterable[str]) -> dict[str, list[str]]:
-    """Table 3 columns: each perturbation type, plus the paper's pooled action noise (after speed noise) when both
-    heading and speed noise are there."""
+    """Table 3 columns: each perturbation type, plus each pooled column (:data:`POOLED`; the paper's action noise =
+    heading and speed noise) after the last of its types when all of them are there."""
     present = _ordered(perturbations, PERTURBATION_ORDER)
     groups: dict[str, list[str]] = {}
     for perturbation in present:
         groups[perturbation] = [perturbation]
-        if perturbation == "speed_noise" and "heading_noise" in present:
-            groups["action_noise"] = ["heading_noise", "speed_noise"]
+        pool = PERTURBATIONS[perturbation].pooled if perturbation in PERTURBATIONS else None
+        if pool is not None and all(kind in present for kind in POOLED[pool]) and \
+                perturbation == [kind for kind in present if kind in POOLED[pool]][-1]:
+            groups[pool] = list(POOLED[pool])
     return groups
 
 
@@ -1188,7 +1199,8 @@ def table3_section(context: ReportContext) -> str:
     lines += [markdown, ""]
     if has_own:
         lines += ["Our own columns (the paper has none for them: it reports heading and speed noise only pooled, "
-                  "as action noise above):", "", own, ""]
+                  "as action noise above, and has no behaviour shift — humans of another model than the policy "
+                  "was trained with, never seen by the calibration):", "", own, ""]
     unpaired = _unpaired_groups(safety_records(context))
     if unpaired:
         lines += [f"**Warning**: in {unpaired} (estimator, perturbation, strength, repeat) group(s) a safe variant "
@@ -1313,6 +1325,8 @@ ABLATION_ROWS = {"paper": "Paper's rule, paper's thresholds (as printed)",
 REFERENCE = "proximity-only"
 ABLATION_CONFIDENCE = 0.95  # family-wise, Bonferroni over the rows compared (or rows x columns)
 KEYS = ["perturbation", "strength", "repeat", "seed"]
+#: The paired comparison's column of the unperturbed episodes (ours: the paper's columns are all perturbed).
+UNPERTURBED_COLUMN = "unperturbed"
 PAIRED_COLUMNS = ["estimator", "row", "column", "episodes", "collisions_none", "collisions_reference",
                   "collisions_row", "row_only_prevented", "reference_only_prevented", "difference",
                   "difference_pct", "low_pct", "high_pct", "p_value", "p_adjusted", "comparisons", "confidence",
@@ -1390,8 +1404,8 @@ def _compared_rows(view: pd.DataFrame) -> list[tuple[str, str]]:
 
 def paired_frame(view: pd.DataFrame, confidence: float = ABLATION_CONFIDENCE) -> pd.DataFrame:
     """Every row of the ablation's `view` (:func:`ablation_records`) against the proximity-only rule, paired by
-    episode (perturbation, strength, repeat, seed), over the perturbed episodes of each of the paper's columns and
-    of ``all`` of them: discordant episodes, the difference in prevented collisions ``D`` (row minus reference; in
+    episode (perturbation, strength, repeat, seed), over the perturbed episodes of each of the paper's columns, of
+    ``all`` of them and over the unperturbed episodes (:data:`UNPERTURBED_COLUMN`): discordant episodes, the difference in prevented collisions ``D`` (row minus reference; in
     points of the plain policy's collisions on those episodes: ``difference_pct``) with its exact conditional
     interval and McNemar p (:func:`mcnemar_exact`). Bonferroni: the ``all`` comparisons at ``1 - (1 - confidence) /
     m`` with m the rows compared, the per-column ones with m = rows x columns; ``p_adjusted = min(1, m p)``.
@@ -1402,19 +1416,23 @@ def paired_frame(view: pd.DataFrame, confidence: float = ABLATION_CONFIDENCE) ->
     if view.empty or not (view["variant"] == REFERENCE).any():
         return pd.DataFrame(columns=PAIRED_COLUMNS)
     reference = _outcomes(view, NO_ESTIMATOR, REFERENCE)
-    perturbed_view = view[_perturbed(view)]
-    groups = _paper_column_kinds(perturbed_view["perturbation"])
+    groups = _paper_column_kinds(view.loc[_perturbed(view), "perturbation"])
     compared = _compared_rows(view)
     results = []
     for estimator, variant in compared:
-        row = _outcomes(perturbed_view, estimator, variant)
+        row = _outcomes(view, estimator, variant)
         plain = _outcomes(view, estimator, "none")
         if plain.empty:
             plain = _outcomes(view, NO_ESTIMATOR, "none")
         paired = row[["outcome"]].join(reference["outcome"].rename("outcome_reference"), how="inner").join(
             plain["outcome"].rename("outcome_none"), how="left")
-        for column, kinds in groups.items():
-            cell = paired[paired.index.get_level_values("perturbation").isin(kinds)]
+        shifted = _perturbed(paired.index.to_frame(index=False))
+        # the paper's columns (perturbed episodes) and, as ours, the unperturbed episodes: where the false
+        # activation is measured, so where a gate that keeps within budget by vetoing costs protection
+        cells = [(column, shifted & paired.index.get_level_values("perturbation").isin(kinds))
+                 for column, kinds in groups.items()] + [(UNPERTURBED_COLUMN, ~shifted)]
+        for column, chosen in cells:
+            cell = paired[chosen]
             if cell.empty:
                 continue
             hit_row = (cell["outcome"] == "collision").to_numpy()
@@ -1523,9 +1541,11 @@ def ablation_markdown(prevented: pd.DataFrame, paired: pd.DataFrame, decisions: 
 
 
 def paired_markdown(paired: pd.DataFrame) -> str:
-    """Per paper column: the paired difference with proximity-only of every compared row (points [CI])."""
-    columns = [c for c in PAPER_TABLE3_COLUMNS if c in set(paired["column"])]
-    header = ["Rule", "Estimator"] + [TABLE3_COLUMN_LABELS[c] for c in columns]
+    """Per paper column and the unperturbed episodes: the paired difference with proximity-only of every compared
+    row (points [CI])."""
+    columns = [c for c in [*PAPER_TABLE3_COLUMNS, UNPERTURBED_COLUMN] if c in set(paired["column"])]
+    labels = {**TABLE3_COLUMN_LABELS, UNPERTURBED_COLUMN: "Unperturbed (ours)"}
+    header = ["Rule", "Estimator"] + [labels[c] for c in columns]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * len(columns)) + "|"]
     indexed = paired.set_index(["estimator", "row", "column"])
     for estimator, variant in dict.fromkeys(zip(paired["estimator"], paired["row"])):
@@ -1535,6 +1555,44 @@ def paired_markdown(paired: pd.DataFrame) -> str:
             cells.append(_paired_text(indexed.loc[key]) + f", {indexed.loc[key, 'verdict']}"
                          if key in indexed.index else MISSING)
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def vetoes_frame(view: pd.DataFrame) -> pd.DataFrame:
+    """Where the uncertainty condition vetoes, per uncertainty-gated row of the ablation's `view` (the paper's rule,
+    calibrated and as printed) and per setting: the steps its proximity terms fired, those the uncertainty
+    condition vetoed, and their share. ``setting`` is ``unperturbed`` for every unperturbed episode (the ones the
+    false activation is measured on), else ``<perturbation> <strength>``. A gate that vetoes mostly where nothing
+    is perturbed spends the false-activation budget on the perturbed settings: what it knows is the shift, not the
+    collision (docs/reproduction.md)."""
+    columns = ["estimator", "row", "setting", "perturbation", "strength", "proximity_steps", "vetoed_steps",
+               "vetoed_pct"]
+    gated = view[view["variant"].isin(["paper", "calibrated"])]
+    if gated.empty or "vetoed_steps" not in gated:
+        return pd.DataFrame(columns=columns)
+    gated = gated.assign(setting=np.where(_perturbed(gated), gated["perturbation"] + " " + gated["strength"].map(
+        "{:g}".format), "unperturbed"))
+    gated.loc[gated["setting"] == "unperturbed", ["perturbation", "strength"]] = ["", math.nan]
+    totals = gated.groupby(["estimator", "variant", "setting", "perturbation", "strength"], dropna=False, sort=False)[
+        ["proximity_steps", "vetoed_steps"]].sum().reset_index().rename(columns={"variant": "row"})
+    totals["vetoed_pct"] = 100.0 * totals["vetoed_steps"] / totals["proximity_steps"].where(
+        totals["proximity_steps"] > 0)
+    order = {"row": {"paper": 0, "calibrated": 1}, "estimator": {name: i for i, name in enumerate(ESTIMATOR_ORDER)}}
+    return totals.sort_values(["row", "estimator", "perturbation", "strength"], ignore_index=True, key=lambda c: (
+        c.map(order[c.name]).fillna(len(order[c.name])) if c.name in order else c))[columns]
+
+
+def vetoes_markdown(vetoes: pd.DataFrame) -> str:
+    """One row per gated rule, one column per setting: the vetoed share of its proximity firings (%)."""
+    if vetoes.empty:
+        return ""
+    settings = list(dict.fromkeys(["unperturbed", *vetoes["setting"]]))
+    names = {"calibrated": "calibrated", "paper": "paper's thresholds"}
+    lines = ["| Rule | " + " | ".join(settings) + " |", "|:--|" + "--:|" * len(settings)]
+    for (row, estimator), rows in vetoes.groupby(["row", "estimator"], sort=False):
+        share = dict(zip(rows["setting"], rows["vetoed_pct"]))
+        cells = ["–" if not math.isfinite(share.get(name, math.nan)) else f"{share[name]:.1f}" for name in settings]
+        lines.append(f"| {estimator_label(estimator)}, {names.get(row, row)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -1554,6 +1612,8 @@ def table3_ablation_section(context: ReportContext) -> str:
     write_table_atomic(prevented, context.out_dir / "table3_ablation.csv")
     write_table_atomic(paired, context.out_dir / "table3_ablation_paired.csv")
     write_table_atomic(decisions, context.out_dir / "table3_ablation_decisions.csv")
+    vetoes = vetoes_frame(view)
+    write_table_atomic(vetoes, context.out_dir / "table3_ablation_vetoes.csv")
     markdown = ablation_markdown(prevented, paired, decisions)
     write_text_atomic(context.out_dir / "table3_ablation.md", markdown + "\n")
     pooled = paired[paired["column"] == "all"]
@@ -1582,11 +1642,16 @@ def table3_ablation_section(context: ReportContext) -> str:
         "",
     ]
     if not paired.empty and (paired["column"] != "all").any():
-        lines += ["Per column (Bonferroni over rows × columns; cells: Δ points [CI] (won vs lost), verdict):", "",
+        lines += ["Per column, and over the unperturbed episodes, where the false activation is measured (ours; "
+                  "Bonferroni over rows × columns; cells: Δ points [CI] (won vs lost), verdict):", "",
                   paired_markdown(paired[paired["column"] != "all"]), ""]
+    if not vetoes.empty:
+        lines += ["Where the uncertainty condition vetoes (% of the rule's proximity firings it vetoed, per setting; "
+                  "the false activation is measured on the unperturbed episodes):", "", vetoes_markdown(vetoes), ""]
     lines.append("Data: [table3_ablation.csv](table3_ablation.csv) (prevented per column), "
                  "[table3_ablation_paired.csv](table3_ablation_paired.csv) (paired comparisons, p-values), "
-                 "[table3_ablation_decisions.csv](table3_ablation_decisions.csv) (hand-over decisions).")
+                 "[table3_ablation_decisions.csv](table3_ablation_decisions.csv) (hand-over decisions), "
+                 "[table3_ablation_vetoes.csv](table3_ablation_vetoes.csv) (vetoes per setting).")
     return "\n".join(lines)
 
 

@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import pandas as pd
 
-from socnav.envs.perturbations import PAPER_GRIDS, perturbed_config, strength_zero
+from socnav.envs.perturbations import PERTURBATIONS, perturbed_config, strength_zero
 from socnav.envs.rollout import rollout_episodes
 from socnav.experiments.registry import (
     ExecutorResult, UnitProgress, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
@@ -139,7 +139,7 @@ def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimat
     parts = []
     kind = p["perturbation"]
     for strength in p["strengths"]:
-        if ablation and not unperturbed and kind in PAPER_GRIDS and math.isclose(strength, strength_zero(kind)):
+        if ablation and not unperturbed and kind in PERTURBATIONS and math.isclose(strength, strength_zero(kind)):
             continue  # played by the unit of the first perturbation type
         config = perturbed_config(p["env"], kind, strength)
         for repeat in range(p["repeats"]):
@@ -181,7 +181,7 @@ def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimat
 def _settings(p: dict[str, Any], unperturbed: bool = True) -> int:
     """The (strength, repeat) settings `_play` plays for the unit parameters `p`."""
     kind = p["perturbation"]
-    skipped = (not unperturbed and kind in PAPER_GRIDS
+    skipped = (not unperturbed and kind in PERTURBATIONS
                and any(math.isclose(strength, strength_zero(kind)) for strength in p["strengths"]))
     return max(1, (len(p["strengths"]) - skipped) * p["repeats"])
 

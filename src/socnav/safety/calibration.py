@@ -78,7 +78,7 @@ import numpy as np
 import pandas as pd
 
 from socnav.config import ConfigLike, load_config
-from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, perturbed_config
+from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, is_perturbed, perturbed_config
 from socnav.io import write_text_atomic
 from socnav.safety.rule import (PROXIMITY_VARIANTS, RULE_CONDITIONS, Conditions, Proximity, Thresholds,
                                 _check_proximity, proximity_score, rule_conditions, save_thresholds)
@@ -523,7 +523,8 @@ def collect_records(
     """Per-step calibration records (module docstring) of ``n_episodes`` plain-policy episodes (episode k from
     seed ``seed + k``, id ``episode_offset + k``), with the windowed uncertainty of ``estimator``.
 
-    ``perturbed``: the flag to store; None: True iff the config has any perturbation switched on.
+    ``perturbed``: the flag to store; None: True iff the config has any registered perturbation type switched on
+    (`socnav.envs.perturbations.is_perturbed`: every type of the registry compared with its unperturbed value).
     ``sensing``: what the proximity columns (``gap``, speeds, ``previous_gap``) are read from, as
     ``Thresholds.sensing``: the observation (``perceived``) or the noise-free state (``true``).
     ``progress(n)`` is called with the number of episodes finished at each step that finishes some.
@@ -536,9 +537,7 @@ def collect_records(
 
     config = load_config(config)
     if perturbed is None:
-        pert = config.perturbation
-        perturbed = bool(pert.observation_noise or pert.heading_noise or pert.speed_noise
-                         or pert.human_speed_factor != 1.0 or pert.total_agents is not None)
+        perturbed = is_perturbed(config)
     # A SafePolicy whose rule never fires plays exactly `policy` and computes the rule's inputs on the way.
     probe = SafePolicy(policy, no_uncertainty if estimator is None else estimator,
                        Thresholds.create(Thresholds.never().model_dump(), sensing=sensing), config, window=window)
@@ -827,7 +826,8 @@ def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episo
                          progress: Callable[[int, int], None] | None = None,
                          sensing: str = "perceived", conditions: str = "paper") -> tuple[Thresholds, dict[str, Any]]:
     """Thresholds chosen on calibration episodes: `episodes` unperturbed ones and `episodes` per strength of
-    `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's).
+    `CALIBRATION_SET`, from episode seeds `CALIBRATION_SEED`... (disjoint from the evaluation's). A perturbation
+    type registered without calibration strengths (the behaviour shift) is held out: never played here.
 
     Three stages. (1) The proxy search (`socnav.safety.calibrate`) on per-step records of the plain policy proposes
     one candidate per proximity variant (`proximity`: one of `PROXIMITY_VARIANTS`, or `both`), lead in

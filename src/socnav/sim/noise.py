@@ -15,6 +15,7 @@ OBSERVATION_STREAM = 1
 HEADING_STREAM = 2
 SPEED_STREAM = 3
 ATTENTION_STREAM = 4
+MODEL_STREAM = 5  # which model moves each human of a mixed crowd (humans.mix)
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)

@@ -29,6 +29,9 @@ class InitialState:
     cooperation: np.ndarray  # share of avoidance each human takes w.r.t. the robot; 0 for the robot
     active: np.ndarray  # bool
     robot_heading: np.ndarray  # (n_envs,)
+    #: per environment, the plan that scripted humans follow (`socnav.sim.humans.ScriptedHumans`; the replay
+    #: scenario's `socnav.sim.humans.replay.ReplayStart`); None where the human model moves them from this state
+    script: list[Any] | None = None
 
     @classmethod
     def empty(cls, n_envs: int, n_slots: int) -> "InitialState":
@@ -59,6 +62,10 @@ class ScenarioSettings(Protocol):
     swap_jitter: float
     square_size: float
     perturbation: Any  # circle_interaction reads perturbation.human_speed_factor
+    humans: Any  # replay reads humans.replay (files, robot_distance)
+    time_step: float  # replay: its time windows and time grid
+    timeout_factor: float
+    timeout_margin: float
 
     def humans_range(self) -> tuple[int, int]: ...
 
@@ -90,9 +97,11 @@ def get_scenario(name: str) -> Scenario:
         raise KeyError(f"unknown scenario {name!r}; registered: {', '.join(scenario_names())}") from None
 
 
-def scenario_names() -> list[str]:
-    """The registered scenario names, sorted."""
-    return sorted(_REGISTRY)
+def scenario_names(self_contained: bool = False) -> list[str]:
+    """The registered scenario names, sorted; `self_contained`: only those that run without data of their own (all
+    but ``replay``, which needs recorded trajectory files), e.g. to try every scenario in its default world."""
+    return sorted(name for name, scenario in _REGISTRY.items()
+                  if not (self_contained and getattr(scenario, "replays_humans", False)))
 
 
 def n_slots(config: ScenarioSettings) -> int:
@@ -286,6 +295,50 @@ class RandomSquare:
         return goal
 
 
-for _scenario in (PositionSwap(), CircleCrossing(), CircleInteraction(), RandomSquare()):
+# --------------------------------------------------------------------------------------------------------------
+# Recorded pedestrians
+
+
+@dataclass(frozen=True)
+class Replay:
+    """Recorded pedestrians (``humans.model: replay``, files in ``humans.replay.files``) walk their recorded tracks;
+    the robot crosses the scene through its centre.
+
+    Per episode, from the episode's generator: the agents' traits, a file (weighted by its length), a time window
+    (its start drawn so that the episode's time limit fits in the recording where the file is long enough) and the
+    robot's direction; start and goal lie ``humans.replay.robot_distance`` apart on a line through the centre of the
+    file's bounding box (the world's origin), redrawn until the start is clear of the pedestrians present then.
+    There are ``n_humans`` (default 10; the upper bound of a range) slots for humans: the pedestrians present at the
+    start closest to the robot's path take them, later ones take the slots left free in the order they appear
+    (`socnav.sim.humans.replay`). `scenes`, `plan` and the slots' kernels are in that module.
+    """
+
+    name: str = "replay"
+    default_humans: int | tuple[int, int] = 10
+    redraw_goals: bool = False
+    replays_humans: bool = True  # needs a `ScriptedHumans` model (humans.model: replay)
+
+    def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
+        from socnav.sim.humans.replay import load_replay
+
+        settings = config.humans.replay
+        scenes = load_replay(settings, config.time_step)
+        slots = n_slots(config)
+        state = InitialState.empty(n_envs, slots)
+        state.script = []
+        for env in range(n_envs):
+            _fill_traits(state, env, slots - 1, rng, config)
+            time_limit = (config.timeout_factor * settings.robot_distance / state.preferred_speeds[env, 0]
+                          + config.timeout_margin)
+            plan = scenes.plan(rng, slots - 1, settings.robot_distance, math.ceil(time_limit / config.time_step))
+            state.positions[env, 0], state.goals[env, 0] = plan.start, plan.goal
+            state.active[env, 1:] = plan.pedestrians[1:] >= 0
+            state.positions[env, 1:], state.goals[env, 1:] = plan.positions[1:], plan.goals[1:]
+            _face_goal(state, env)
+            state.script.append(plan)
+        return state
+
+
+for _scenario in (PositionSwap(), CircleCrossing(), CircleInteraction(), RandomSquare(), Replay()):
     register_scenario(_scenario)
 

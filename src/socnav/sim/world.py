@@ -3,7 +3,10 @@
 `CrowdWorld` holds the state of E environments as arrays and advances all of them in one call; every environment's
 episode depends only on its own seed, so results are bit-identical whatever the batch size. How the humans walk is
 a plug-in `socnav.sim.humans.HumanModel` (``humans.model``: ORCA by default, or the social force model); the world
-gives it its arrays (`CrowdWorld.crowd`) and moves every human by the velocity it returns.
+gives it its arrays (`CrowdWorld.crowd`) and moves every human by the velocity it returns. A mixed crowd
+(``humans.mix``) draws each human's model per episode from the episode's noise key (`CrowdWorld.model_index`);
+replayed humans (``replay``) follow recorded tracks, entering and leaving slots mid-episode through the
+`socnav.sim.humans.ScriptedHumans` hooks.
 
 Attention (SPEC section 1, "Attention"): each human is, per episode, attentive to the robot or not (probability
 `inattentive_share` of not); an inattentive human plans as if the robot were absent (RVO2 `collabCoeff = 0`), and
@@ -21,9 +24,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from socnav.config import EnvConfig, RewardConfig
+from socnav.config import ConfigError, EnvConfig, RewardConfig
 from socnav.sim.noise import ATTENTION_STREAM, HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
-from socnav.sim.humans import Crowd, make_human_model
+from socnav.sim.humans import Crowd, MixedHumans, ScriptedHumans, make_human_model
 from socnav.sim.orca import default_social_arrays
 from socnav.sim.scenarios import InitialState, get_scenario, n_slots
 
@@ -318,8 +321,9 @@ def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_hal
     """Field of view: update each human's facing direction and whether it has noticed the robot.
 
     A human faces where it walks (towards its goal while standing still, its last facing once at the goal). It
-    notices the robot when the robot's centre is within the interaction range and inside the cone of half-angle
-    fov/2 around its facing; once noticed, it keeps reacting while the robot stays within the interaction range.
+    notices the robot when the robot's centre is within its interaction range (`interaction_range` (E, N): that of
+    the model moving it) and inside the cone of half-angle fov/2 around its facing; once noticed, it keeps reacting
+    while the robot stays within the interaction range.
     """
     n_envs, n_agents = active.shape
     for env in range(n_envs):
@@ -337,7 +341,7 @@ def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_hal
             dx = positions[env, 0, 0] - positions[env, agent, 0]
             dy = positions[env, 0, 1] - positions[env, agent, 1]
             distance = math.sqrt(dx * dx + dy * dy)
-            in_range = distance < interaction_range
+            in_range = distance < interaction_range[env, agent]
             in_view = False
             if in_range:
                 if distance < 1e-12:
@@ -437,6 +441,22 @@ class CrowdWorld:
         self.human_model = make_human_model(config)
         # a human within this of its goal has arrived: scenarios with `redraw_goals` give it a new one
         self.arrival_distance = max(config.goal_tolerance, self.human_model.arrival_distance)
+        # per human, as the model moving it has them (a mixed crowd: per episode, `set_models`)
+        self.arrival_distances = np.full(shape, self.arrival_distance)
+        self.interaction_ranges = np.full(shape, float(self.human_model.interaction_range))
+        # mixed crowds (humans.mix): which model moves each human, drawn per episode from its noise key
+        self.mix = self.human_model if isinstance(self.human_model, MixedHumans) else None
+        self.model_index = np.zeros(shape, dtype=np.int64)
+        # scripted humans (replay): they enter and leave, the model keeps their script per environment
+        self.script = self.human_model if isinstance(self.human_model, ScriptedHumans) else None
+        if bool(getattr(self.scenario, "replays_humans", False)) != (self.script is not None):
+            raise ConfigError(
+                f"scenario {config.scenario!r} with {self.human_model.name} humans: recorded trajectories are "
+                "replayed with scenario: replay and humans.model: replay together (humans.replay.files), never one "
+                "without the other")
+        if self.script is not None:
+            self.script.attach(n_envs, self.n_slots)
+        self.entered = np.zeros(shape, dtype=bool)  # slots a human entered in the last step (scripted humans)
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -455,6 +475,8 @@ class CrowdWorld:
             self.load(env, initial)
             self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
             self.set_attention(env, _draw_attention(self.noise_keys[env], self.n_slots, self.config.inattentive_share))
+            if self.mix is not None:
+                self.set_models(env, self.mix.draw(self.noise_keys[env], self.n_slots))
             if self.config.initial_heading == "random":
                 # Drawn last, so starts, goals and noise are the same episode for either setting.
                 self.heading[env] = rng.uniform(-math.pi, math.pi)
@@ -492,6 +514,32 @@ class CrowdWorld:
         self.intrusion_steps[env] = 0
         self.intrusion_events[env] = 0
         self.disturbance[env] = 0.0
+        if self.mix is not None:
+            self.set_models(env, np.zeros(self.n_slots, dtype=np.int64))
+        self.entered[env] = False
+        if self.script is not None:
+            if not initial.script:
+                raise ValueError(f"{self.human_model.name} humans start from their scenario's script: load an "
+                                 f"initial state of scenario {self.config.scenario!r}")
+            self.script.start_episode(env, initial.script[0], self.positions, self.velocities, self.goals,
+                                      self.active)
+
+    def set_models(self, env: int, index: np.ndarray) -> None:
+        """Which model of the mix moves each human of environment `env` (indices into ``human_model.models``).
+
+        `reset` draws this (after `load`); call it after `load` to stage a mixed scene.
+        """
+        mix = self.mix
+        self.model_index[env] = index
+        self.interaction_ranges[env] = mix.ranges[self.model_index[env]]
+        arrival = mix.arrival_distances[self.model_index[env]]
+        self.arrival_distances[env] = np.maximum(self.config.goal_tolerance, arrival)
+
+    def human_model_names(self, env: int) -> list[str]:
+        """The name of the model moving each slot of environment `env` (slot 0, the robot, included)."""
+        if self.mix is not None:
+            return [self.mix.names[k] for k in self.model_index[env]]
+        return [self.human_model.name] * self.n_slots
 
     def set_attention(self, env: int, attentive: np.ndarray) -> None:
         """Make the humans of environment `env` attentive (True) or not (False) to the robot for this episode.
@@ -516,6 +564,7 @@ class CrowdWorld:
             positions=self.positions, velocities=self.velocities, goals=self.goals, radii=self.radii,
             max_speeds=self.max_speeds, active=self.active, radius_pad=self.radius_pad,
             avoidance_share=self.avoidance_share, sees=self.sees_without_robot if without_robot else self.sees,
+            model_index=self.model_index,
         )
 
     def human_velocities(self, without_robot: bool = False, only: np.ndarray | None = None) -> np.ndarray:
@@ -528,13 +577,15 @@ class CrowdWorld:
         """Advance every environment by one step with the robot actions `actions` in [-1, 1]^2, shape (E, 2)."""
         cfg, pert, rew = self.config, self.config.perturbation, self.config.reward
         actions = np.asarray(actions, dtype=np.float64).reshape(self.n_envs, 2)
+        if self.script is not None:  # humans whose script ends leave before the move (their slots turn inactive)
+            self.was_intruded[self.script.before_move(self.active, self.velocities)] = False
         speed, turn = _robot_command(
             actions, self.preferred_speeds[:, 0], cfg.max_heading_change, self.noise_keys, self.steps,
             pert.heading_noise, pert.speed_noise,
         )
         if self.has_field_of_view:
             _notice_robot(self.positions, self.velocities, self.goals, self.active, self.facing, self.noticed,
-                          self.cos_half_fov, self.human_model.interaction_range)
+                          self.cos_half_fov, self.interaction_ranges)
             self._update_robot_visibility()
         humans = self.human_velocities()
         near = self._humans_near_robot(rew.social_radius)
@@ -549,6 +600,9 @@ class CrowdWorld:
             self.intrusion_events, self.disturbance,
         )
         self.steps += 1
+        if self.script is not None:  # on the script's positions; humans whose script starts enter
+            self.entered = self.script.after_move(self.positions, self.velocities, self.goals, self.active)
+            self.was_intruded[self.entered] = False
         if self.scenario.redraw_goals:
             self._redraw_reached_goals()
         return StepResult(
@@ -566,7 +620,7 @@ class CrowdWorld:
 
     def _redraw_reached_goals(self) -> None:
         reached = self.active & self.humans_slots
-        reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.arrival_distance
+        reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.arrival_distances
         for env, agent in zip(*np.nonzero(reached)):
             self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config, self.positions[env, agent])
 

@@ -3,10 +3,13 @@ One matplotlib figure (Agg canvas, no pyplot) is built once; per frame only the 
 
 With ``SceneRenderer(annotate=True)`` a frame explains itself: a title, a legend (robot, attentive and
 inattentive humans, personal space, goal, trail), a metre scale, the outcome in large type, and uncertainty bars
-with tick values and the threshold marked."""
+with tick values and the threshold marked. When a frame's humans are not all ORCA humans (``SceneFrame.models``:
+social force, replayed or mixed crowds), each human carries its model's colour and mark (`MODEL_STYLES`), listed
+in a legend (the side legend, or one in the scene's lower right corner)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +36,26 @@ TRAIL_BANDS = 6  # number of alpha steps along a trail
 HEADING_LENGTH = 1.4  # heading line length, in robot radii
 PANEL_FRACTION = 0.3  # share of the image width given to the side panel when present
 PANEL_MIN_ROWS = 8  # bars keep the same height for up to this many keys
+#: How each human model is drawn when a scene holds other than ORCA humans: the colour of the mark at the human's
+#: centre and of its disc's outline, the mark, the legend's words. Other registered models take
+#: `EXTRA_MODEL_STYLES` in turn (by name, so a model keeps its style from frame to frame).
+MODEL_STYLES = {
+    "orca": ("#1d3a57", "o", "ORCA"),
+    "social_force": ("#8e3fb0", "^", "social force"),
+    "replay": ("#2d7a46", "s", "replayed (recorded)"),
+}
+EXTRA_MODEL_STYLES = (("#b5651d", "D"), ("#c9184a", "v"), ("#00838f", "P"), ("#6d6875", "X"))
+MODEL_MARK_SIZE = 8.0  # points
+
+
+def model_style(name: str) -> tuple[str, str, str]:
+    """(colour, marker, legend words) of human model `name`."""
+    if name in MODEL_STYLES:
+        return MODEL_STYLES[name]
+    colour, marker = EXTRA_MODEL_STYLES[sum(name.encode()) % len(EXTRA_MODEL_STYLES)]
+    return colour, marker, name.replace("_", " ")
+
+
 #: Where the outcome banner goes (axes fraction): under the two-line title, or over the one-line caption, whichever
 #: band is farther from the robot, so that the end of the episode stays visible.
 OUTCOME_TOP, OUTCOME_BOTTOM = 0.89, 0.07
@@ -61,6 +84,9 @@ class SceneFrame:
     panel_ticks: dict[str, tuple[tuple[float, str], ...]] | None = None
     panel_marks: dict[str, float] | None = None  # per bar label: threshold position in [0, 1], a red line
     panel_title: str = ""  # heading of the bars
+    #: (N,) the name of the model moving each agent (slot 0, the robot, is ignored); None: not shown. Drawn (mark,
+    #: outline colour, legend) when the active humans are not all ORCA humans.
+    models: Sequence[str] | None = None
 
 
 class SceneRenderer:
@@ -131,8 +157,8 @@ class SceneRenderer:
         self.ax.text(x1 - length / 2, y + 0.2, f"{length:g} m (grid 1 m)", ha="center", va="bottom", fontsize=8,
                      zorder=5)
 
-    def _add_legend(self) -> None:
-        """Proxy artists for every kind of thing in the scene, in the side column."""
+    def _add_legend(self, models: Sequence[str] = ()) -> None:
+        """Proxy artists for every kind of thing in the scene, in the side column (and each human model shown)."""
         handles = [
             Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=ROBOT_COLOR,
                    markeredgecolor="black", label="robot (line: heading)"),
@@ -151,8 +177,27 @@ class SceneRenderer:
                    markeredgecolor="#14524b", label="robot's goal (x: humans' goals)"),
             Line2D([], [], color=ROBOT_COLOR, linewidth=1.5, label="trail (recent path)"),
         ]
+        handles += self._model_handles(models)
         self.legend_ax.legend(handles=handles, loc="lower left", fontsize=7, frameon=False, borderaxespad=0.0,
                               handletextpad=0.4, labelspacing=0.5)
+
+    @staticmethod
+    def _model_handles(models: Sequence[str]) -> list[Line2D]:
+        """A legend entry per human model shown: its mark, in its colour."""
+        handles = []
+        for name in models:
+            colour, marker, words = model_style(name)
+            handles.append(Line2D([], [], marker=marker, linestyle="", markersize=MODEL_MARK_SIZE + 1,
+                                  markerfacecolor=colour, markeredgecolor="white", label=f"human: {words}"))
+        return handles
+
+    def _add_model_legend(self, models: Sequence[str]) -> None:
+        """Without the side legend: the human models shown, in the scene's lower right corner (static layer)."""
+        if self.ax.get_legend() is not None:
+            self.ax.get_legend().remove()
+        if models and not self.annotate:
+            self.ax.legend(handles=self._model_handles(models), loc="lower right", fontsize=7, title="human model",
+                           title_fontsize=7, framealpha=0.8, handletextpad=0.3, borderaxespad=0.3)
 
     def _add_dynamic_scene(self) -> None:
         """Create every moving artist once (animated, so it is left out of the static layer)."""
@@ -183,6 +228,7 @@ class SceneRenderer:
                                   fontweight="bold", bbox=box)
         self.outcome_text = ax.text(0.5, OUTCOME_BOTTOM, "", transform=ax.transAxes, ha="center", va="bottom",
                                     fontsize=30, fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
+        self._model_marks: dict[str, Line2D] = {}  # per human model, its marks (made when first shown)
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
             self.trail_lines, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
@@ -195,8 +241,11 @@ class SceneRenderer:
     def _set_layout(self, layout: tuple) -> None:
         """Place the axes for this side-panel layout and rasterise the static layer.
 
-        `layout` = (bar labels or None, ticks, threshold marks, panel title), all hashable."""
-        panel_keys, ticks, marks, panel_title = layout
+        `layout` = (bar labels or None, ticks, threshold marks, panel title, human models shown), all hashable."""
+        panel_keys, ticks, marks, panel_title, models = layout
+        if self.annotate:
+            self._add_legend(models)
+        self._add_model_legend(models)
         ticks, marks = dict(ticks or ()), dict(marks or ())
         side = bool(panel_keys) or self.annotate
         self.ax.set_position((0.0, 0.0, 1.0 - PANEL_FRACTION, 1.0) if side else (0.0, 0.0, 1.0, 1.0))
@@ -247,6 +296,7 @@ class SceneRenderer:
         attentive = (np.ones(n, dtype=bool) if f.attentive is None
                      else np.broadcast_to(np.asarray(f.attentive, dtype=bool), (n,)))
         seeing, ignoring = humans[attentive[humans]], humans[~attentive[humans]]
+        models = self._models_shown(f)
 
         # Humans: body discs (grey, dashed: ignores the robot), personal-space rings (radius r + r_prox), velocity
         # ticks (1 s ahead), goals.
@@ -259,6 +309,7 @@ class SceneRenderer:
             discs.set_angles(np.zeros(len(agents)))
         self.human_vel.set_segments(np.stack([pos[humans], pos[humans] + vel[humans]], axis=1))
         self.human_goals.set_data(goals[humans, 0], goals[humans, 1])
+        self._update_models(f, models, pos, seeing, ignoring)
 
         # Robot: disc, heading line, goal star.
         robot_on = n > 0 and bool(active[0])
@@ -286,6 +337,42 @@ class SceneRenderer:
         self.outcome_text.set_visible(bool(f.outcome))
         if f.outcome:
             self._place_outcome(pos[0] if robot_on else None)
+
+    @staticmethod
+    def _models_shown(f: SceneFrame) -> tuple[str, ...]:
+        """The models of the frame's active humans, in order of first slot, if any is not ORCA; else ()."""
+        if f.models is None:
+            return ()
+        active = np.broadcast_to(np.asarray(f.active, dtype=bool), (len(f.models),))
+        names = tuple(dict.fromkeys(str(f.models[i]) for i in range(1, len(f.models)) if active[i]))
+        return names if any(name != "orca" for name in names) else ()
+
+    def _update_models(self, f: SceneFrame, models: tuple[str, ...], pos: np.ndarray, seeing: np.ndarray,
+                       ignoring: np.ndarray) -> None:
+        """Each human's model: a mark at its centre and its disc's outline in the model's colour (none shown: the
+        plain outlines)."""
+        for name in models:
+            if name not in self._model_marks:
+                colour, marker, _ = model_style(name)
+                (mark,) = self.ax.plot([], [], marker=marker, linestyle="", markersize=MODEL_MARK_SIZE,
+                                       markerfacecolor=colour, markeredgecolor="white", markeredgewidth=0.8,
+                                       animated=True)
+                self._model_marks[name] = mark
+                self._dynamic.insert(self._dynamic.index(self.human_vel), mark)  # over the discs
+        names = np.asarray(f.models, dtype=object) if models else None
+        for name, mark in self._model_marks.items():
+            agents = np.concatenate([seeing, ignoring]) if models else np.zeros(0, dtype=int)
+            agents = agents[names[agents] == name] if models else agents
+            mark.set_data(pos[agents, 0], pos[agents, 1])
+            mark.set_visible(len(agents) > 0)
+        for discs, agents, plain in ((self.humans, seeing, HUMAN_EDGE_COLOR),
+                                     (self.inattentive, ignoring, INATTENTIVE_EDGE_COLOR)):
+            if models:
+                discs.set_edgecolors([model_style(str(names[a]))[0] for a in agents] or plain)
+                discs.set_linewidths(1.6)
+            else:
+                discs.set_edgecolors(plain)
+                discs.set_linewidths(0.8 if discs is self.humans else 1.2)
 
     def _place_outcome(self, robot: np.ndarray | None) -> None:
         """Put the outcome banner in the band of the scene farther from the robot (below the title, or above the
@@ -331,7 +418,7 @@ class SceneRenderer:
         """Draw `frame` and return a new uint8 array of shape `(height, width, 3)`."""
         panel_keys = tuple(frame.side_panel) if frame.side_panel else None
         layout = (panel_keys, tuple((frame.panel_ticks or {}).items()), tuple((frame.panel_marks or {}).items()),
-                  frame.panel_title)
+                  frame.panel_title, self._models_shown(frame))
         if self._background is None or layout != self._layout:
             self._set_layout(layout)
         self._update_scene(frame)

@@ -37,6 +37,9 @@ class Crowd:
     radius_pad: np.ndarray  # (E, N, N) m: extra radius agent i adds to agent j
     avoidance_share: np.ndarray  # (E, N, N): share of the avoidance agent i takes w.r.t. agent j
     sees: np.ndarray  # (E, N, N) bool: agent i responds to agent j
+    #: (E, N) int: in a mixed crowd (``humans.mix``), the index of the model that moves each human (the order of
+    #: `socnav.sim.humans.MixedHumans.models`); zeros otherwise. Single models ignore it.
+    model_index: np.ndarray | None = None
 
 
 @runtime_checkable
@@ -56,10 +59,33 @@ class HumanModel(Protocol):
         ...
 
 
+@runtime_checkable
+class ScriptedHumans(Protocol):
+    """A `HumanModel` whose humans follow a script rather than the crowd (``replay``): humans may enter and leave
+    mid-episode, so the world hands it its arrays at three moments. Each hook writes only the arrays it is given.
+
+    * `attach` once, when the world is built; `start_episode` at every (re)start of environment `env`, with the
+      ``script`` entry the scenario's `socnav.sim.scenarios.InitialState` carries for it;
+    * `before_move` each step, before the move: humans that leave set ``active`` False (returns those slots);
+    * `after_move` each step, after the move: positions set to the script's, humans that enter take an inactive
+      slot (``active`` True, position, velocity, goal; returns those slots).
+    """
+
+    def attach(self, n_envs: int, n_slots: int) -> None: ...
+
+    def start_episode(self, env: int, plan: Any, positions: np.ndarray, velocities: np.ndarray, goals: np.ndarray,
+                      active: np.ndarray) -> None: ...
+
+    def before_move(self, active: np.ndarray, velocities: np.ndarray) -> np.ndarray: ...
+
+    def after_move(self, positions: np.ndarray, velocities: np.ndarray, goals: np.ndarray,
+                   active: np.ndarray) -> np.ndarray: ...
+
+
 class HumanSettings(Protocol):
     """The values of a world's config that the built-in models read; `socnav.config.EnvConfig` provides them. sim/
     sees these plain values and never imports the config layer (which imports sim/ for the model names)."""
 
     time_step: float
     orca: Any  # time_horizon, neighbor_dist, max_neighbors
-    humans: Any  # model, social_force (its parameters)
+    humans: Any  # model, social_force (its parameters), mix (shares), replay (trajectory files)
