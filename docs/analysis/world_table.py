@@ -1,7 +1,10 @@
 """Is the world hard enough to rank controllers? straight / ORCA / the shipped policy in every scenario, in the
-default world (attention) and in the old world of always-attentive humans (configs/env/reactive_humans.yaml).
+default world (attention) and in the old world of always-attentive humans (configs/env/reactive_humans.yaml); with
+``--humans``, in the default world with other human models (docs/humans.md), with Clopper-Pearson intervals.
 
     python docs/analysis/world_table.py --episodes 200 --seed 0
+    python docs/analysis/world_table.py --episodes 200 --seed 0 --humans social_force mix \
+        --scenarios circle_crossing circle_interaction
 
 Prints one Markdown table: Goal / Collision / Time-out %, PV (intrusion events per 200 episodes) and the mean
 disturbance per episode (sum over steps and nearby humans of |v_i - v_i^without robot| / v_pref_i), the quantity
@@ -19,6 +22,17 @@ from socnav.envs.rollout import rollout_episodes, summarize
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "random", "position_swap")
 WORLDS = {"default": {}, "old (reactive_humans.yaml)": "configs/env/reactive_humans.yaml"}
+#: --humans choices: the human models of the default world (mix: half ORCA, half social force, per human)
+HUMAN_WORLDS = {"orca": {}, "social_force": {"humans": {"model": "social_force"}},
+                "mix": {"humans": {"mix": {"orca": 0.5, "social_force": 0.5}}}}
+
+
+def clopper_pearson(count: int, total: int, confidence: float = 0.95) -> str:
+    """``p [low, high]`` in %, the exact binomial interval."""
+    from scipy.stats import binomtest
+
+    interval = binomtest(count, total).proportion_ci(confidence_level=confidence, method="exact")
+    return f"{100 * count / total:.1f} [{100 * interval.low:.1f}, {100 * interval.high:.1f}]"
 
 
 def main() -> None:
@@ -26,13 +40,19 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--model", default="pretrained", help="learned policy to include ('' to skip)")
+    parser.add_argument("--humans", nargs="+", choices=list(HUMAN_WORLDS),
+                        help="human models of the default world to compare (with intervals) instead of the worlds")
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS))
     args = parser.parse_args()
     root = Path(__file__).resolve().parents[2]
     learned = socnav.load_policy(args.model) if args.model else None
+    if args.humans:
+        human_model_table(args, learned)
+        return
     print("| world | scenario | controller | Goal % | Collision % | Time-out % | PV | disturbance |")
     print("|:--|:--|:--|--:|--:|--:|--:|--:|")
     for world, base in WORLDS.items():
-        for scenario in SCENARIOS:
+        for scenario in args.scenarios:
             source = str(root / base) if isinstance(base, str) else base
             config = socnav.load_config(source, scenario=scenario)
             controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
@@ -43,6 +63,25 @@ def main() -> None:
                 s = summarize(records)
                 print(f"| {world} | {scenario} | {name} | {s['goal_pct']:.1f} | {s['collision_pct']:.1f} | "
                       f"{s['timeout_pct']:.1f} | {s['pv']:.0f} | {records['disturbance'].mean():.2f} |", flush=True)
+
+
+def human_model_table(args: argparse.Namespace, learned: object) -> None:
+    """Goal and collision % with 95 % Clopper-Pearson intervals per human model, scenario and controller."""
+    print("| humans | scenario | controller | Goal % [95 % CI] | Collision % [95 % CI] | Time-out % | PV | disturbance |")
+    print("|:--|:--|:--|--:|--:|--:|--:|--:|")
+    for humans in args.humans:
+        for scenario in args.scenarios:
+            config = socnav.load_config({**HUMAN_WORLDS[humans], "scenario": scenario})
+            controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
+            if learned is not None:
+                controllers["shipped policy"] = learned
+            for name, controller in controllers.items():
+                records = rollout_episodes(controller, config, args.episodes, seed=args.seed, n_envs=50)
+                s = summarize(records)
+                goals, collisions = (int((records["outcome"] == outcome).sum()) for outcome in ("goal", "collision"))
+                print(f"| {humans} | {scenario} | {name} | {clopper_pearson(goals, len(records))} | "
+                      f"{clopper_pearson(collisions, len(records))} | {s['timeout_pct']:.1f} | {s['pv']:.0f} | "
+                      f"{records['disturbance'].mean():.2f} |", flush=True)
 
 
 if __name__ == "__main__":
