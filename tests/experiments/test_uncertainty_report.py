@@ -623,3 +623,12 @@ def test_vetoes_are_counted_per_setting_with_the_unperturbed_episodes_together()
     assert vetoes["proximity_steps"].tolist() == [15, 4, 8]  # obs 0 and N 2 are both unperturbed: 10 + 5
     assert vetoes["vetoed_pct"].tolist() == pytest.approx([100 * 5 / 15, 25.0, 0.0])
     assert "| MC-dropout, calibrated | 33.3 | 25.0 | 0.0 |" in vetoes_markdown(vetoes)
+
+
+def test_a_column_of_ours_does_not_change_the_pooled_comparison():
+    from socnav.experiments.uncertainty_report import _paper_column_kinds
+
+    groups = _paper_column_kinds(["behaviour_shift", "observation_noise", "heading_noise", "speed_noise"])
+    assert groups["all"] == ["observation_noise", "heading_noise", "speed_noise"]  # the paper's types only
+    assert groups["behaviour_shift"] == ["behaviour_shift"]  # reported on its own
+    assert groups["action_noise"] == ["heading_noise", "speed_noise"]

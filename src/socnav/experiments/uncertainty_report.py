@@ -1381,10 +1381,14 @@ def mcnemar_exact(row_only: int, reference_only: int, confidence: float) -> tupl
 
 
 def _paper_column_kinds(perturbations: Iterable[str]) -> dict[str, list[str]]:
-    """The paper's Table III columns present (column -> our perturbation types), after ``all`` (every type)."""
+    """The paper's Table III columns present (column -> our perturbation types), after ``all`` (every type of the
+    paper's columns: the pre-specified pooled comparison, which a column of ours must not change), then each
+    perturbation beyond the paper as its own column (e.g. the behaviour shift)."""
     present = _ordered(perturbations, PERTURBATION_ORDER)
-    groups = {"all": present}
+    paper = [kind for kind in present if kind not in PERTURBATIONS or not PERTURBATIONS[kind].ours]
+    groups = {"all": paper} if paper else {}
     groups.update({c: kinds for c, kinds in _table3_groups(present).items() if c in PAPER_TABLE3_COLUMNS})
+    groups.update({kind: [kind] for kind in present if kind in PERTURBATIONS and PERTURBATIONS[kind].ours})
     return groups
 
 
@@ -1543,7 +1547,8 @@ def ablation_markdown(prevented: pd.DataFrame, paired: pd.DataFrame, decisions: 
 def paired_markdown(paired: pd.DataFrame) -> str:
     """Per paper column and the unperturbed episodes: the paired difference with proximity-only of every compared
     row (points [CI])."""
-    columns = [c for c in [*PAPER_TABLE3_COLUMNS, UNPERTURBED_COLUMN] if c in set(paired["column"])]
+    ours = [name for name, p in PERTURBATIONS.items() if p.ours]
+    columns = [c for c in [*PAPER_TABLE3_COLUMNS, *ours, UNPERTURBED_COLUMN] if c in set(paired["column"])]
     labels = {**TABLE3_COLUMN_LABELS, UNPERTURBED_COLUMN: "Unperturbed (ours)"}
     header = ["Rule", "Estimator"] + [labels[c] for c in columns]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * len(columns)) + "|"]
