@@ -55,14 +55,19 @@ def main() -> None:
         for scenario in args.scenarios:
             source = str(root / base) if isinstance(base, str) else base
             config = socnav.load_config(source, scenario=scenario)
-            controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
-            if learned is not None:
-                controllers["shipped policy"] = learned
-            for name, controller in controllers.items():
-                records = rollout_episodes(controller, config, args.episodes, seed=args.seed, n_envs=50)
-                s = summarize(records)
+            for name, records, s in played(config, learned, args):
                 print(f"| {world} | {scenario} | {name} | {s['goal_pct']:.1f} | {s['collision_pct']:.1f} | "
                       f"{s['timeout_pct']:.1f} | {s['pv']:.0f} | {records['disturbance'].mean():.2f} |", flush=True)
+
+
+def played(config: object, learned: object, args: argparse.Namespace):
+    """(controller name, episode records, summary) of straight, ORCA and the learned policy in `config`."""
+    controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
+    if learned is not None:
+        controllers["shipped policy"] = learned
+    for name, controller in controllers.items():
+        records = rollout_episodes(controller, config, args.episodes, seed=args.seed, n_envs=50)
+        yield name, records, summarize(records)
 
 
 def human_model_table(args: argparse.Namespace, learned: object) -> None:
@@ -72,12 +77,7 @@ def human_model_table(args: argparse.Namespace, learned: object) -> None:
     for humans in args.humans:
         for scenario in args.scenarios:
             config = socnav.load_config({**HUMAN_WORLDS[humans], "scenario": scenario})
-            controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
-            if learned is not None:
-                controllers["shipped policy"] = learned
-            for name, controller in controllers.items():
-                records = rollout_episodes(controller, config, args.episodes, seed=args.seed, n_envs=50)
-                s = summarize(records)
+            for name, records, s in played(config, learned, args):
                 goals, collisions = (int((records["outcome"] == outcome).sum()) for outcome in ("goal", "collision"))
                 print(f"| {humans} | {scenario} | {name} | {clopper_pearson(goals, len(records))} | "
                       f"{clopper_pearson(collisions, len(records))} | {s['timeout_pct']:.1f} | {s['pv']:.0f} | "
