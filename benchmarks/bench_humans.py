@@ -8,7 +8,10 @@ What is measured (everything on ONE core: thread pools capped to 1, the process 
 * env-steps/s of `socnav.make_vec_env({"scenario": "circle_crossing", "n_humans": 5, "humans": ...}, n_envs=256)`
   (1 robot + 5 humans, the default reward with its disturbance term) stepped with random actions: ORCA humans (the
   REFERENCE, the default) and social force humans, samples interleaved; ratio social force / ORCA, target >= 0.5x.
-  A 50/50 mixed crowd (``humans.mix``) is measured alongside, without a target.
+  A 50/50 mixed crowd (``humans.mix``) is measured alongside, without a target, and so are replayed humans
+  (``scenario: replay``, ``humans.model: replay``) on a recording written by the benchmark (ETH/UCY format, 40
+  pedestrians crossing a 14 m square at 2.5 Hz) or on your own files (``--replay-files``); their crowd size is the
+  recording's, so that row is a cost, not a like-for-like ratio.
 * social force cost per agent-step: our batched numba kernel (`SocialForceHumans.velocities`: one call computes
   every agent of every environment) vs PySocialForce 1.1.2's own `Simulator.step()` (one simulator per environment,
   stepped one after another, as a caller of PySocialForce would), on the same crowds; ratio PySocialForce / ours
@@ -58,10 +61,11 @@ from socnav.sim.humans import Crowd, SocialForceHumans  # noqa: E402
 
 ENV_CONFIG: dict[str, Any] = {"scenario": "circle_crossing", "n_humans": 5}
 HUMANS = {
-    "ORCA (reference)": {"model": "orca"},
-    "social force": {"model": "social_force"},
-    "mix 50/50": {"mix": {"orca": 0.5, "social_force": 0.5}},
+    "ORCA (reference)": {"humans": {"model": "orca"}},
+    "social force": {"humans": {"model": "social_force"}},
+    "mix 50/50": {"humans": {"mix": {"orca": 0.5, "social_force": 0.5}}},
 }
+REPLAY_LABEL = "replay (recording)"
 N_ENVS = 256
 TARGET_ENV_RATIO = 0.5
 KERNEL_CONFIGS = ((1, 6), (256, 6), (256, 12))
@@ -96,9 +100,30 @@ def import_pysocialforce():
 # ---------------------------------------------------------------------------------------------------- env-steps/s
 
 
-def warmed_vec_env(humans: dict, n_envs: int, warmup_steps: int):
-    """A VecEnv with these humans, reset and stepped `warmup_steps` times (numba cache load; episode phases spread)."""
-    vec = socnav.make_vec_env({**ENV_CONFIG, "humans": humans}, n_envs=n_envs)
+def write_recording(path: Path, n_pedestrians: int = 40, side: float = 14.0, speed: float = 1.2,
+                    sample_rate: float = 2.5, seed: int = 0) -> Path:
+    """An ETH/UCY-format file (``frame_id ped_id x y``, frame ids 10 apart): pedestrians entering one after another
+    on a side of a square and walking straight across it."""
+    rng = np.random.default_rng(seed)
+    lines = []
+    for pedestrian in range(1, n_pedestrians + 1):
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        start = 0.5 * side * np.array([np.cos(angle), np.sin(angle)])
+        end = -start + rng.normal(0.0, 1.0, 2)
+        n_samples = int(np.linalg.norm(end - start) / speed * sample_rate) + 1
+        first = int(rng.integers(0, 400))
+        for k in range(n_samples):
+            x, y = start + (end - start) * k / max(1, n_samples - 1)
+            lines.append((first + k, pedestrian, x, y))
+    lines.sort()
+    path.write_text("".join(f"{10 * frame}\t{pedestrian}.0\t{x:.3f}\t{y:.3f}\n" for frame, pedestrian, x, y in lines))
+    return path
+
+
+def warmed_vec_env(overrides: dict, n_envs: int, warmup_steps: int):
+    """A VecEnv of ENV_CONFIG with these overrides, reset and stepped `warmup_steps` times (numba cache load; episode
+    phases spread)."""
+    vec = socnav.make_vec_env({**ENV_CONFIG, **overrides}, n_envs=n_envs)
     vec.seed(0)
     vec.reset()
     for action in np.random.default_rng(1).uniform(-1.0, 1.0, (warmup_steps, n_envs, 2)).astype(np.float32):
@@ -242,6 +267,8 @@ def _spread(result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="shorter samples and fewer repeats")
+    parser.add_argument("--replay-files", nargs="+", metavar="FILE",
+                        help="ETH/UCY-format recordings for the replay row (default: one the benchmark writes)")
     args = parser.parse_args(argv)
     seconds, repeats, kernel_repeats, warmup = (0.5, 3, 5, 100) if args.quick else (1.0, 7, 20, 300)
     console = Console(width=max(Console().width, 120))
@@ -257,10 +284,15 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
 
     # ---- table 1: the VecEnv with each human model ---------------------------------------------------------------
-    vecs = {label: warmed_vec_env(humans, N_ENVS, warmup) for label, humans in HUMANS.items()}
+    scratch = tempfile.TemporaryDirectory()
+    replay_files = args.replay_files or [str(write_recording(Path(scratch.name) / "crossing.txt"))]
+    worlds = {**HUMANS, REPLAY_LABEL: {"scenario": "replay", "n_humans": None,
+                                       "humans": {"model": "replay", "replay": {"files": replay_files}}}}
+    vecs = {label: warmed_vec_env(overrides, N_ENVS, warmup) for label, overrides in worlds.items()}
     measured = measure_interleaved({label: vec.step for label, vec in vecs.items()}, N_ENVS, seconds, repeats)
     for vec in vecs.values():
         vec.close()
+    scratch.cleanup()
     reference = measured["ORCA (reference)"]["median"]
     table = Table(title=f"Env-steps/s, one core, {N_ENVS} envs of {ENV_CONFIG['scenario']} (1 robot + "
                         f"{ENV_CONFIG['n_humans']} humans): median [min-max] of {repeats} interleaved samples")
@@ -272,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
                   _verdict(ratio >= TARGET_ENV_RATIO) if label == "social force" else "[dim]no target[/]")
         table.add_row(label, _spread(result), f"{ratio:.2f}x", target)
     console.print(table)
+    console.print(f"replay: {', '.join(Path(name).name for name in replay_files)} (the recording's crowd, robot "
+                  "path through the scene centre); not a like-for-like ratio")
 
     # ---- table 2: the social force step against PySocialForce's ----------------------------------------------
     table = Table(title="Social force cost per agent-step (us), one core; ratio = PySocialForce step / ours (wrapper)")

@@ -5,6 +5,10 @@ default world (attention) and in the old world of always-attentive humans (confi
     python docs/analysis/world_table.py --episodes 200 --seed 0
     python docs/analysis/world_table.py --episodes 200 --seed 0 --humans social_force mix \
         --scenarios circle_crossing circle_interaction
+    python docs/analysis/world_table.py --episodes 200 --seed 0 --replay-files eth/*.txt   # recorded pedestrians
+
+With ``--replay-files``, one table per recording (``scenario: replay``): the three controllers and a robot that stands
+still at its start, the share of episodes in which pedestrians who ignore the robot walk into it anyway.
 
 Prints one Markdown table: Goal / Collision / Time-out %, PV (intrusion events per 200 episodes) and the mean
 disturbance per episode (sum over steps and nearby humans of |v_i - v_i^without robot| / v_pref_i), the quantity
@@ -15,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+import numpy as np
 
 import socnav
 from socnav.controllers import make_controller
@@ -43,9 +49,14 @@ def main() -> None:
     parser.add_argument("--humans", nargs="+", choices=list(HUMAN_WORLDS),
                         help="human models of the default world to compare (with intervals) instead of the worlds")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS))
+    parser.add_argument("--replay-files", nargs="+", metavar="FILE",
+                        help="ETH/UCY-format recordings: the replay scenario, one recording at a time")
     args = parser.parse_args()
     root = Path(__file__).resolve().parents[2]
     learned = socnav.load_policy(args.model) if args.model else None
+    if args.replay_files:
+        replay_table(args, learned)
+        return
     if args.humans:
         human_model_table(args, learned)
         return
@@ -60,11 +71,21 @@ def main() -> None:
                       f"{s['timeout_pct']:.1f} | {s['pv']:.0f} | {records['disturbance'].mean():.2f} |", flush=True)
 
 
-def played(config: object, learned: object, args: argparse.Namespace):
-    """(controller name, episode records, summary) of straight, ORCA and the learned policy in `config`."""
+class StandStill:
+    """A robot that never moves (speed action -1): how often do people walk into a robot that does nothing?"""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        return np.tile(np.array([[-1.0, 0.0]], dtype=np.float32), (len(observation["robot"]), 1)), None
+
+
+def played(config: object, learned: object, args: argparse.Namespace, stand_still: bool = False):
+    """(controller name, episode records, summary) of straight, ORCA, the learned policy and, if asked, a robot that
+    stands still, in `config`."""
     controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
     if learned is not None:
         controllers["shipped policy"] = learned
+    if stand_still:
+        controllers["standing still"] = StandStill()
     for name, controller in controllers.items():
         records = rollout_episodes(controller, config, args.episodes, seed=args.seed, n_envs=50)
         yield name, records, summarize(records)
@@ -82,6 +103,18 @@ def human_model_table(args: argparse.Namespace, learned: object) -> None:
                 print(f"| {humans} | {scenario} | {name} | {clopper_pearson(goals, len(records))} | "
                       f"{clopper_pearson(collisions, len(records))} | {s['timeout_pct']:.1f} | {s['pv']:.0f} | "
                       f"{records['disturbance'].mean():.2f} |", flush=True)
+
+
+def replay_table(args: argparse.Namespace, learned: object) -> None:
+    """Goal and collision % with 95 % Clopper-Pearson intervals per recording and controller, replayed humans."""
+    print("| recording | controller | Goal % [95 % CI] | Collision % [95 % CI] | Time-out % | PV |")
+    print("|:--|:--|--:|--:|--:|--:|")
+    for path in args.replay_files:
+        config = socnav.load_config({"scenario": "replay", "humans": {"model": "replay", "replay": {"files": [path]}}})
+        for name, records, s in played(config, learned, args, stand_still=True):
+            goals, collisions = (int((records["outcome"] == outcome).sum()) for outcome in ("goal", "collision"))
+            print(f"| {Path(path).name} | {name} | {clopper_pearson(goals, len(records))} | "
+                  f"{clopper_pearson(collisions, len(records))} | {s['timeout_pct']:.1f} | {s['pv']:.0f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -703,7 +703,10 @@ def describe_world(config: EnvConfig, with_perturbation: bool = True) -> str:
     perturbed: heading_noise=0.4'."""
     low, high = config.humans_range()
     parts = [config.scenario, f"{low} human{'s' if low != 1 else ''}" if low == high else f"{low}-{high} humans"]
-    if config.humans.model != "orca":
+    if config.humans.mix is not None:
+        shares = ", ".join(f"{name} {100 * share:g} %" for name, share in config.humans.mix.items())
+        parts.append(f"mixed humans ({shares})")
+    elif config.humans.model != "orca":
         parts.append(f"{config.humans.model} humans")
     if not config.robot_visible:
         parts.append("humans ignore the robot")

@@ -438,3 +438,10 @@ def test_a_mix_builds_each_of_its_models_once():
     assert [type(m) for m in model.models] == [OrcaHumans, SocialForceHumans] and model.shares == [0.3, 0.7]
     zero = make_human_model(load_config({"humans": {"mix": {"orca": 0.0, "social_force": 1.0}}}))
     assert zero.names == ["social_force"]
+
+
+def test_a_mixed_world_is_described_with_its_shares():
+    from socnav.config import describe_world
+
+    config = load_config({"scenario": "circle_crossing", "humans": {"mix": {"orca": 0.25, "social_force": 0.75}}})
+    assert "mixed humans (orca 25 %, social_force 75 %)" in describe_world(config)
