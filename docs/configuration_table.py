@@ -44,6 +44,8 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
                                  "`rollout_episodes(deterministic=False)`"),
     ("evaluate", "scenario"): ("env file `scenario`; experiment `evaluation.scenarios`", "`EnvConfig.scenario`"),
     ("evaluate", "episodes"): ("experiment `evaluation.episodes`", "`rollout_episodes(n_episodes=)`"),
+    ("evaluate", "metrics"): ("— (experiment records hold every metric)",
+                              "`socnav.sim.metrics.select_metrics(spec)`, `summarize(records, metrics=)`"),
     ("evaluate", "seed"): ("experiment `evaluation.seed` (one seed: episode k uses seed + k)",
                            "`rollout_episodes(seed=)`"),
     ("evaluate", "n_humans"): ("env file `n_humans`", "`EnvConfig.n_humans`"),

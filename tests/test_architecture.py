@@ -34,8 +34,9 @@ LAYERS: list[tuple[str, ...]] = [
     ("socnav.uncertainty",),
     ("socnav.safety",),
     ("socnav.export", "socnav.runtime"),
+    ("socnav.ros2",),  # the navigator and the simulator as ROS 2 nodes (the `ros2` extra)
     ("socnav.experiments",),
-    ("socnav.cli", "socnav.experiments.cli", "socnav._console", "socnav.__main__"),  # parse arguments and print
+    ("socnav.cli", "socnav.experiments.cli", "socnav.ros2.cli", "socnav._console", "socnav.__main__"),  # arguments
 ]
 
 #: Imports that break the layering; each would say why. None today: keep it that way.

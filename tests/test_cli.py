@@ -37,7 +37,10 @@ def test_demo_writes_tables_and_animation(tmp_path):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "orca_circle_crossing.gif").stat().st_size > 10_000
     assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
-    assert len(list(tmp_path.glob("*.csv"))) == 11  # 8 baseline runs, the policy, and it perturbed without/with safety
+    from socnav.sim.scenarios import scenario_names
+
+    baselines = 2 * len(scenario_names(self_contained=True))  # straight and ORCA in every scenario (maps included)
+    assert len(list(tmp_path.glob("*.csv"))) == baselines + 3  # the policy, and it perturbed without/with safety
     assert "odv-ppo-drop (pretrained)" in result.output
     # The safety layer's part: the same perturbed episodes without and with it.
     plain, safe = (pd.read_csv(p) for p in sorted(tmp_path.glob("perturbed_*.csv")))

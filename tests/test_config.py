@@ -26,7 +26,7 @@ def test_yaml_round_trip(tmp_path):
     [
         ({"scenaro": "random"}, "scenaro", "did you mean scenario?"),
         ({"zzzz": 1}, "zzzz", "allowed fields: scenario, n_humans"),
-        ({"scenario": "corridor"}, "scenario", "allowed: circle_crossing"),
+        ({"scenario": "hallway"}, "scenario", "allowed: circle_crossing"),
         ({"time_step": "fast"}, "time_step", "valid number"),
         ({"time_step": -1}, "time_step", "greater than or equal to 0.01"),
         ({"reward": {"gaol": 1}}, "reward.gaol", "did you mean goal?"),

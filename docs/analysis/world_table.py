@@ -6,6 +6,8 @@ default world (attention) and in the old world of always-attentive humans (confi
     python docs/analysis/world_table.py --episodes 200 --seed 0 --humans social_force mix \
         --scenarios circle_crossing circle_interaction
     python docs/analysis/world_table.py --episodes 200 --seed 0 --replay-files eth/*.txt   # recorded pedestrians
+    python docs/analysis/world_table.py --episodes 200 --seed 0 --humans orca \
+        --scenarios corridor doorway intersection room                                    # walls (docs/maps.md)
 
 With ``--replay-files``, one table per recording (``scenario: replay``): the three controllers and a robot that stands
 still at its start, the share of episodes in which pedestrians who ignore the robot walk into it anyway.
@@ -27,6 +29,7 @@ from socnav.controllers import make_controller
 from socnav.envs.rollout import rollout_episodes, summarize
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "random", "position_swap")
+MAP_SCENARIOS = ("corridor", "doorway", "intersection", "room")  # with walls (docs/maps.md), with --humans
 WORLDS = {"default": {}, "old (reactive_humans.yaml)": "configs/env/reactive_humans.yaml"}
 #: --humans choices: the human models of the default world (mix: half ORCA, half social force, per human)
 HUMAN_WORLDS = {"orca": {}, "social_force": {"humans": {"model": "social_force"}},
@@ -48,7 +51,7 @@ def main() -> None:
     parser.add_argument("--model", default="pretrained", help="learned policy to include ('' to skip)")
     parser.add_argument("--humans", nargs="+", choices=list(HUMAN_WORLDS),
                         help="human models of the default world to compare (with intervals) instead of the worlds")
-    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS))
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS) + list(MAP_SCENARIOS))
     parser.add_argument("--replay-files", nargs="+", metavar="FILE",
                         help="ETH/UCY-format recordings: the replay scenario, one recording at a time")
     args = parser.parse_args()
@@ -93,16 +96,21 @@ def played(config: object, learned: object, args: argparse.Namespace, stand_stil
 
 def human_model_table(args: argparse.Namespace, learned: object) -> None:
     """Goal and collision % with 95 % Clopper-Pearson intervals per human model, scenario and controller."""
-    print("| humans | scenario | controller | Goal % [95 % CI] | Collision % [95 % CI] | Time-out % | PV | disturbance |")
-    print("|:--|:--|:--|--:|--:|--:|--:|--:|")
+    walls = any(scenario in MAP_SCENARIOS for scenario in args.scenarios)
+    wall_header = " Wall collision % [95 % CI] |" if walls else ""
+    print(f"| humans | scenario | controller | Goal % [95 % CI] | Collision % [95 % CI] |{wall_header} Time-out % | PV "
+          "| disturbance |")
+    print("|:--|:--|:--|--:|--:|" + ("--:|" if walls else "") + "--:|--:|--:|")
     for humans in args.humans:
         for scenario in args.scenarios:
             config = socnav.load_config({**HUMAN_WORLDS[humans], "scenario": scenario})
             for name, records, s in played(config, learned, args):
-                goals, collisions = (int((records["outcome"] == outcome).sum()) for outcome in ("goal", "collision"))
+                goals, collisions, wall_hits = (int((records["outcome"] == outcome).sum())
+                                                for outcome in ("goal", "collision", "collision_wall"))
+                wall_cell = f" {clopper_pearson(wall_hits, len(records))} |" if walls else ""
                 print(f"| {humans} | {scenario} | {name} | {clopper_pearson(goals, len(records))} | "
-                      f"{clopper_pearson(collisions, len(records))} | {s['timeout_pct']:.1f} | {s['pv']:.0f} | "
-                      f"{records['disturbance'].mean():.2f} |", flush=True)
+                      f"{clopper_pearson(collisions, len(records))} |{wall_cell} {s['timeout_pct']:.1f} | "
+                      f"{s['pv']:.0f} | {records['disturbance'].mean():.2f} |", flush=True)
 
 
 def replay_table(args: argparse.Namespace, learned: object) -> None:

@@ -491,12 +491,23 @@ def evaluate(
     n_envs: int = typer.Option(32, min=1, help="environments stepped together"),
     out: Optional[Path] = typer.Option(None, help="per-episode records (.csv or .parquet; default a name unique "
                                                   "to the policy, world, seed and episodes under runs/evaluate)"),
+    metrics: str = typer.Option("default", "--metrics", help="default (Goal %, Col. %, TO %, PV, nav time, "
+                                                             "Return) | all | NAME,... (docs/metrics.md); other than "
+                                                             "default, the records also hold every metric's "
+                                                             "per-episode column"),
 ) -> None:
-    """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return; records to a file."""
+    """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return (--metrics: more); records to
+    a file."""
     from socnav.controllers import CONTROLLERS, make_controller
-    from socnav.envs.rollout import summarize
+    from socnav.envs.rollout import EPISODE_COLUMNS, summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
+    from socnav.sim.metrics import DEFAULT_METRICS, metric_table_rows, select_metrics
 
+    try:
+        chosen = select_metrics(metrics)
+    except ValueError as exc:
+        fail(f"--metrics: {exc}")
+    extended = tuple(chosen) != DEFAULT_METRICS
     controller = policy if policy is not None else controller
     if model is None and controller not in CONTROLLERS:
         fail(f"--controller {controller!r} is not known; allowed: {', '.join(CONTROLLERS)}")
@@ -534,7 +545,8 @@ def evaluate(
         actor = make_controller(controller, env_config)
     out = out or _default_records_path(name, env_config, seed, episodes,
                                        {"stochastic": stochastic, "k": k, "estimator": estimator,
-                                        "members": members, "sensing": sensing})
+                                        "members": members, "sensing": sensing,
+                                        **({"metrics": chosen} if extended else {})})
     _check_out_file("--out", out)
     if stochastic:
         import torch
@@ -545,16 +557,29 @@ def evaluate(
     _check_n_envs(min(n_envs, episodes), env_config)  # a rollout never steps more environments than episodes
     records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
                         deterministic=not stochastic, observer=observer)
-    metrics = summarize(records, pv_per=PV_PER)
+    if not extended:  # today's records: the world's episode columns only
+        records = records[list(EPISODE_COLUMNS)].copy()
+    summary = summarize(records, pv_per=PV_PER, metrics=chosen if extended else DEFAULT_METRICS)
     if observer is not None:
         records["fallback_steps"] = observer.per_episode(records["episode"])
-        metrics["fallback_pct"] = fallback_percent(records)
+        summary["fallback_pct"] = fallback_percent(records)
     try:
         write_table_atomic(records, out)
     except OSError as exc:  # e.g. the disk filled up while the episodes ran
         fail(f"--out {out}: cannot write the records ({exc.strerror or exc})")
-    console.print(metrics_table([(name, metrics)],
-                                f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"))
+    title = f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"
+    if extended:
+        table = Table(title=f"{escape(name)}: {title}", caption=f"{summary['episodes']} episodes; definitions, "
+                      "units and sources: docs/metrics.md")
+        for column in ("metric", "", "value", "unit", "better"):
+            table.add_column(column, justify="right" if column == "value" else "left", no_wrap=True)
+        for row in metric_table_rows(summary, chosen):
+            table.add_row(*row)
+        if "fallback_pct" in summary:
+            table.add_row("fallback_pct", "fallback % steps", f"{summary['fallback_pct']:.1f}", "%", "–")
+        console.print(table)
+    else:
+        console.print(metrics_table([(name, summary)], title))
     console.print(f"per-episode records: {escape(str(out))}", highlight=False)
 
 
@@ -904,6 +929,10 @@ def export(
 
 
 add_experiment_commands(app)  # socnav run / report / tune, listed after the commands above
+
+from socnav.ros2.cli import app as ros2_app  # noqa: E402 -- imports no rclpy: each ros2 command loads it
+
+app.add_typer(ros2_app, name="ros2")  # socnav ros2 navigator / sim
 
 
 def main() -> None:

@@ -298,6 +298,39 @@ class OrcaConfig(_Strict):
     time_horizon: float = Field(5.0, gt=0, le=60, description="seconds")
     neighbor_dist: float = Field(10.0, gt=0, le=1000, description="metres")
     max_neighbors: StrictInt = Field(10, ge=0, le=1000)
+    time_horizon_obst: float = Field(
+        2.0, gt=0, le=60, description="seconds: how far ahead velocities are safe with respect to walls (RVO2's "
+        "timeHorizonObst); read only where there are obstacles",
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        # Left out at its default: dumps of worlds without walls stay what they were before walls existed.
+        if data.get("time_horizon_obst") == 2.0:
+            del data["time_horizon_obst"]
+        return data
+
+
+class LayoutConfig(_Strict):
+    """The geometry of the map scenarios (corridor, doorway, intersection; room reads circle_radius)."""
+
+    corridor_width: float = Field(3.0, ge=1.0, le=20, description="m: corridor and intersection arms (2.5-3.5: a "
+                                  "building corridor)")
+    corridor_length: float = Field(16.0, ge=6.0, le=200, description="m: the corridor; the intersection's span "
+                                   "(each arm half of it)")
+    door_width: float = Field(1.1, ge=0.7, le=5, description="m: the doorway between the two rooms (1.0-1.2: a "
+                              "building door)")
+    room_size: float = Field(8.0, ge=4.0, le=100, description="m: side of each of the doorway scenario's two rooms")
+
+
+class ScanConfig(_Strict):
+    """The robot's range scan (a 2-D lidar's sensor_msgs/LaserScan): beams from -fov/2 to +fov/2 about its heading,
+    each the distance to the first wall, `range` where none is within reach."""
+
+    beams: StrictInt = Field(72, ge=1, le=1024, description="number of beams")
+    range: float = Field(8.0, gt=0, le=100, description="m: maximum range (what a beam reads when it hits nothing)")
+    fov: float = Field(360.0, gt=0, le=360, description="degrees: field of view, centred on the robot's heading")
 
 
 class RewardConfig(_Strict):
@@ -363,7 +396,8 @@ class PerturbationConfig(_Strict):
 class SocialForceConfig(_Strict):
     """Extended social force humans (``humans.model: social_force``; Helbing & Molnár 1995, Moussaïd et al. 2009),
     as PySocialForce 1.1.2 implements them; the defaults are its published ones (its default.toml section in
-    brackets). Its step width is the env's ``time_step``; obstacles and groups are left out."""
+    brackets). Its step width is the env's ``time_step``; walls push humans by its obstacle force, groups are left
+    out."""
 
     relaxation_time: float = Field(
         0.5, gt=0, le=10, description="s: tau of the desired force (desired_force.relaxation_time)"
@@ -403,6 +437,30 @@ class SocialForceConfig(_Strict):
     fov_factor: float = Field(
         0.5, ge=0, le=1, description="weight of forces from outside the view cone (ped_repulsive_force.fov_factor)"
     )
+    obstacle_force_factor: float = Field(
+        10.0, ge=0, le=100, description="weight of the walls' force (obstacle_force.factor)"
+    )
+    obstacle_sigma: float = Field(
+        0.2, gt=0, le=10, description="m: decay length of each wall point's push exp(-(|p - q| - r) / sigma), r the "
+        "human's radius (obstacle_force.sigma)"
+    )
+    obstacle_threshold: float = Field(
+        3.0, ge=0, le=100, description="m: wall points q push while |p - q| - r < threshold + r "
+        "(obstacle_force.threshold)"
+    )
+    obstacle_resolution: float = Field(
+        10.0, gt=0, le=1000, description="points per metre along each wall segment, int(length x resolution) "
+        "evenly spaced from end to end; shorter segments than 1 / resolution get none (scene.resolution)"
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        # Left out at their defaults: dumps of worlds without walls stay what they were before walls existed.
+        for key in ("obstacle_force_factor", "obstacle_sigma", "obstacle_threshold", "obstacle_resolution"):
+            if data.get(key) == type(self).model_fields[key].default:
+                del data[key]
+        return data
 
 
 #: At most this many trajectory files in ``humans.replay.files``.
@@ -574,6 +632,46 @@ class EnvConfig(_Strict):
     humans: HumansConfig = Field(default_factory=HumansConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
     perturbation: PerturbationConfig = Field(default_factory=PerturbationConfig)
+    obstacles: list[list[tuple[float, float]]] = Field(
+        default_factory=list, description="static obstacles: polygons of [x, y] vertices in metres, RVO2's "
+        "convention (counter-clockwise: solid; clockwise: encloses free space; two vertices: a wall segment); at "
+        "most 512 vertices each, 4096 in all (with the map's and the scenario's)",
+    )
+    map: str | None = Field(
+        None, description="a map file: a YAML of polygons (obstacles:, boundaries:) or a ROS map_server occupancy "
+        "grid (YAML with image, resolution, origin, negate, occupied_thresh, free_thresh); stored absolute",
+    )
+    occlusion: bool | None = Field(
+        None, description="walls hide people: the robot does not observe a human it cannot see (null: on in the map "
+        "scenarios, off elsewhere); humans never notice the robot through a wall",
+    )
+    scan: ScanConfig | None = Field(
+        None, description="the robot's range scan of the walls, an observation key 'scan' (null: no scan)",
+    )
+    layout: LayoutConfig = Field(default_factory=LayoutConfig)
+
+    @field_validator("obstacles")
+    @classmethod
+    def _valid_polygons(cls, value: list[list[tuple[float, float]]]) -> list[list[tuple[float, float]]]:
+        from socnav.sim.maps import validate_polygons
+
+        validate_polygons(value, name="obstacles")  # a MapError is a ValueError naming the polygon
+        return value
+
+    @field_validator("map")
+    @classmethod
+    def _readable_map(cls, value: str | None) -> str | None:
+        import os
+
+        from socnav.sim.maps import load_map
+
+        if value is None:
+            return value
+        path = Path(os.path.expanduser(value))
+        if not path.is_file():
+            raise ValueError(f"map file not found: {short_repr(value)}")
+        load_map(path)  # a MapError names the file and what is wrong with it
+        return str(path.resolve())
 
     @field_validator("preferred_speed")
     @classmethod
@@ -646,6 +744,12 @@ class EnvConfig(_Strict):
         # what they were before other human models existed.
         if data.get("humans") == HumansConfig().model_dump(mode=getattr(handler, "mode", "python")):
             del data["humans"]
+        # Likewise the walls' settings, so that worlds without walls keep their dumps.
+        for key, default in (("obstacles", []), ("map", None), ("occlusion", None), ("scan", None)):
+            if key in data and data[key] == default:
+                del data[key]
+        if data.get("layout") == LayoutConfig().model_dump(mode=getattr(handler, "mode", "python")):
+            del data["layout"]
         return data
 
     def humans_range(self) -> tuple[int, int]:

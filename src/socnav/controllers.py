@@ -9,7 +9,10 @@ from typing import Any
 import numpy as np
 
 from socnav.config import EnvConfig
+from socnav.sim.obstacles import ObstacleBatch, ObstacleMap
 from socnav.sim.orca import orca_velocities
+from socnav.sim.scenarios import get_scenario
+from socnav.sim.walls import POSE_KEY, world_polygons
 
 Observation = dict[str, np.ndarray]
 
@@ -47,6 +50,13 @@ def _goal_velocity(observation: Observation, time_step: float) -> np.ndarray:
     return np.stack([speed, np.zeros_like(speed)], axis=1)
 
 
+def _rotate(vectors: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Vectors (E, K, 2) rotated counter-clockwise by `angle` (E,)."""
+    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    x, y = vectors[..., 0], vectors[..., 1]
+    return np.stack([cos * x - sin * y, sin * x + cos * y], axis=-1)
+
+
 class StraightController:
     """Head for the goal at the preferred speed, ignoring humans."""
 
@@ -77,6 +87,14 @@ class OrcaController:
         self.radius_scale = radius_scale
         self.share = config.robot_orca_share if share is None else share
         self.safety_margin = config.robot_orca_safety_margin if safety_margin is None else safety_margin
+        polygons = world_polygons(config, get_scenario(config.scenario))
+        self.walls = ObstacleMap.from_polygons(polygons) if polygons else None
+        self._wall_batches: dict[int, ObstacleBatch] = {}
+
+    def _obstacles(self, n_envs: int) -> ObstacleBatch:
+        if n_envs not in self._wall_batches:
+            self._wall_batches[n_envs] = ObstacleBatch.from_maps([self.walls] * n_envs)
+        return self._wall_batches[n_envs]
 
     def desired_velocity(self, observation: Observation) -> np.ndarray:
         """ORCA's new holonomic velocity for the robot of each environment, in the goal frame, (E, 2)."""
@@ -108,11 +126,28 @@ class OrcaController:
         share = np.full((n_envs, n_agents, n_agents), 0.5)
         share[:, 0, :] = self.share
         orca = self.config.orca
+        walls = {}
+        if self.walls is not None:
+            # Walls are known in the map frame: plan there, from the robot's pose (x, y, yaw), and turn the answer
+            # back into the goal frame, whose x axis points at the angle yaw - (heading relative to the goal).
+            if POSE_KEY not in observation:
+                raise ValueError(f"the ORCA controller of a world with walls needs the observation's {POSE_KEY!r}")
+            pose = observation[POSE_KEY].astype(np.float64)
+            goal_angle = pose[:, 2] - heading
+            positions, velocities, preferred = (_rotate(array, goal_angle) for array in (positions, velocities,
+                                                                                          preferred))
+            positions += pose[:, None, :2]
+            # The margin moves from the humans' radii to the robot's own, so that it keeps off walls as well.
+            radii[:, 0] += self.safety_margin
+            pad[:, 0, :] = 0.0
+            walls = {"obstacles": self._obstacles(n_envs), "time_horizon_obst": orca.time_horizon_obst}
         velocities = orca_velocities(
             positions, velocities, radii, preferred, max_speeds, active, compute,
             pad, share, np.ones((n_envs, n_agents, n_agents), bool),
-            orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, self.config.time_step,
+            orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, self.config.time_step, **walls,
         )
+        if self.walls is not None:
+            return _rotate(velocities[:, :1], -goal_angle)[:, 0]
         return velocities[:, 0]
 
     def predict(self, observation: Observation, state: Any = None, episode_start: Any = None, deterministic: bool = True):

@@ -3,8 +3,9 @@ The dropout keep-masks are graph inputs, so K MC-dropout samples (and the determ
 
 The graph (:class:`NavigatorGraph`) is the policy's forward pass written with explicit masks: the LSTM layers over
 the human rows, the final hidden state read at the last real row (the LSTM is causal, so rows after it — padding —
-never change it; no packing needed), the actor MLP with its dropout layers replaced by ``x * keep``, the mean and
-the ODV log-sigma heads (clamped), and optionally the critic. See `socnav.runtime.format` for the file layout.
+never change it; no packing needed), the range-scan encoder of a policy that reads one, the actor MLP with its
+dropout layers replaced by ``x * keep``, the mean and the ODV log-sigma heads (clamped), and optionally the critic.
+See `socnav.runtime.format` for the file layout; a world with walls also stores them (the cautious fallback's map).
 In the file, the LSTM layers are ONNX ``LSTM`` nodes fed each row's number of humans as ``sequence_lens`` (their
 ``Y_h`` is that last-real-row state), and LSTM outputs nothing reads are dropped: a small graph, since onnxruntime
 pays a per-node cost on every call of the deployed navigator (see :func:`_encoder`).
@@ -42,7 +43,10 @@ from socnav.runtime.format import (
     METADATA_KEY,
     OBSERVATION_INPUTS,
     OUTPUTS,
+    SCAN_INPUT,
+    SCAN_KEEP_PREFIX,
     VALUE_OUTPUT,
+    WALL_FREE_VERSION,
     NavigatorMetadata,
     metadata_message,
     seal,
@@ -112,8 +116,9 @@ def _probability(value: Any, name: str) -> float:
 class NavigatorGraph(nn.Module):
     """The policy network of an ``ODVActorCriticPolicy`` with its dropout layers driven by keep-mask inputs.
 
-    ``forward(robot, humans, humans_mask, *keep) -> (h, mean, log_std[, value])``; ``keep`` holds one mask per
-    entry of ``policy.dropout_layers()`` (LSTM inputs (N, L, width), then ``h`` and the actor layers (N, width)).
+    ``forward(robot, humans, humans_mask[, scan], *keep) -> (h, mean, log_std[, value])``; ``scan`` (N, beams) only
+    for a policy with a scan encoder; ``keep`` holds one mask per entry of ``policy.dropout_layers()`` (LSTM
+    inputs (N, L, width), then ``h``, the scan encoder's and the actor layers' (N, width)).
     With all-ones masks it is the deterministic policy; with ``[u >= p] / (1 - p)`` masks it is the policy in
     ``mc_dropout(p)`` mode with those uniforms. The weights are the policy's own modules (shared, not copied).
     """
@@ -122,6 +127,7 @@ class NavigatorGraph(nn.Module):
         super().__init__()
         extractor = policy.features_extractor
         self.lstm_layers = extractor.lstm_layers
+        self.scan_encoder = getattr(extractor, "scan_encoder", None)
         self.actor = policy.mlp_extractor.policy_net
         self.action_net = policy.action_net
         self.odv = bool(policy.odv)
@@ -138,14 +144,16 @@ class NavigatorGraph(nn.Module):
         self.encoder = _encoder(list(self.lstm_layers))
 
     def forward(self, robot: th.Tensor, humans: th.Tensor, humans_mask: th.Tensor,
-                *keep: th.Tensor) -> tuple[th.Tensor, ...]:
+                *rest: th.Tensor) -> tuple[th.Tensor, ...]:
+        scan, keep = (rest[0], rest[1:]) if self.scan_encoder is not None else (None, rest)
         n_lstm = len(self.lstm_layers)
         h = self.encoder.apply(humans, humans_mask, *keep[:n_lstm])
-        features = th.cat([h * keep[n_lstm], robot], dim=1)
-        latent = features
-        actor_masks = iter(keep[n_lstm + 1:])
-        for module in self.actor:
-            latent = latent * next(actor_masks) if isinstance(module, nn.Dropout) else module(latent)
+        parts = [h * keep[n_lstm], robot]
+        masks = iter(keep[n_lstm + 1:])  # the scan encoder's (if any), then the actor's
+        if self.scan_encoder is not None:
+            parts.append(_masked(self.scan_encoder.layers, scan / self.scan_encoder.max_range, masks))
+        features = th.cat(parts, dim=1)
+        latent = _masked(self.actor, features, masks)
         mean = self.action_net(latent)
         if self.odv:
             log_std = th.clamp(self.log_std_net(latent), *self.log_std_bounds)
@@ -154,6 +162,13 @@ class NavigatorGraph(nn.Module):
         if not self.with_value:
             return h, mean, log_std
         return h, mean, log_std, self.value_net(self.critic(features))
+
+
+def _masked(layers: nn.Sequential, x: th.Tensor, masks: Iterator[th.Tensor]) -> th.Tensor:
+    """``layers`` applied to ``x`` with each dropout module replaced by ``x * keep``, the masks taken in order."""
+    for module in layers:
+        x = x * next(masks) if isinstance(module, nn.Dropout) else module(x)
+    return x
 
 
 def _encode(layers: list[nn.LSTM], humans: th.Tensor, humans_mask: th.Tensor,
@@ -228,14 +243,20 @@ def _encoder(layers: list[nn.LSTM]) -> type[th.autograd.Function]:
 def _dropout_inputs(policy: Any) -> list[dict[str, Any]]:
     """Name, shape kind and width of each keep-mask input, in the order of ``policy.dropout_layers()``."""
     extractor = policy.features_extractor
+    encoder = getattr(extractor, "scan_encoder", None)
+    scan_layers = [] if encoder is None else encoder.dropout_layers()
     layers = policy.dropout_layers()
-    expected = [*extractor.input_dropouts, extractor.h_dropout, *policy.mlp_extractor.dropout_layers()]
+    expected = [*extractor.input_dropouts, extractor.h_dropout, *scan_layers, *policy.mlp_extractor.dropout_layers()]
     if [id(layer) for layer in layers] != [id(layer) for layer in expected]:
-        raise ExportError("unsupported network: dropout layers other than the LSTM inputs, h and the actor's")
+        raise ExportError("unsupported network: dropout layers other than the LSTM inputs, h, the scan encoder's "
+                          "and the actor's")
     inputs = []
     for index, lstm in enumerate(extractor.lstm_layers):
         inputs.append({"name": f"keep_lstm_input_{index}", "per_human": True, "width": int(lstm.input_size)})
     inputs.append({"name": "keep_h", "per_human": False, "width": int(extractor.lstm_hidden_size)})
+    if encoder is not None:
+        for index, width in enumerate(_scan_dropout_widths(encoder)):
+            inputs.append({"name": f"{SCAN_KEEP_PREFIX}{index}", "per_human": False, "width": width})
     linear_widths = [m.out_features for m in policy.mlp_extractor.policy_net if isinstance(m, nn.Linear)]
     for index, width in enumerate(linear_widths):
         inputs.append({"name": f"keep_actor_{index}", "per_human": False, "width": int(width)})
@@ -244,19 +265,37 @@ def _dropout_inputs(policy: Any) -> list[dict[str, Any]]:
     return inputs
 
 
+def _scan_dropout_widths(encoder: Any) -> list[int]:
+    """The input width of each dropout module of a `ScanEncoder`, found by walking its layers on one row of ranges
+    (the dropout modules themselves are skipped: no random draw)."""
+    widths = []
+    with th.no_grad():
+        x = th.zeros(1, encoder.beams, device=next(encoder.parameters()).device)
+        for module in encoder.layers:
+            if isinstance(module, nn.Dropout):
+                widths.append(int(x.shape[1]))
+            else:
+                x = module(x)
+    return widths
+
+
 def _example_inputs(graph: NavigatorGraph, rows: int, steps: int, seed: int = 0) -> tuple[th.Tensor, ...]:
-    """Random observation-shaped inputs (some rows with fewer or no humans) and random keep masks."""
+    """Random observation-shaped inputs (some rows with fewer or no humans, ranges in [0, max range]) and random
+    keep masks."""
     generator = th.Generator().manual_seed(seed)
     robot = th.randn(rows, 5, generator=generator)
     humans = th.randn(rows, steps, 7, generator=generator)
     counts = th.arange(rows) % (steps + 1)
     mask = (th.arange(steps)[None, :] < counts[:, None]).float()
     humans = humans * mask[:, :, None]
+    scan = []
+    if graph.scan_encoder is not None:
+        scan.append(th.rand(rows, graph.scan_encoder.beams, generator=generator) * graph.scan_encoder.max_range)
     keep = []
     for spec in graph.dropout_inputs:
         shape = (rows, steps, spec["width"]) if spec["per_human"] else (rows, spec["width"])
         keep.append((th.rand(shape, generator=generator) >= 0.5).float() * 2.0)
-    return (robot, humans, mask, *keep)
+    return (robot, humans, mask, *scan, *keep)
 
 
 def _load(model: Any) -> Any:
@@ -279,9 +318,14 @@ def _metadata(policy: Any, graph: NavigatorGraph, env_config: Any, thresholds: A
 
     h_min, h_max = (t.detach().cpu().double().numpy().tolist() for t in policy.feature_range)
     header = getattr(policy, "socnav_metadata", {})
+    walls = _world_walls(env_config)
+    # A world with walls or a scan needs format 3; any other navigator stays a version-2 file, byte for byte.
+    version = WALL_FREE_VERSION if walls is None and env_config.scan is None else FORMAT_VERSION
+    # The walls travel as polygons: a map file's path (env_config.map) would not exist on the robot.
+    stored_config = env_config.model_copy(update={"map": None}) if env_config.map is not None else env_config
     return {
         "format": FORMAT_NAME,
-        "version": FORMAT_VERSION,
+        "version": version,
         "socnav_version": __version__,
         "observation": {
             "robot": list(ROBOT_FEATURE_NAMES),
@@ -298,7 +342,7 @@ def _metadata(policy: Any, graph: NavigatorGraph, env_config: Any, thresholds: A
             "max_heading_change": float(env_config.max_heading_change),
             "time_step": float(env_config.time_step),
         },
-        "env_config": env_config.model_dump(mode="json"),
+        "env_config": stored_config.model_dump(mode="json"),
         "policy": {
             "algo": header.get("algo"),
             "timesteps": header.get("timesteps"),
@@ -317,7 +361,18 @@ def _metadata(policy: Any, graph: NavigatorGraph, env_config: Any, thresholds: A
             "window": int(window),
             "radius_scale": CAUTIOUS_RADIUS_SCALE,
         },
+        **({} if walls is None else {"walls": walls}),
     }
+
+
+def _world_walls(env_config: Any) -> list[list[list[float]]] | None:
+    """The polygons of the world's walls (its scenario's map, ``obstacles``, the ``map`` file's) as JSON lists, in
+    the map frame and RVO2's orientation (`socnav.sim.walls.world_polygons`); None in a world without walls."""
+    from socnav.sim.scenarios import get_scenario
+    from socnav.sim.walls import world_polygons
+
+    polygons = world_polygons(env_config, get_scenario(env_config.scenario))
+    return [polygon.tolist() for polygon in polygons] if polygons else None
 
 
 def export_onnx(
@@ -373,6 +428,7 @@ def export_onnx(
     if observed != env_config.max_humans:
         raise ExportError(f"the policy observes max_humans={observed} but the env config has "
                           f"max_humans={env_config.max_humans}")
+    _check_scan(policy, env_config)
     source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
     thresholds = load_thresholds(thresholds)
 
@@ -381,7 +437,8 @@ def export_onnx(
         if not bool(th.isfinite(parameter).all()):
             raise ExportError(f"the policy's weights hold NaN or inf values (in {name}): it cannot be exported")
     output_names = [*OUTPUTS, *([VALUE_OUTPUT] if with_value else [])]
-    input_names = [*OBSERVATION_INPUTS, *(spec["name"] for spec in graph.dropout_inputs)]
+    scan_input = [] if graph.scan_encoder is None else [SCAN_INPUT]
+    input_names = [*OBSERVATION_INPUTS, *scan_input, *(spec["name"] for spec in graph.dropout_inputs)]
     # Rows and human rows are dynamic: K samples run as one call and the runtime trims the padding rows.
     dynamic = {name: {0: "rows"} for name in input_names + output_names}
     for name in ("humans", "humans_mask", *(spec["name"] for spec in graph.dropout_inputs if spec["per_human"])):
@@ -412,6 +469,24 @@ def export_onnx(
         for module, mode in modes:
             module.training = mode
     return path
+
+
+def _check_scan(policy: Any, env_config: Any) -> None:
+    """The policy reads a scan exactly when the env config has one, of the same beams, range and field of view."""
+    encoder = getattr(policy.features_extractor, "scan_encoder", None)
+    scan = env_config.scan
+    if encoder is None or scan is None:
+        if encoder is not None:
+            raise ExportError("the policy reads a range scan but the env config has none (scan: null): export it "
+                              "with the env config it was trained in")
+        if scan is not None:
+            raise ExportError(f"the policy reads no range scan but the env config has one (scan: "
+                              f"{scan.model_dump()}): export it with the env config it was trained in")
+        return
+    trained = (encoder.beams, encoder.max_range, encoder.fov)
+    if trained != (scan.beams, scan.range, scan.fov):
+        raise ExportError(f"the policy reads a scan of (beams, range, fov) = {trained} but the env config's scan is "
+                          f"{(scan.beams, scan.range, scan.fov)}")
 
 
 def _drop_unused_outputs(proto: Any) -> None:

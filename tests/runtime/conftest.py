@@ -44,7 +44,7 @@ def navigator_file(tmp_path_factory: pytest.TempPathFactory, pretrained_policy) 
 @pytest.fixture(scope="session")
 def observations() -> dict[str, np.ndarray]:
     """>= 1,000 observations from all four scenarios (ORCA-driven robot), plus rows with no human at all."""
-    assert set(SCENARIO_HUMANS) == set(scenario_names(self_contained=True))
+    assert set(SCENARIO_HUMANS) <= set(scenario_names(self_contained=True))  # the paper's four (maps: elsewhere)
     batches = []
     for index, (scenario, humans) in enumerate(SCENARIO_HUMANS.items()):
         config = load_config({"scenario": scenario, "n_humans": humans})

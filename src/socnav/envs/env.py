@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 from socnav.config import ConfigError, ConfigLike, EnvConfig, load_config
-from socnav.envs.spaces import ACTION_NAMES, action_space, observation_space
+from socnav.envs.spaces import ACTION_NAMES, action_space, world_observation_space
 from socnav.sim.world import OUTCOME_GOAL, OUTCOME_NAMES, CrowdWorld, StepResult
 
 
@@ -117,6 +117,9 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
         caption=caption,
         attentive=None if getattr(world, "attentive", None) is None else world.attentive[env].copy(),
         models=world.human_model_names(env) if hasattr(world, "human_model_names") else None,
+        walls=None if getattr(world, "walls", None) is None else world.walls.polygons,
+        hidden=~world.walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
+        if getattr(world, "occlusion", False) else None,
         **extra,
     )
 
@@ -128,6 +131,12 @@ def scene_extent(config: EnvConfig) -> float:
         return config.square_size / 2 + 1.5
     if config.scenario == "replay":
         return config.humans.replay.robot_distance / 2 + 1.5
+    if config.scenario in ("corridor", "intersection"):
+        return config.layout.corridor_length / 2 + 0.5
+    if config.scenario == "doorway":
+        return config.layout.room_size + 0.5
+    if config.scenario == "room":
+        return config.circle_radius + config.circle_jitter + 2.6
     return config.circle_radius + 1.5
 
 
@@ -190,6 +199,13 @@ class SocialNavEnv(gym.Env):
     No hidden state of the humans (goal, `v_pref`, `r_prox`, cooperation, attention) appears in the observation.
     `perturbation.observation_noise` adds N(0, s^2) to every real element (neither padding nor the mask).
 
+    In a world with walls (a map scenario, `obstacles` or `map`), `pose`, `Box(-inf, inf, (3,))`: the robot's x, y
+    (m) and yaw (rad) in the map frame, as a localised robot knows them (the ORCA robot plans around the walls from
+    it). With `occlusion` (on in the map scenarios), a human behind a wall is absent from `humans`, exactly as if out
+    of range. With `scan: {beams, range, fov}`, `scan`, `Box(0, range, (beams,))`: the distance to the first wall
+    along each beam, from -fov/2 counter-clockwise about the heading (a `sensor_msgs/LaserScan`), `range` where
+    none is hit (humans do not appear in it).
+
     ## Rewards
 
     The socially integrated reward (SPEC section 2), every step; it is defined in one place,
@@ -237,9 +253,11 @@ class SocialNavEnv(gym.Env):
 
     1. Termination, `"collision"` (`OUTCOME_COLLISION`): the robot's body overlaps a human's at any moment of the
        step (the swept gap is negative).
-    2. Termination, `"goal"` (`OUTCOME_GOAL`): the robot's centre is within `goal_tolerance` (0.3 m) of its goal;
+    2. Termination, `"collision_wall"` (`OUTCOME_COLLISION_WALL`): in a world with walls, the robot's body touches
+       a wall at any moment of the step (its disc swept along the step's straight move); the collision penalty.
+    3. Termination, `"goal"` (`OUTCOME_GOAL`): the robot's centre is within `goal_tolerance` (0.3 m) of its goal;
        `info["is_success"]` is True.
-    3. Truncation, `"timeout"` (`OUTCOME_TIMEOUT`): `t > timeout_factor |start - goal| / v_pref + timeout_margin`
+    4. Truncation, `"timeout"` (`OUTCOME_TIMEOUT`): `t > timeout_factor |start - goal| / v_pref + timeout_margin`
        (2 |start - goal| / v_pref + 10 s).
 
     Every step's `info` holds `time`, `nearest_gap`, `nearest_relative_speed` and `intrusions`; the last step's also
@@ -268,7 +286,8 @@ class SocialNavEnv(gym.Env):
     ## Version History
 
     * v0: initial release (`socnav/PositionSwap-v0`, `socnav/CircleCrossing-v0`, `socnav/CircleInteraction-v0`,
-      `socnav/Random-v0`).
+      `socnav/Random-v0`); the map scenarios (`socnav/Corridor-v0`, `socnav/Doorway-v0`, `socnav/Intersection-v0`,
+      `socnav/Room-v0`) with walls, the `collision_wall` outcome and the `pose` and `scan` observation keys.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 4}
@@ -279,7 +298,7 @@ class SocialNavEnv(gym.Env):
             raise ValueError(f"render_mode={render_mode!r} is not supported; allowed: rgb_array, human, None")
         self.render_mode = render_mode
         self.world = CrowdWorld(self.config, n_envs=1)
-        self.observation_space = observation_space(self.config.max_humans)
+        self.observation_space = world_observation_space(self.world)
         self.action_space = action_space()
         self.metadata = {**self.metadata, "render_fps": round(1.0 / self.config.time_step)}
         self._trail: list[np.ndarray] = []

@@ -1,4 +1,4 @@
-"""Gymnasium ids for the four scenarios: `gymnasium.make("socnav/CircleCrossing-v0")`.
+"""Gymnasium ids for the paper's four scenarios and the four with walls: `gymnasium.make("socnav/CircleCrossing-v0")`.
 
 Keyword arguments of `gymnasium.make` become config overrides (e.g. `n_humans=3`, `config="my.yaml"`).
 """
@@ -12,6 +12,10 @@ GYM_IDS = {
     "socnav/CircleCrossing-v0": "circle_crossing",
     "socnav/CircleInteraction-v0": "circle_interaction",
     "socnav/Random-v0": "random",
+    "socnav/Corridor-v0": "corridor",
+    "socnav/Doorway-v0": "doorway",
+    "socnav/Intersection-v0": "intersection",
+    "socnav/Room-v0": "room",
 }
 
 

@@ -1,17 +1,20 @@
 """Batched evaluation rollouts: N episodes of any policy with `predict`, episode k seeded with `seed + k`.
 
-Each episode's seed is fixed by its index, so the records do not depend on how many environments run at once.
+Each episode's seed is fixed by its index, so the records do not depend on how many environments run at once. The
+records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, every metric's per-episode column
+(`socnav.sim.metrics.METRIC_RECORD_COLUMNS`); `summarize` aggregates them with the metrics registry.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
 
 from socnav.config import ConfigLike, EnvConfig, load_config
 from socnav.envs.env import check_actions, check_env_count
+from socnav.sim.metrics import DEFAULT_METRICS, METRIC_RECORD_COLUMNS, PV_PER, summarize_episodes
 from socnav.sim.world import CrowdWorld
 
 EPISODE_COLUMNS = (
@@ -48,8 +51,12 @@ def rollout_episodes(
     deterministic: bool = True,
     progress: Callable[[int], None] | None = None,
     observer: StepObserver | None = None,
+    metrics: bool = True,
 ) -> pd.DataFrame:
     """Run `n_episodes` episodes (episode k from seed `seed + k`) and return one record per episode.
+
+    The records' columns: `EPISODE_COLUMNS`, then with `metrics` (the world accumulating every metric of
+    `socnav.sim.metrics` per step; it changes no other column) `METRIC_RECORD_COLUMNS`.
 
     `progress(n)` is called with the number of episodes finished at each step that finishes some. Policies and
     observers with an `on_episode_start(envs)` method are told when environments start new episodes (stateful
@@ -61,7 +68,7 @@ def rollout_episodes(
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     config: EnvConfig = load_config(config)
     n_envs = check_env_count(max(1, min(n_envs, n_episodes)), config)
-    world = CrowdWorld(config, n_envs)
+    world = CrowdWorld(config, n_envs, metrics=metrics)
     running = np.arange(n_envs)  # episode index each environment is playing; -1 once there is none left
     for env in range(n_envs):
         world.seed(env, seed + env)
@@ -99,23 +106,16 @@ def rollout_episodes(
         if len(finished):
             if progress is not None:
                 progress(len(finished))
-    return pd.DataFrame.from_records(records, columns=list(EPISODE_COLUMNS)).sort_values("episode", ignore_index=True)
+    columns = [*EPISODE_COLUMNS, *(METRIC_RECORD_COLUMNS if metrics else ())]
+    return pd.DataFrame.from_records(records, columns=columns).sort_values("episode", ignore_index=True)
 
 
-def summarize(records: pd.DataFrame, pv_per: int = 200) -> dict[str, float]:
-    """Table metrics: Goal %, Collision %, Time-out %, PV (intrusion events per `pv_per` episodes), return mean/std."""
-    n = len(records)
-    share = lambda outcome: 100.0 * float((records["outcome"] == outcome).mean())  # noqa: E731
-    return {
-        "episodes": n,
-        "goal_pct": share("goal"),
-        "collision_pct": share("collision"),
-        "timeout_pct": share("timeout"),
-        "pv": float(records["intrusion_events"].sum()) * pv_per / n,
-        "return_mean": float(records["return"].mean()),
-        "return_std": float(records["return"].std(ddof=0)),
-        "time_to_goal_mean": float(records["time_to_goal"].mean()),
-    }
+def summarize(records: pd.DataFrame, pv_per: int = PV_PER,
+              metrics: Sequence[str] = DEFAULT_METRICS) -> dict[str, float]:
+    """Table metrics over the episodes of `records`: ``episodes`` and the registry's `metrics` (default: Goal %,
+    Collision %, Time-out %, PV per `pv_per` episodes, return mean / std, mean time to goal; see
+    `socnav.sim.metrics.summarize_episodes`)."""
+    return summarize_episodes(records, metrics, pv_per)
 
 
 def record_episode(

@@ -14,7 +14,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 
 from socnav.config import ConfigLike, EnvConfig, load_config
 from socnav.envs.env import ActionError, check_actions, check_env_count, scene_frame, step_infos
-from socnav.envs.spaces import action_space, observation_space
+from socnav.envs.spaces import action_space, world_observation_space
 from socnav.sim.world import CrowdWorld
 
 
@@ -30,7 +30,7 @@ class SocialNavVecEnv(VecEnv):
         self.world = CrowdWorld(self.config, n_envs)
         self._actions: np.ndarray | None = None
         self._renderers: dict[int, Any] = {}
-        super().__init__(n_envs, observation_space(self.config.max_humans), action_space())
+        super().__init__(n_envs, world_observation_space(self.world), action_space())
         for env in range(n_envs):
             self.world.seed(env, None)
 

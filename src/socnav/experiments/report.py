@@ -45,6 +45,7 @@ from socnav.experiments import uncertainty_report  # noqa: F401
 from socnav.experiments.registry import SECTIONS, ReportContext, register_section
 from socnav.experiments.runner import read_plan, unit_states
 from socnav.io import save_figure, write_table_atomic, write_text_atomic
+from socnav.sim.metrics import ALL_METRICS, summarize_groups
 
 if TYPE_CHECKING:
     from socnav.experiments.statistics import VarianceRatioTest, WelchTest
@@ -63,6 +64,11 @@ ID_COLUMNS = ["train_scenario", "algo", "eval_scenario"]
 TABLE1_COLUMNS = ID_COLUMNS + ["n_seeds", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
                                "return_mean", "return_std", "return_seed_std"]
 PV_PER = 200
+#: Table 1's per-seed metrics (registry names, `socnav.sim.metrics.METRICS`), in their column order.
+TABLE1_SEED_METRICS = ["goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
+#: Every other metric of the registry, appended to table1.csv (Table 1's return spread is over all episodes, so a
+#: per-seed return_std is not one of them).
+EXTRA_METRICS = [name for name in ALL_METRICS if name not in TABLE1_SEED_METRICS and name != "return_std"]
 
 
 def algo_label(name: str) -> str:
@@ -116,36 +122,34 @@ def _header(context: ReportContext) -> str:
 
 def table1_seed_frame(records: pd.DataFrame, pv_per: int = PV_PER) -> pd.DataFrame:
     """Table 1's metrics per training seed: one row per (training scenario, algorithm, evaluation scenario,
-    train_seed) with episodes, goal_pct, collision_pct, timeout_pct, pv and return_mean of that seed's episodes."""
-    columns = ID_COLUMNS + ["train_seed", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
+    train_seed) with episodes, goal_pct, collision_pct, timeout_pct, pv and return_mean of that seed's episodes,
+    then every other registry metric whose record column the records hold (:data:`EXTRA_METRICS`; computed by
+    `socnav.sim.metrics.summarize_groups`)."""
+    columns = ID_COLUMNS + ["train_seed", "episodes", *TABLE1_SEED_METRICS]
     if records.empty:
         return pd.DataFrame(columns=columns)
-    outcome = records["outcome"]
-    per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
-                                 timeout=(outcome == "timeout") * 100.0)
-    per_seed = per_episode.groupby(ID_COLUMNS + ["train_seed"], sort=False).agg(
-        episodes=("return", "size"), goal_pct=("goal", "mean"), collision_pct=("collision", "mean"),
-        timeout_pct=("timeout", "mean"), events=("intrusion_events", "sum"), return_mean=("return", "mean"),
-    ).reset_index()
-    per_seed["pv"] = per_seed["events"] * pv_per / per_seed["episodes"]
-    return per_seed[columns]
+    per_seed = summarize_groups(records, ID_COLUMNS + ["train_seed"], TABLE1_SEED_METRICS + EXTRA_METRICS, pv_per)
+    return per_seed[columns + [name for name in EXTRA_METRICS if name in per_seed]]
 
 
 def table1_frame(records: pd.DataFrame, pv_per: int = PV_PER) -> pd.DataFrame:
     """Table 1 in long form from per-episode records (columns train_scenario, algo, train_seed, eval_scenario,
-    outcome, return, intrusion_events): one row per (training scenario, algorithm, evaluation scenario)."""
+    outcome, return, intrusion_events): one row per (training scenario, algorithm, evaluation scenario), with
+    :data:`TABLE1_COLUMNS` and then, as means over seeds, the :data:`EXTRA_METRICS` the records hold."""
     if records.empty:
         return pd.DataFrame(columns=TABLE1_COLUMNS)
     per_seed = table1_seed_frame(records, pv_per)
+    extra = [name for name in EXTRA_METRICS if name in per_seed]
     table = per_seed.groupby(ID_COLUMNS, sort=False).agg(
         n_seeds=("train_seed", "nunique"), episodes=("episodes", "sum"), goal_pct=("goal_pct", "mean"),
         collision_pct=("collision_pct", "mean"), timeout_pct=("timeout_pct", "mean"), pv=("pv", "mean"),
         return_mean=("return_mean", "mean"),
         return_seed_std=("return_mean", lambda values: float(np.std(values, ddof=0))),
+        **{name: (name, "mean") for name in extra},
     ).reset_index()
     spread = records.groupby(ID_COLUMNS, sort=False)["return"].std(ddof=0).rename("return_std").reset_index()
     table = table.merge(spread, on=ID_COLUMNS, how="left")
-    return table[TABLE1_COLUMNS]
+    return table[TABLE1_COLUMNS + extra]
 
 
 #: metric column -> (header, "max" | "min" is best, decimals)
@@ -227,7 +231,8 @@ def table1_section(context: ReportContext) -> str:
         "",
         markdown,
         "",
-        "Data: [table1.csv](table1.csv) (also `return_seed_std`, the spread of the mean return over seeds).",
+        "Data: [table1.csv](table1.csv) (also `return_seed_std`, the spread of the mean return over seeds, and, as "
+        "means over seeds, every other metric of docs/metrics.md the records hold).",
     ])
 
 

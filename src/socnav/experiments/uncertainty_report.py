@@ -68,12 +68,14 @@ from socnav.experiments.statistics import Interval
 from socnav.io import (
     UntrustedInputError, read_json, read_table, save_figure, write_table_atomic, write_text_atomic,
 )
+from socnav.sim.metrics import ALL_METRICS, METRIC_RECORD_COLUMNS, summarize_episodes, summarize_groups
 
 __all__ = [
     "KIND", "ablation_markdown", "ablation_records", "cost_frame", "cost_markdown", "decisions_frame",
     "main_records", "mcnemar_exact", "paired_frame", "plot_feature_collisions", "plot_tradeoff",
-    "plot_uncertainty_vs_strength", "prevented_frame", "prevented_markdown", "safety_records", "strength_curves",
-    "study_summaries", "summarise_steps", "table2_frame", "table2_markdown", "tradeoff_frame",
+    "plot_uncertainty_vs_strength", "prevented_frame", "prevented_markdown", "safety_metrics_frame",
+    "safety_records", "strength_curves", "study_metrics_frame", "study_summaries", "summarise_steps", "table2_frame",
+    "table2_markdown", "tradeoff_frame",
 ]
 
 KIND = "uncertainty"
@@ -108,7 +110,16 @@ STEP_COLUMNS = ["estimator", "perturbation", "strength", "episode", "step", *RAW
 SAFETY_COLUMNS = ["estimator", "perturbation", "strength", "repeat", "variant", "sensing", "seed", "outcome",
                   "length", "time_to_goal", "duration", "fallback_steps",
                   # with the ablation (socnav.experiments.uncertainty_units.ABLATION_COLUMNS)
-                  "rule", "budget", "proximity_steps", "vetoed_steps", "fallback_digest"]
+                  "rule", "budget", "proximity_steps", "vetoed_steps", "fallback_digest",
+                  # every metric's record columns (socnav.sim.metrics; records written before them lack them)
+                  "return", "path_length", "min_gap", "intrusion_events", "disturbance", *METRIC_RECORD_COLUMNS]
+#: The study's per-episode record columns the metrics read (table2_metrics.csv).
+STUDY_EPISODE_COLUMNS = ["estimator", "perturbation", "strength", "episode", "outcome", "return", "length",
+                         "duration", "time_to_goal", "path_length", "min_gap", "intrusion_steps", "intrusion_events",
+                         "disturbance", *METRIC_RECORD_COLUMNS]
+#: The groups of table2_metrics.csv and table3_metrics.csv.
+STUDY_METRIC_KEYS = ["estimator", "perturbation", "strength"]
+SAFETY_METRIC_KEYS = ["estimator", "variant", "sensing", "perturbed"]
 SENSING_ORDER = ["perceived", "true"]
 SENSING_LABELS = {"perceived": "perceived", "true": "true state"}
 
@@ -430,7 +441,23 @@ def table2_section(context: ReportContext) -> str:
         "",
         "Data: [table2.csv](table2.csv) (also u_σ(0), u_σ(max), episode counts and the paper's value per cell).",
     ]
+    metrics = study_metrics_frame(context)
+    if not metrics.empty:
+        write_table_atomic(metrics, context.out_dir / "table2_metrics.csv")
+        lines.append("Every metric of docs/metrics.md of the study's episodes per estimator, perturbation and "
+                     "strength: [table2_metrics.csv](table2_metrics.csv).")
     return "\n".join(lines)
+
+
+def study_metrics_frame(context: ReportContext) -> pd.DataFrame:
+    """Every registry metric (`socnav.sim.metrics`) of the study's episode records, per (estimator, perturbation,
+    strength); empty without episode records."""
+    frames = [_read_columns(path, STUDY_EPISODE_COLUMNS)
+              for path in _record_files(context, "study/*/*/episodes.parquet")]
+    frames = [frame for frame in frames if not frame.empty]
+    if not frames:
+        return pd.DataFrame()
+    return summarize_groups(pd.concat(frames, ignore_index=True), STUDY_METRIC_KEYS, ALL_METRICS)
 
 
 def _strength_notes(table: pd.DataFrame) -> list[str]:
@@ -1220,19 +1247,33 @@ COST_COLUMNS = ["estimator", "variant", "sensing", "episodes_perturbed", "episod
 
 
 def _rates(frame: pd.DataFrame, layer: bool) -> dict[str, float]:
+    """Fallback activation (% of steps), and the registry's success and collision rates and mean time to goal of
+    the successful episodes (`socnav.sim.metrics`)."""
     n = len(frame)
     goal = frame["outcome"] == "goal"
-    time = frame["time_to_goal"] if "time_to_goal" in frame else frame.get("duration")
+    if "time_to_goal" not in frame and "duration" in frame:  # a successful episode's duration is its time to goal
+        frame = frame.assign(time_to_goal=frame["duration"])
     activation = math.nan
     if layer and n and "fallback_steps" in frame and frame["length"].sum() > 0:
         activation = 100.0 * float(frame["fallback_steps"].sum()) / float(frame["length"].sum())
+    rates = summarize_episodes(frame, ["goal_pct", "collision_pct"]) if n else {}
+    timed = "time_to_goal" in frame and goal.any()
     return {
         "episodes": n,
         "activation": activation,
-        "success": 100.0 * float(goal.mean()) if n else math.nan,
-        "collision": 100.0 * float((frame["outcome"] == "collision").mean()) if n else math.nan,
-        "time": float(time[goal].astype(float).mean()) if time is not None and goal.any() else math.nan,
+        "success": rates.get("goal_pct", math.nan),
+        "collision": rates.get("collision_pct", math.nan),
+        "time": summarize_episodes(frame[goal], ["time_to_goal_mean"])["time_to_goal_mean"] if timed else math.nan,
     }
+
+
+def safety_metrics_frame(safety: pd.DataFrame) -> pd.DataFrame:
+    """Every registry metric the safety records hold (`socnav.sim.metrics`), per (estimator, variant, sensing,
+    perturbed): the plain policy and each safety layer in perturbed and unperturbed (strength σ(0)) episodes."""
+    if safety.empty:
+        return pd.DataFrame(columns=SAFETY_METRIC_KEYS + ["episodes"])
+    safety = _with_sensing(safety).assign(perturbed=_perturbed(safety))
+    return summarize_groups(safety, SAFETY_METRIC_KEYS, ALL_METRICS)
 
 
 def cost_frame(safety: pd.DataFrame) -> pd.DataFrame:
@@ -1290,8 +1331,10 @@ def table3_cost_section(context: ReportContext) -> str:
     safety = safety_records(context)
     if safety.empty:
         return ""
-    table = cost_frame(main_records(safety, _run_budget(context)))  # the ablation's rows: its own section
+    main = main_records(safety, _run_budget(context))  # the ablation's rows: its own section
+    table = cost_frame(main)
     write_table_atomic(table, context.out_dir / "table3_cost.csv")
+    write_table_atomic(safety_metrics_frame(main), context.out_dir / "table3_metrics.csv")
     markdown = cost_markdown(table)
     write_text_atomic(context.out_dir / "table3_cost.md", markdown + "\n")
     lines = [
@@ -1307,7 +1350,8 @@ def table3_cost_section(context: ReportContext) -> str:
     ]
     if (table["episodes_unperturbed"] == 0).all():
         lines += ["No unperturbed (σ(0)) episodes in the safety runs: the false-activation rate is not measured.", ""]
-    lines.append("Data: [table3_cost.csv](table3_cost.csv).")
+    lines.append("Data: [table3_cost.csv](table3_cost.csv); every metric of docs/metrics.md per approach, safety "
+                 "layer and perturbed / unperturbed episodes: [table3_metrics.csv](table3_metrics.csv).")
     return "\n".join(lines)
 
 

@@ -2,7 +2,11 @@
 Encodes the variable-length list of humans with a 2-layer LSTM (closest human last) and appends the robot state.
 
 Shapes used below: ``B`` batch, ``M`` max_humans (padded rows), ``L = max_b n_b`` real rows in the batch,
-``F = 7`` features per human, ``H`` LSTM hidden size, ``R = 5`` robot features.
+``F = 7`` features per human, ``H`` LSTM hidden size, ``R = 5`` robot features, ``S`` scan features.
+
+With a range scan in the observation (``scan``, a world with walls: `socnav.sim.walls`) a small 1-D convolution
+over the beams (:class:`ScanEncoder`) adds ``S`` features after the robot's; the robot's ``pose`` in the map frame
+is never an input (absolute map coordinates would tie the policy to the one map it was trained on).
 
 The trimmed-LSTM trick
 ----------------------
@@ -18,12 +22,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-__all__ = ["Dropout", "HumanLSTMExtractor"]
+from socnav.sim.walls import SCAN_KEY
+
+__all__ = ["Dropout", "HumanLSTMExtractor", "ScanEncoder"]
 
 class Dropout(nn.Dropout):
     """`nn.Dropout` with the mask drawn as ``uniform >= p``: the same distribution, ~25 % cheaper on CPU.
@@ -75,6 +82,74 @@ def _run_lstm(lstm: nn.LSTM, x: th.Tensor) -> th.Tensor:
     return th.stack(outputs, dim=1)
 
 
+class BeamPadding(nn.Module):
+    """Pads the beam axis of (B, C, N) by ``width`` on each side: wrapped around for a full-circle scan (its first
+    and last beams are neighbours), zeros otherwise (beyond the field of view there is nothing)."""
+
+    def __init__(self, beams: int, width: int, circular: bool) -> None:
+        super().__init__()
+        self.width, self.circular = width, circular
+        if circular:  # beam (i - width) mod N at padded position i: right for any N, even one under the padding
+            wrapped = th.tensor([(i - width) % beams for i in range(beams + 2 * width)], dtype=th.long)
+            self.register_buffer("wrapped", wrapped, persistent=False)
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        if self.circular:
+            return x.index_select(2, self.wrapped)
+        return nn.functional.pad(x, (self.width, self.width))
+
+
+class ScanEncoder(nn.Module):
+    """The range scan as ``S`` features: two strided 1-D convolutions over the beams and a linear layer.
+
+    ``x = scan / max_range`` (in [0, 1]); then, with ``Dropout`` in front of every layer that has weights and on the
+    output (the places the LSTM path has them, so that MC-dropout samples this branch too)::
+
+        c1 = relu(conv(dropout(x)))        1 -> 8 channels, kernel 5, stride 2:   N -> ceil(N / 2) beams
+        c2 = relu(conv(dropout(c1)))       8 -> 16 channels, kernel 5, stride 2:  -> ceil(N / 4) beams
+        s  = dropout(tanh(W dropout(c2)))  S features, bounded as the LSTM state h is
+
+    Each convolution sees its input padded by 2 beams on both sides: wrapped around (:class:`BeamPadding`) for a
+    360-degree scan, zeros for a narrower field of view. Every dropout acts on a flat (B, width) tensor, the shape
+    the exported navigator's keep masks have (`socnav.export`). ``layers`` is one ``nn.Sequential``: the exporter
+    walks it and puts its keep masks where the dropout modules are. The policy's orthogonal initialisation (SB3's
+    ``init_weights``: ``nn.Linear`` and ``nn.Conv2d`` only) re-draws the linear layer; the convolutions keep
+    PyTorch's default initialisation.
+
+    :param beams: N, the scan's beams. :param max_range: the range a beam reads when it hits nothing (m).
+    :param fov: field of view in degrees (360: circular padding). :param dropout_p: the dropout probability.
+    :param features: S. :param channels: channels of the two convolutions.
+    """
+
+    KERNEL, STRIDE = 5, 2
+
+    def __init__(self, beams: int, max_range: float, fov: float, dropout_p: float, features: int = 32,
+                 channels: tuple[int, int] = (8, 16)) -> None:
+        super().__init__()
+        if not (beams >= 1 and np.isfinite(max_range) and max_range > 0.0):
+            raise ValueError(f"a scan needs beams >= 1 and a finite max_range > 0, got {beams} and {max_range}")
+        self.beams, self.max_range, self.fov, self.features = int(beams), float(max_range), float(fov), int(features)
+        circular = self.fov >= 360.0
+        pad = self.KERNEL // 2
+        layers: list[nn.Module] = [Dropout(dropout_p)]
+        length, width = self.beams, 1
+        for out_channels in channels:
+            layers += [nn.Unflatten(1, (width, length)), BeamPadding(length, pad, circular),
+                       nn.Conv1d(width, out_channels, self.KERNEL, stride=self.STRIDE), nn.ReLU(), nn.Flatten(),
+                       Dropout(dropout_p)]
+            length, width = (length + 2 * pad - self.KERNEL) // self.STRIDE + 1, out_channels
+        layers += [nn.Linear(width * length, self.features), nn.Tanh(), Dropout(dropout_p)]
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, scan: th.Tensor) -> th.Tensor:
+        """(B, S) features of the ranges ``scan`` (B, N)."""
+        return self.layers(scan / self.max_range)
+
+    def dropout_layers(self) -> list[nn.Dropout]:
+        """The dropout modules, in forward order."""
+        return [m for m in self.layers if isinstance(m, nn.Dropout)]
+
+
 class HumanLSTMExtractor(BaseFeaturesExtractor):
     """Shared features extractor: ``features = [dropout(h), robot]`` with ``h`` the LSTM's final hidden state.
 
@@ -88,10 +163,19 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
     ``h_min`` / ``h_max`` and therefore saved with the model. They are updated by :meth:`update_feature_range`,
     which the policy calls on rollout observations during training.
 
-    :param observation_space: ``Dict(robot=Box(5,), humans=Box(M, 7), humans_mask=Box(M,))``.
+    With a ``scan`` key in the observation space the features are ``[dropout(h), robot, scan features]`` (a
+    :class:`ScanEncoder`, ``scan_encoder``; its ranges are scaled by the space's upper bound, the scan's range).
+    The ``pose`` key, when present, is not read. Without ``scan`` the module holds exactly what it held before
+    scans existed, built in the same order (the same initial weights for a seed).
+
+    :param observation_space: ``Dict(robot=Box(5,), humans=Box(M, 7), humans_mask=Box(M,))``, optionally with
+        ``scan=Box(0, range, (N,))`` (and ``pose``, ignored).
     :param lstm_hidden_size: hidden size ``H`` of each LSTM layer (default 64).
     :param n_lstm_layers: number of stacked LSTM layers (default 2).
     :param dropout_p: dropout probability during training (``p_train``), 0 disables dropout.
+    :param scan_fov: the scan's field of view in degrees (the env config's ``scan.fov``): 360 wraps the
+        convolutions' padding around. Read only with a scan.
+    :param scan_features: ``S``, the scan encoder's output size. Read only with a scan.
     """
 
     def __init__(
@@ -100,10 +184,14 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         lstm_hidden_size: int = 64,
         n_lstm_layers: int = 2,
         dropout_p: float = 0.0,
+        scan_fov: float = 360.0,
+        scan_features: int = 32,
     ) -> None:
         robot_dim = int(observation_space["robot"].shape[0])
         human_dim = int(observation_space["humans"].shape[-1])
-        super().__init__(observation_space, features_dim=lstm_hidden_size + robot_dim)
+        scan_space = observation_space.spaces.get(SCAN_KEY)
+        scan_dim = 0 if scan_space is None else scan_features
+        super().__init__(observation_space, features_dim=lstm_hidden_size + robot_dim + scan_dim)
         if n_lstm_layers < 1:
             raise ValueError(f"n_lstm_layers must be >= 1, got {n_lstm_layers}")
         self.lstm_hidden_size = lstm_hidden_size
@@ -120,6 +208,9 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         # Feature range of h, tracked from rollout observations (+inf / -inf = nothing seen yet).
         self.register_buffer("h_min", th.full((lstm_hidden_size,), float("inf")))
         self.register_buffer("h_max", th.full((lstm_hidden_size,), float("-inf")))
+        # Created last, and only with a scan: a scan-free network draws its initial weights exactly as before.
+        self.scan_encoder = None if scan_space is None else ScanEncoder(
+            int(scan_space.shape[0]), float(np.max(scan_space.high)), scan_fov, dropout_p, features=scan_features)
 
     # ------------------------------------------------------------------------------------------------------
     def encode_humans(self, humans: th.Tensor, mask: th.Tensor) -> th.Tensor:
@@ -143,13 +234,19 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         return h * (n > 0).unsqueeze(1).to(h.dtype)  # n_b = 0  =>  h_b = 0
 
     def forward_with_h(self, observations: dict[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
-        """Return ``(features, h)``: the features for the heads and the (pre-dropout) LSTM hidden state."""
+        """Return ``(features, h)``: the features for the heads and the (pre-dropout) LSTM hidden state.
+
+        The dropout layers run in the order of :meth:`dropout_layers` (LSTM inputs, ``h``, then the scan's): an
+        external uniform stream (the ONNX runtime's) draws their masks in that order.
+        """
         h = self.encode_humans(observations["humans"], observations["humans_mask"])
-        features = th.cat([self.h_dropout(h), observations["robot"]], dim=1)  # (B, H + R)
-        return features, h
+        parts = [self.h_dropout(h), observations["robot"]]
+        if self.scan_encoder is not None:
+            parts.append(self.scan_encoder(observations[SCAN_KEY]))
+        return th.cat(parts, dim=1), h  # (B, H + R [+ S])
 
     def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:  # type: ignore[override]
-        """SB3 entry point: the features vector ``[dropout(h), robot]`` of shape (B, H + R)."""
+        """SB3 entry point: the features vector ``[dropout(h), robot(, scan features)]`` of shape (B, H + R [+ S])."""
         return self.forward_with_h(observations)[0]
 
     # ------------------------------------------------------------------------------------------------------
@@ -167,5 +264,6 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         self.h_max.fill_(float("-inf"))
 
     def dropout_layers(self) -> list[nn.Dropout]:
-        """The extractor's dropout modules, input side first."""
-        return [*self.input_dropouts, self.h_dropout]
+        """The extractor's dropout modules in forward order: the LSTM's, ``h``'s, then the scan encoder's."""
+        scan = [] if self.scan_encoder is None else self.scan_encoder.dropout_layers()
+        return [*self.input_dropouts, self.h_dropout, *scan]

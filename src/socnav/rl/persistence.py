@@ -303,14 +303,39 @@ def _load_tensors(data: bytes, path: Path, name: str, error: type[Exception]) ->
 Expected = dict[str, tuple[tuple[int, ...], th.dtype]]
 
 
-def _expected_shapes(config: AlgoConfig, max_humans: int) -> Expected:
-    """Shapes and dtypes of the state dict of the network `config` describes, computed on the meta device (nothing
-    allocated)."""
+def _policy_for(config: AlgoConfig, env_config: Any, learning_rate: float = 0.0) -> ODVActorCriticPolicy:
+    """The (untrained) network `config` describes for the observations of the world `env_config` (an `EnvConfig`):
+    its ``scan`` and, in a world with walls, its ``pose`` key, as `world_observation_space` gives them."""
     from socnav.envs.spaces import action_space, observation_space
+    from socnav.sim.scenarios import get_scenario
+    from socnav.sim.walls import world_polygons
 
+    walls = bool(world_polygons(env_config, get_scenario(env_config.scenario)))
+    space = observation_space(env_config.max_humans, pose=walls, scan=env_config.scan)
+    scan = {} if env_config.scan is None else {"features_extractor_kwargs": {"scan_fov": env_config.scan.fov}}
+    return ODVActorCriticPolicy(space, action_space(), lambda _: learning_rate, **policy_kwargs_for(config), **scan)
+
+
+def _check_scan_fov(policy: ODVActorCriticPolicy, env_config: dict[str, Any]) -> None:
+    """Refuse to save a scan policy whose encoder assumed another field of view than its env config's: loaded, it
+    would be rebuilt for the config's and act differently (`ScanEncoder`'s padding)."""
+    from socnav.config import load_config
+
+    encoder = getattr(policy.features_extractor, "scan_encoder", None)
+    if encoder is None:
+        return
+    fov = load_config(env_config).scan.fov
+    if encoder.fov != fov:
+        raise ValueError(f"the policy's scan encoder was built for a {encoder.fov:g}-degree scan but its env config "
+                         f"has scan.fov={fov:g}: build the policy with features_extractor_kwargs="
+                         f"{{'scan_fov': {fov:g}}}")
+
+
+def _expected_shapes(config: AlgoConfig, env_config: Any) -> Expected:
+    """Shapes and dtypes of the state dict of the network `config` describes in the world `env_config`, computed on
+    the meta device (nothing allocated)."""
     with th.device("meta"):
-        policy = ODVActorCriticPolicy(observation_space(max_humans), action_space(), lambda _: 0.0,
-                                      **policy_kwargs_for(config))
+        policy = _policy_for(config, env_config)
     return {key: (tuple(value.shape), value.dtype) for key, value in policy.state_dict().items()}
 
 
@@ -376,6 +401,7 @@ def save_policy(policy: ODVActorCriticPolicy, path: str | Path, metadata: dict[s
     for key in ("algo", "algo_config", "env_config"):
         if key not in metadata:
             raise ValueError(f"policy metadata needs {key!r}; got keys {sorted(metadata)}")
+    _check_scan_fov(policy, metadata["env_config"])
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **metadata}
     weights = io.BytesIO()
     th.save({name: tensor.detach().cpu() for name, tensor in policy.state_dict().items()}, weights)
@@ -409,7 +435,6 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
         unpickled: the header is JSON and the weights are read with ``torch.load(weights_only=True)``.
     """
     from socnav.config import ConfigError, load_config
-    from socnav.envs.spaces import action_space, observation_space
 
     path = pretrained_path() if str(path) == PRETRAINED else Path(path)
     raw_header, header, weights = _read_archive(path)
@@ -418,12 +443,8 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     except ConfigError as exc:
         raise PolicyLoadError(f"{path}: invalid policy metadata: {' '.join(str(exc).split())}") from None
     state = _load_tensors(weights, path, WEIGHTS_FILE, PolicyLoadError)
-    _check_state_dict(state, _expected_shapes(header.algo_config, env_config.max_humans), path, WEIGHTS_FILE,
-                      PolicyLoadError)
-    policy = ODVActorCriticPolicy(
-        observation_space(env_config.max_humans), action_space(), lambda _: 0.0,
-        **policy_kwargs_for(header.algo_config)
-    )
+    _check_state_dict(state, _expected_shapes(header.algo_config, env_config), path, WEIGHTS_FILE, PolicyLoadError)
+    policy = _policy_for(header.algo_config, env_config)
     policy.load_state_dict(state, strict=True)  # names and shapes checked above
     policy.set_training_mode(False)
     policy.socnav_metadata = raw_header  # type: ignore[attr-defined]  (validated above)
@@ -476,6 +497,7 @@ def save_checkpoint(model: Any, path: str | Path, env_config: dict[str, Any], se
     :param env_config: the training env config (JSON dict); `seed`: the run seed.
     :param run: the training run's own counters, stored as given (JSON-safe values).
     """
+    _check_scan_fov(model.policy, env_config)
     header = {
         "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "algo": model.algo_name,
         "algo_config": model.algo_config, "env_config": env_config, "seed": seed,
@@ -590,7 +612,6 @@ def _validated_checkpoint(path: Path) -> tuple[CheckpointHeader, dict[str, th.Te
     :raises CheckpointError: one line naming what is wrong.
     """
     from socnav.config import ConfigError, load_config
-    from socnav.envs.spaces import action_space, observation_space
 
     members = _read_members(path, {CHECKPOINT_HEADER: MAX_HEADER_BYTES, CHECKPOINT_STATE: MAX_TENSOR_BYTES},
                             CheckpointError, "checkpoint")
@@ -603,16 +624,14 @@ def _validated_checkpoint(path: Path) -> tuple[CheckpointHeader, dict[str, th.Te
     payload = _load_tensors(members[CHECKPOINT_STATE], path, CHECKPOINT_STATE, CheckpointError)
     if not isinstance(payload, dict) or set(payload) != {"policy", "optimizer"}:
         raise CheckpointError(f"{path}: {CHECKPOINT_STATE} must hold exactly 'policy' and 'optimizer'")
-    weights = _check_state_dict(payload["policy"], _expected_shapes(header.algo_config, env_config.max_humans),
-                                path, CHECKPOINT_STATE, CheckpointError)
+    weights = _check_state_dict(payload["policy"], _expected_shapes(header.algo_config, env_config), path,
+                                CHECKPOINT_STATE, CheckpointError)
     optimizer_state = payload["optimizer"]
     if not isinstance(optimizer_state, dict) or set(optimizer_state) != {"state", "param_groups"}:
         raise CheckpointError(f"{path}: {CHECKPOINT_STATE} holds no optimizer state")
     # The optimizer the header's network trains with, as SB3 builds it (learning rate from the schedule at start);
     # the network is small and bounded by the header checks.
-    learning_rate = header.algo_config.learning_rate
-    policy = ODVActorCriticPolicy(observation_space(env_config.max_humans), action_space(),
-                                  lambda _: learning_rate, **policy_kwargs_for(header.algo_config))
+    policy = _policy_for(header.algo_config, env_config, learning_rate=header.algo_config.learning_rate)
     _check_optimizer_state(optimizer_state, policy.optimizer, path)
     return header, weights, optimizer_state
 

@@ -300,6 +300,13 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
 
     # ---- forward passes -----------------------------------------------------------------------------------
+    def obs_to_tensor(self, observation: Any) -> tuple[Any, bool]:
+        """SB3's conversion, given only the keys this policy was built with: a policy trained without walls acts in a
+        world with walls (whose observations add ``pose`` and maybe ``scan``) on what it knows."""
+        if isinstance(observation, dict) and isinstance(self.observation_space, spaces.Dict):
+            observation = {key: value for key, value in observation.items() if key in self.observation_space.spaces}
+        return super().obs_to_tensor(observation)
+
     def _features(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """``(features, h)`` for an observation dict of tensors."""
         preprocessed = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)

@@ -167,6 +167,15 @@ def policy_kwargs_for(cfg: AlgoConfig) -> dict[str, Any]:
     )
 
 
+def _scan_setting(env: Any) -> Any:
+    """The `scan` setting of the socnav world under `env` (through SB3 VecEnv and Gymnasium wrappers), or None."""
+    while hasattr(env, "venv"):
+        env = env.venv
+    env = getattr(env, "unwrapped", env)
+    config = getattr(env, "config", None)
+    return getattr(config, "scan", None)
+
+
 def make_model(
     algo: str,
     env: Any,
@@ -196,6 +205,10 @@ def make_model(
     if cfg.torch_threads is not None:
         th.set_num_threads(cfg.torch_threads)
     policy_kwargs = policy_kwargs_for(cfg)
+    scan = _scan_setting(env)
+    if scan is not None:  # the scan encoder pads circularly only for a full turn: it must know the field of view
+        policy_kwargs = {**policy_kwargs, "features_extractor_kwargs": {
+            **policy_kwargs.get("features_extractor_kwargs", {}), "scan_fov": float(scan.fov)}}
     model = ODVPPO(
         ODVActorCriticPolicy,
         env,

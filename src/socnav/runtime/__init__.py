@@ -14,6 +14,10 @@ Example (one control step; a ROS 2 node would call `act` from its timer callback
     v, dtheta = decision.command                                 # decision.fallback, decision.uncertainty
     # decision.fault is None unless the network's output was not finite (then: fallback, or a stop)
 
+A navigator exported from a world with walls keeps its fallback off them (``SafeNavigator.load(..., walls=polygons)``
+gives it another map), planning from the robot's pose in the map frame (``act(..., pose=(x, y, yaw))``; default: the
+robot's position and heading); one whose policy reads a range scan needs it: ``act(..., scan=ranges)``.
+
 `SafeNavigator.load` refuses (`NavigatorLoadError`, at load) a file that is corrupted (its sha256 checksum), of
 another format version, or whose metadata or graph is invalid; `act` refuses invalid states (`InputError`).
 """

@@ -3,7 +3,10 @@ sha256 checksum. Shared by the exporter (`socnav.export`, torch) and the runtime
 
 Graph inputs (``N`` rows, ``L`` human rows, dynamic both; ``L`` may be trimmed to the real rows)::
 
-    robot (N, 5)   humans (N, L, 7)   humans_mask (N, L)   keep_* : one dropout keep-mask per dropout layer
+    robot (N, 5)   humans (N, L, 7)   humans_mask (N, L)   [scan (N, beams)]   keep_* : one keep-mask per dropout layer
+
+``scan`` (the range scan's ranges in metres, as the environment observes them) only for a policy trained with one
+(``env_config.scan`` set); its encoder's keep masks (``keep_scan_0``, ...) follow the one on ``h``.
 
 Each ``keep_*`` input multiplies its layer's input: ``keep = [u >= p] / (1 - p)`` for MC-dropout (``u`` uniform in
 [0, 1)), all ones for the deterministic network. They are listed in ``metadata["dropout_inputs"]`` in forward order
@@ -12,6 +15,8 @@ Outputs: ``h`` (N, H) the LSTM state before dropout, ``mean`` (N, 2), ``log_std`
 
 The metadata (ONNX ``metadata_props`` key :data:`METADATA_KEY`, JSON) also carries the observation layout, the
 action limits, the env config, ``p_test``, ``K``, the feature range, the safety thresholds and the socnav version;
+in a world with walls also ``walls``, their polygons in the map frame (RVO2's orientation), the map the cautious
+fallback keeps off (a ``map`` file is stored as its polygons, without its path: the env config's ``map`` is null).
 :class:`NavigatorMetadata` is its schema, with the bounds and the consistency rules the runtime relies on.
 
 The checksum (``metadata_props`` key :data:`CHECKSUM_KEY`, 64 lowercase hex digits) is the sha256 of the whole file
@@ -19,7 +24,9 @@ with those 64 digits read as ``0``: it covers the graph, its weights and the met
 way to the robot (a flipped bit, a truncated copy) is refused at load instead of driving it (:func:`seal`,
 :func:`verify`). It is no signature: anyone can recompute it.
 
-Version 2 added the checksum; version-1 files are refused with a request to re-export them.
+Version 2 added the checksum; version-1 files are refused with a request to re-export them. Version 3 added the
+``scan`` input and the ``walls`` record: the exporter writes it for a world with walls or a scan only, and version 2
+otherwise (those files stay what they were); the runtime reads both.
 """
 
 from __future__ import annotations
@@ -35,20 +42,32 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from socnav.config import EnvConfig, short_repr
 from socnav.envs.spaces import ACTION_NAMES, HUMAN_FEATURE_NAMES, ROBOT_FEATURE_NAMES
 from socnav.safety.rule import Thresholds
+from socnav.sim.maps import MAX_TOTAL_VERTICES, validate_polygons
+from socnav.sim.scenarios import get_scenario
+from socnav.sim.walls import SCAN_KEY, world_polygons
 
 __all__ = [
     "CHECKSUM_KEY", "FORMAT_NAME", "FORMAT_VERSION", "MAX_DROPOUT_INPUTS", "MAX_HUMANS", "MAX_K", "MAX_WIDTH",
     "MAX_WINDOW", "METADATA_KEY", "METADATA_MAX_BYTES", "METADATA_MAX_DEPTH", "NAVIGATOR_MAX_BYTES",
-    "NavigatorLoadError", "NavigatorMetadata", "OBSERVATION_INPUTS", "OUTPUTS", "VALUE_OUTPUT", "metadata_entries",
-    "metadata_message", "seal", "verify",
+    "NavigatorLoadError", "NavigatorMetadata", "OBSERVATION_INPUTS", "OUTPUTS", "SCAN_INPUT", "SCAN_KEEP_PREFIX",
+    "SUPPORTED_VERSIONS", "VALUE_OUTPUT", "WALL_FREE_VERSION", "metadata_entries", "metadata_message", "seal",
+    "verify",
 ]
 
 FORMAT_NAME = "socnav-navigator"
-#: 2: the file carries a sha256 checksum (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
-FORMAT_VERSION = 2
+#: 3: a world with walls (``walls``) or a range scan (the ``scan`` input). 2: the file carries a sha256 checksum
+#: (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
+FORMAT_VERSION = 3
+#: The version of a navigator without walls and without a scan (what every navigator was before walls existed).
+WALL_FREE_VERSION = 2
+SUPPORTED_VERSIONS = (WALL_FREE_VERSION, FORMAT_VERSION)
 METADATA_KEY = "socnav"
 CHECKSUM_KEY = "socnav_sha256"
 OBSERVATION_INPUTS = ("robot", "humans", "humans_mask")
+#: The graph input of the range scan, after the observation inputs (a policy trained with a scan only).
+SCAN_INPUT = SCAN_KEY
+#: Names of the scan encoder's keep masks: keep_scan_0, keep_scan_1, ... in forward order.
+SCAN_KEEP_PREFIX = "keep_scan_"
 OUTPUTS = ("h", "mean", "log_std")
 VALUE_OUTPUT = "value"
 
@@ -301,12 +320,17 @@ class SafetyRecord(_Record):
         return value
 
 
+#: One polygon: [x, y] vertices (checked by `socnav.sim.maps.validate_polygons`).
+Vertex = Annotated[list[float], Field(min_length=2, max_length=2)]
+Polygon = Annotated[list[Vertex], Field(max_length=MAX_TOTAL_VERTICES)]
+
+
 class NavigatorMetadata(_Record):
     """The metadata record of a navigator file, validated: every field bounded and the parts consistent with
     each other (the graph's inputs and outputs are checked against it by `ExportedPolicy`)."""
 
     format: Literal[FORMAT_NAME]  # type: ignore[valid-type]  (a constant: pydantic reads it)
-    version: Literal[FORMAT_VERSION]  # type: ignore[valid-type]
+    version: Literal[SUPPORTED_VERSIONS]  # type: ignore[valid-type]
     socnav_version: Name
     observation: ObservationRecord
     action: ActionRecord
@@ -317,6 +341,15 @@ class NavigatorMetadata(_Record):
     outputs: list[Name] = Field(max_length=8)
     feature_range: FeatureRange
     safety: SafetyRecord
+    walls: Optional[list[Polygon]] = Field(None, min_length=1, max_length=MAX_TOTAL_VERTICES,
+                                           description="the world's walls, polygons in the map frame")
+
+    @field_validator("walls")
+    @classmethod
+    def _valid_walls(cls, value: Optional[list[list[list[float]]]]) -> Optional[list[list[list[float]]]]:
+        if value is not None:
+            validate_polygons(value, name="walls")  # a MapError (ValueError) names the polygon and the rule
+        return value
 
     @model_validator(mode="after")
     def _consistent(self) -> NavigatorMetadata:
@@ -343,6 +376,19 @@ class NavigatorMetadata(_Record):
         if widths != [len(HUMAN_FEATURE_NAMES)] + [hidden] * (len(lstm) - 1) or rest[0].width != hidden:
             raise ValueError(f"dropout_inputs: widths {[spec.width for spec in self.dropout_inputs]} do not fit "
                              f"{len(HUMAN_FEATURE_NAMES)} human features and lstm_hidden_size={hidden}")
+        scan = [spec for spec in rest[1:] if spec.name.startswith(SCAN_KEEP_PREFIX)]
+        if [spec.name for spec in rest[1:len(scan) + 1]] != [f"{SCAN_KEEP_PREFIX}{i}" for i in range(len(scan))]:
+            raise ValueError(f"dropout_inputs: the scan encoder's masks {[spec.name for spec in scan]} must follow "
+                             f"the one on h, numbered from 0")
+        if (env.scan is None) != (not scan) or (scan and scan[0].width != env.scan.beams):
+            raise ValueError(f"dropout_inputs: {len(scan)} scan masks (first width "
+                             f"{scan[0].width if scan else None}) for env_config.scan {short_repr(env.scan, 80)}")
+        if self.walls is None and world_polygons(env, get_scenario(env.scenario)):
+            raise ValueError(f"env_config describes a world with walls (scenario {env.scenario!r} or obstacles) but "
+                             "the metadata holds no walls")
+        if self.version == WALL_FREE_VERSION and (env.scan is not None or self.walls is not None):
+            raise ValueError(f"version {WALL_FREE_VERSION} has neither a scan nor walls; a navigator with them is "
+                             f"version {FORMAT_VERSION}")
         if len(self.feature_range.h_min) != hidden:
             raise ValueError(f"feature_range has {len(self.feature_range.h_min)} values per bound, "
                              f"lstm_hidden_size={hidden}")

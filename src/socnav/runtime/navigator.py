@@ -20,12 +20,17 @@ be finite, the policy's action is not used: the cautious controller acts, or the
 The humans handed to :meth:`SafeNavigator.act` are the robot's tracked state: the policy, the rule's proximity
 terms and the fallback all read them (the runtime counterpart of the safety layer's ``perceived`` sensing; a
 thresholds file's ``sensing`` field therefore changes nothing here).
+
+Walls (a navigator exported from a world with walls, or given a map at load): the cautious fallback keeps off the
+map's walls, planning in the map frame from the robot's ``pose`` (x, y, yaw), which :meth:`SafeNavigator.act` takes
+(default: the robot's own position and heading, its world frame then being the map frame). A policy trained with a
+range scan reads the robot's ``scan`` (its ranges, as a sensor_msgs/LaserScan gives them), which ``act`` then needs.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,7 +43,9 @@ from socnav.runtime.network import DropoutStream, ExportedPolicy, MCBatch, Unifo
 from socnav.safety.cautious import CautiousController
 from socnav.safety.rule import (RuleConditions, Thresholds, held_fallback, load_thresholds, nearest_human,
                                 rule_conditions)
+from socnav.sim.maps import validate_polygons
 from socnav.sim.observation import observe_robot, robot_command
+from socnav.sim.walls import POSE_KEY, SCAN_KEY
 from socnav.uncertainty.stats import Uncertainty
 from socnav.uncertainty.window import WindowedUncertainty
 
@@ -121,6 +128,22 @@ def _scalar(owner: str, name: str, value: Any, minimum: float = -math.inf, stric
         allowed = low if maximum == math.inf else f"{low} and <= {maximum}"
         raise InputError(f"{owner}.{name} must be {allowed}, got {number}")
     return number
+
+
+def _ranges(scan: Any, beams: int, max_range: float) -> np.ndarray:
+    """A range scan of ``beams`` ranges as the simulator reads them, in [0, max_range]: REP 117's readings mapped,
+    +inf (no return) and anything beyond the range to ``max_range``, -inf (too close to measure) to 0. NaN (an
+    erroneous reading) and negative finite values are refused: what stands in for them is the caller's call."""
+    array = _real_array("scan", "ranges", scan)
+    if array.shape != (beams,):
+        raise InputError(f"scan must have shape ({beams},) (the beams the policy was trained with), got {array.shape}")
+    if np.isnan(array).any():
+        raise InputError(f"scan is NaN at beams {np.flatnonzero(np.isnan(array)).tolist()[:10]} (erroneous readings)")
+    negative = np.flatnonzero((array < 0.0) & ~np.isneginf(array))
+    if negative.size:
+        raise InputError(f"scan ranges must be >= 0 (metres), got {array[negative[0]]} at beams "
+                         f"{negative.tolist()[:10]}")
+    return np.clip(np.where(np.isneginf(array), 0.0, array), 0.0, max_range)
 
 
 @dataclass(frozen=True)
@@ -250,10 +273,16 @@ class SafeNavigator:
     :param k: MC-dropout samples per decision (None: the file's K).
     :param uniforms: the dropout-uniform stream (None: ``DropoutStream(seed)``).
     :param seed: seed of the default stream (None: fresh entropy).
+    :param walls: the map the cautious fallback keeps off: polygons of (x, y) vertices in the map frame, RVO2's
+        convention (counter-clockwise: solid; clockwise: encloses free space; two vertices: a wall segment), as
+        the ``obstacles`` of an env config; None: the file's (the walls of the world it was exported from, or
+        none); an empty list: no walls.
+    :raises ValueError: invalid ``walls`` (naming the polygon) or ``k``.
     """
 
     def __init__(self, network: ExportedPolicy, thresholds: Thresholds | str | Path | Mapping[str, Any] | None = None,
-                 k: int | None = None, uniforms: Uniforms | None = None, seed: int | None = None) -> None:
+                 k: int | None = None, uniforms: Uniforms | None = None, seed: int | None = None, *,
+                 walls: Sequence[Any] | None = None) -> None:
         record = network.record  # validated at load: env config, thresholds, window, radius scale
         self.network = network
         self.config = record.env_config
@@ -266,7 +295,11 @@ class SafeNavigator:
             self.k = int(k)
         self.uniforms = DropoutStream(seed) if uniforms is None else uniforms
         self._window = WindowedUncertainty(1, window=record.safety.window)
-        self.cautious = CautiousController(self.config, radius_scale=record.safety.radius_scale)
+        polygons = network.walls if walls is None else validate_polygons(walls, name="walls")
+        #: the walls the fallback keeps off (polygons (k, 2), map frame), None without walls
+        self.walls = polygons or None
+        self.cautious = CautiousController(self.config, radius_scale=record.safety.radius_scale,
+                                           walls=polygons or [])
         # v_pref above the trained range would give the policy an observation it never saw (and faster commands)
         self.max_speed = float(self.config.preferred_speed[1])
         self._previous_gap = np.full(1, np.nan)  # d(t-1) of this episode; NaN: none yet (c_ap holds)
@@ -278,9 +311,12 @@ class SafeNavigator:
         """Compile (or load) the numba kernels and prepare the onnxruntime session now, not at the first decision:
         the first fallback would otherwise stall the control loop. Touches neither the episode state nor the
         dropout stream."""
+        scan = self.network.scan
         observation = observe_robot(np.zeros(2), np.zeros(2), 0.0, np.ones(2), 1.0, 0.3, np.full((1, 2), 2.0),
-                                    np.zeros((1, 2)), np.full(1, 0.3), self.network.max_humans)
-        output = self.network.run(*self.network.trim(observation)[:3])
+                                    np.zeros((1, 2)), np.full(1, 0.3), self.network.max_humans,
+                                    pose=None if self.walls is None else np.zeros(3),
+                                    scan=None if scan is None else np.full(scan.beams, scan.range))
+        output = self.network.run(*self.network.trim(observation)[:3], scan=self.network.scan_of(observation))
         self.cautious.predict(observation)
         robot_command(np.zeros(2), 1.0, self.config.max_heading_change)
         h, mean = np.zeros((1 + self.k, output.h.shape[1]), np.float32), np.zeros((1 + self.k, 2), np.float32)
@@ -292,17 +328,18 @@ class SafeNavigator:
     @classmethod
     def load(cls, path: str | Path, thresholds: Thresholds | str | Path | Mapping[str, Any] | None = None,
              k: int | None = None, seed: int | None = None, uniforms: Uniforms | None = None,
-             threads: int = 1) -> SafeNavigator:
-        """Open a navigator file written by ``socnav export`` (onnxruntime with ``threads`` intra-op threads).
+             threads: int = 1, *, walls: Sequence[Any] | None = None) -> SafeNavigator:
+        """Open a navigator file written by ``socnav export`` (onnxruntime with ``threads`` intra-op threads);
+        ``walls``: the fallback's map, as for the constructor (None: the file's).
 
         :raises socnav.runtime.NavigatorLoadError: a missing, unreadable, non-ONNX, foreign, corrupted (checksum) or
             incompatible file, invalid metadata, or a graph that fails or gives non-finite outputs on a test call:
             every problem of the file shows here, none at the first :meth:`act`.
         :raises socnav.safety.ThresholdsError: invalid ``thresholds``.
-        :raises ValueError: ``k`` outside [2, :data:`~socnav.runtime.format.MAX_K`].
+        :raises ValueError: ``k`` outside [2, :data:`~socnav.runtime.format.MAX_K`], invalid ``walls``.
         """
         return cls(ExportedPolicy.load(path, threads=threads), thresholds=thresholds, k=k, uniforms=uniforms,
-                   seed=seed)
+                   seed=seed, walls=walls)
 
     @property
     def max_humans(self) -> int:
@@ -315,8 +352,14 @@ class SafeNavigator:
         self._previous_gap[:] = np.nan
         self._hold_left[:] = 0
 
+    @property
+    def scan_beams(self) -> int | None:
+        """The beams of the range scan the policy reads (``act``'s ``scan``), None if it reads none."""
+        return None if self.network.scan is None else self.network.scan.beams
+
     def act(self, robot: RobotState | Mapping[str, Any],
-            humans: HumansState | Mapping[str, Any] | None = None) -> Decision:
+            humans: HumansState | Mapping[str, Any] | None = None, *, scan: Any = None,
+            pose: Any = None) -> Decision:
         """One control decision.
 
         :param robot: a :class:`RobotState` or a mapping with its fields (position, velocity, heading, goal,
@@ -324,18 +367,36 @@ class SafeNavigator:
         :param humans: a :class:`HumansState` or a mapping (positions (n, 2), velocities (n, 2), radii (n,)), or
             None for nobody around. With more than :attr:`max_humans` humans, the ``max_humans`` closest (by gap
             to the robot) are kept — the simulator's own rule; the others are ignored by the policy, the rule
-            and the fallback alike.
+            and the fallback alike. In a world with walls, the humans the robot sees (as the simulator's
+            occlusion leaves out those behind walls).
+        :param scan: the range scan, :attr:`scan_beams` ranges in metres from -fov/2 counter-clockwise about the
+            heading (a sensor_msgs/LaserScan's ``ranges``), as the env config's ``scan`` describes it: needed by a
+            policy trained with one, ignored otherwise. +inf and ranges beyond the scan's range read as that
+            range, -inf as 0 (REP 117); NaN is refused.
+        :param pose: the robot's pose in the map frame, (x, y, yaw), for the fallback's walls; None: the robot's
+            ``position`` and ``heading`` (its world frame is the map frame). Ignored without walls.
         :return: the decision; its command is always finite (see :attr:`Decision.fault` for what happens when
             the network's output is not).
         :raises InputError: a wrong shape or type (text, bool, complex), a NaN / inf, ``v_pref <= 0`` or above
-            the env config's largest preferred speed, a negative radius, or states so large that the observation
-            overflows float32 (nothing reaches onnxruntime).
+            the env config's largest preferred speed, a negative radius, a missing or invalid scan, or states so
+            large that the observation overflows float32 (nothing reaches onnxruntime).
         """
         robot = RobotState.parse(robot, max_speed=self.max_speed)
         humans = HumansState.parse(humans)
+        ranges = None
+        if self.network.scan is not None:
+            if scan is None:
+                raise InputError(f"scan: this navigator's policy reads a range scan of {self.network.scan.beams} "
+                                 f"beams (range {self.network.scan.range:g} m, fov {self.network.scan.fov:g} "
+                                 "degrees); pass act(..., scan=ranges)")
+            ranges = _ranges(scan, self.network.scan.beams, self.network.scan.range)
+        map_pose = None
+        if self.walls is not None:
+            map_pose = (np.array([*robot.position, robot.heading]) if pose is None
+                        else _vector("act", "pose (x, y, yaw)", pose, 3))
         observation = observe_robot(robot.position, robot.velocity, robot.heading, robot.goal, robot.v_pref,
                                     robot.radius, humans.positions, humans.velocities, humans.radii,
-                                    self.network.max_humans)
+                                    self.network.max_humans, pose=map_pose, scan=ranges)
         for key, value in observation.items():  # finite float64 states can still overflow float32
             if not _finite(value):
                 raise InputError(f"the robot's and humans' states give a non-finite observation ({key}): "
@@ -345,7 +406,16 @@ class SafeNavigator:
     def act_observation(self, observation: Mapping[str, np.ndarray]) -> Decision:
         """One decision from an observation already in the environment's layout (batch of one, float32), e.g.
         one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` its input is not checked, but
-        its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot)."""
+        its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot).
+
+        :raises InputError: the observation lacks the ``scan`` the policy reads or the ``pose`` the fallback needs
+            with walls."""
+        needed = ([SCAN_KEY] if self.network.scan is not None else []) + ([POSE_KEY] if self.walls else [])
+        missing = [key for key in needed if key not in observation]
+        if missing:
+            raise InputError(f"the observation lacks {missing}: this navigator reads "
+                             + " and ".join({SCAN_KEY: "a range scan", POSE_KEY: "the robot's map pose (walls)"}[key]
+                                            for key in missing))
         # onnxruntime's LSTM can turn a NaN input into finite outputs: a broken observation is caught here, not
         # by the output check. Neither the policy nor the fallback (which would ignore a NaN human) acts on it.
         observed = all(_finite(np.asarray(value)) for value in observation.values())
@@ -397,7 +467,7 @@ class SafeNavigator:
         batch = self._batches.get(key)
         if batch is None:  # first decision with this many humans: buffers + IO binding, kept for the next ones
             batch = self._batches[key] = network.mc_batch(self.k, humans.shape[1], any_human, deterministic_rows=1)
-        batch.run(robot, humans, mask, self.uniforms, network.p_test)
+        batch.run(robot, humans, mask, self.uniforms, network.p_test, scan=network.scan_of(observation))
         estimate = network.summarise(batch.h[1:, None], batch.mean[1:, None], batch.log_std[1:, None])
         # All rows' raw outputs: a NaN in an MC row poisons the uncertainty as surely as one in row 0 the action
         usable = (_finite(batch.mean) and _finite(batch.log_std) and _finite(batch.h) and _finite(estimate.u_ep)
@@ -405,4 +475,5 @@ class SafeNavigator:
         return np.minimum(np.maximum(batch.mean[0], -1.0), 1.0), estimate, usable  # np.clip costs more here
 
     def __repr__(self) -> str:
-        return f"SafeNavigator({self.network!r}, K={self.k}, thresholds={self.thresholds!r})"
+        walls = "" if self.walls is None else f", walls={len(self.walls)} polygons"
+        return f"SafeNavigator({self.network!r}, K={self.k}, thresholds={self.thresholds!r}{walls})"

@@ -2,9 +2,9 @@
 `ExportedPolicy` reads a navigator file written by `socnav export`; `DropoutStream` draws the dropout uniforms.
 
 Observation batches follow the environment's layout (``robot`` (B, 5), ``humans`` (B, M, 7), ``humans_mask``
-(B, M)). Like the torch extractor, a call trims the human rows to the longest real sequence of the batch, so the
-uniforms drawn for the LSTM-input dropout have the shapes torch's dropout draws (and none are drawn when no
-observation has a human): fed the same stream, `MCDropoutEstimator(policy, uniforms=stream)` and
+(B, M), and ``scan`` (B, beams) for a network that reads a range scan). Like the torch extractor, a call trims the
+human rows to the longest real sequence of the batch, so the uniforms drawn for the LSTM-input dropout have the
+shapes torch's dropout draws (and none are drawn when no observation has a human): fed the same stream, `MCDropoutEstimator(policy, uniforms=stream)` and
 :meth:`ExportedPolicy.samples` see the same masks.
 """
 
@@ -26,13 +26,15 @@ from socnav.io import UntrustedInputError, parse_json, read_bounded
 from socnav.runtime.format import (
     CHECKSUM_KEY,
     FORMAT_NAME,
-    FORMAT_VERSION,
     METADATA_KEY,
     METADATA_MAX_BYTES,
     METADATA_MAX_DEPTH,
     NAVIGATOR_MAX_BYTES,
     OBSERVATION_INPUTS,
+    SCAN_INPUT,
+    SUPPORTED_VERSIONS,
     VALUE_OUTPUT,
+    WALL_FREE_VERSION,
     NavigatorLoadError,
     NavigatorMetadata,
     metadata_entries,
@@ -164,13 +166,14 @@ def read_metadata(data: bytes, path: Path) -> dict[str, Any]:
     text = data[start:end]
     # Another format version first: it may seal its file differently (or not at all, as version 1 did).
     version = _declared_version(text)
-    if type(version) is int and version != FORMAT_VERSION:
-        if version < FORMAT_VERSION:
+    allowed = ", ".join(map(str, SUPPORTED_VERSIONS))
+    if type(version) is int and version not in SUPPORTED_VERSIONS:
+        if version < min(SUPPORTED_VERSIONS):
             raise NavigatorLoadError(
-                f"{path}: navigator format version {version} is not supported; allowed: {FORMAT_VERSION} (version "
-                f"{FORMAT_VERSION} adds a checksum against corrupted files): re-export it with `socnav export`")
+                f"{path}: navigator format version {version} is not supported; allowed: {allowed} (version "
+                f"{WALL_FREE_VERSION} adds a checksum against corrupted files): re-export it with `socnav export`")
         raise NavigatorLoadError(f"{path}: navigator format version {version} is not supported; allowed: "
-                                 f"{FORMAT_VERSION} (written by a newer socnav)")
+                                 f"{allowed} (written by a newer socnav)")
     try:
         verify(data, entries)
     except NavigatorLoadError as exc:
@@ -182,9 +185,9 @@ def read_metadata(data: bytes, path: Path) -> dict[str, Any]:
         raise NavigatorLoadError(str(exc)) from None
     if not isinstance(metadata, dict) or metadata.get("format") != FORMAT_NAME:
         raise NavigatorLoadError(f"{path}: the metadata does not declare format {FORMAT_NAME!r}")
-    if metadata.get("version") != FORMAT_VERSION:
+    if type(metadata.get("version")) is not int or metadata["version"] not in SUPPORTED_VERSIONS:
         raise NavigatorLoadError(f"{path}: navigator format version {short_repr(metadata.get('version'), 40)} is "
-                                 f"not supported; allowed: {FORMAT_VERSION}")
+                                 f"not supported; allowed: {allowed}")
     return metadata
 
 
@@ -226,7 +229,13 @@ class ExportedPolicy:
         self.p_test = record.mc_dropout.p_test
         self.output_names = list(record.outputs)
         self.hidden_size = record.policy.lstm_hidden_size
-        self.input_names = [*OBSERVATION_INPUTS, *(spec["name"] for spec in self.dropout_inputs)]
+        #: the range scan the network reads (`socnav.config.ScanConfig`: beams, range, fov), None if it reads none
+        self.scan = record.env_config.scan
+        #: the world's walls (polygons (k, 2), map frame), None in a world without walls
+        self.walls = None if record.walls is None else [np.asarray(polygon, dtype=np.float64)
+                                                        for polygon in record.walls]
+        scan_input = [] if self.scan is None else [SCAN_INPUT]
+        self.input_names = [*OBSERVATION_INPUTS, *scan_input, *(spec["name"] for spec in self.dropout_inputs)]
         self._check_graph()
         self.feature_map = _feature_map(np.asarray(record.feature_range.h_min, dtype=np.float64),
                                         np.asarray(record.feature_range.h_max, dtype=np.float64))
@@ -238,6 +247,7 @@ class ExportedPolicy:
         shapes: dict[str, tuple[int | str, ...]] = {
             "robot": ("rows", len(ROBOT_FEATURE_NAMES)), "humans": ("rows", "human_rows", len(HUMAN_FEATURE_NAMES)),
             "humans_mask": ("rows", "human_rows"),
+            **({} if self.scan is None else {SCAN_INPUT: ("rows", self.scan.beams)}),
             **{spec["name"]: _expected_shape(spec) for spec in self.dropout_inputs},
             "h": ("rows", self.hidden_size), "mean": ("rows", 2), "log_std": ("rows", 2), VALUE_OUTPUT: ("rows", 1)}
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -258,8 +268,9 @@ class ExportedPolicy:
         humans = np.zeros((2, 2, len(HUMAN_FEATURE_NAMES)), np.float32)
         humans[0, 0] = [1.0, 0.5, -0.5, 0.0, 0.3, 0.6, 0.5]
         mask = np.array([[1.0, 0.0], [0.0, 0.0]], np.float32)
+        scan = None if self.scan is None else np.full((2, self.scan.beams), self.scan.range, np.float32)
         try:
-            output = self.run(robot, humans, mask)
+            output = self.run(robot, humans, mask, scan=scan)
         except Exception as exc:  # onnxruntime's own exception types
             message = " ".join(str(exc).split())[:300]
             raise NavigatorLoadError(f"{self.path}: the graph fails on a test observation ({type(exc).__name__}: "
@@ -290,12 +301,17 @@ class ExportedPolicy:
     # ---------------------------------------------------------------------------------------------- raw graph
 
     def run(self, robot: np.ndarray, humans: np.ndarray, humans_mask: np.ndarray,
-            keep: Sequence[np.ndarray] | None = None) -> NetworkOutput:
-        """One graph call on N rows (``humans`` (N, L, 7) with L >= 1); ``keep``: the keep masks (None: ones)."""
+            keep: Sequence[np.ndarray] | None = None, scan: np.ndarray | None = None) -> NetworkOutput:
+        """One graph call on N rows (``humans`` (N, L, 7) with L >= 1); ``keep``: the keep masks (None: ones);
+        ``scan`` (N, beams) float32: the ranges, for a network that reads a scan (and only for one)."""
         rows, steps = humans.shape[:2]
         if keep is None:
             keep = [np.ones(self._keep_shape(spec, rows, steps), np.float32) for spec in self.dropout_inputs]
-        feed = dict(zip(self.input_names, (robot, humans, humans_mask, *keep)))
+        if (scan is None) != (self.scan is None):
+            raise ValueError("this network reads a range scan: pass scan" if scan is None else
+                             "this network reads no range scan: scan must be None")
+        ranges = () if scan is None else (scan,)
+        feed = dict(zip(self.input_names, (robot, humans, humans_mask, *ranges, *keep)))
         outputs = self.session.run(None, feed)
         value = outputs[3] if len(outputs) > 3 else None
         return NetworkOutput(outputs[0], outputs[1], outputs[2], value)
@@ -338,13 +354,23 @@ class ExportedPolicy:
         steps = max(longest, 1)
         return robot, np.ascontiguousarray(humans[:, :steps]), np.ascontiguousarray(mask[:, :steps]), longest > 0
 
+    def scan_of(self, observation: Mapping[str, np.ndarray]) -> np.ndarray | None:
+        """The observation's ``scan`` as float32 (B, beams) for a network that reads a scan; None for one that
+        does not (a ``scan`` in the observation is then not read)."""
+        if self.scan is None:
+            return None
+        if SCAN_INPUT not in observation:
+            raise ValueError(f"this network reads a range scan of {self.scan.beams} beams: the observation has no "
+                             f"{SCAN_INPUT!r}")
+        return np.ascontiguousarray(observation[SCAN_INPUT], dtype=np.float32).reshape(-1, self.scan.beams)
+
     def predict(self, observation: Mapping[str, np.ndarray], state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
         """SB3-style deterministic actions (B, 2), clipped to [-1, 1] (a single observation gives (2,))."""
         if not deterministic:
             raise ValueError("the exported policy acts deterministically; use samples() for MC-dropout")
         single = np.asarray(observation["robot"]).ndim == 1
-        output = self.run(*self.trim(observation)[:3])
+        output = self.run(*self.trim(observation)[:3], scan=self.scan_of(observation))
         actions = np.clip(output.mean, -1.0, 1.0)
         return (actions[0] if single else actions), state
 
@@ -355,10 +381,12 @@ class ExportedPolicy:
         k = self.k if k is None else int(k)
         p = self.p_test if p is None else float(p)
         robot, humans, mask, any_human = self.trim(observation)
+        scan = self.scan_of(observation)
         batch, steps = humans.shape[:2]
         repeat = (k,) + (1,) * (humans.ndim - 1)
         output = self.run(np.tile(robot, (k, 1)), np.tile(humans, repeat), np.tile(mask, (k, 1)),
-                          self.keep_masks(k * batch, steps, any_human, uniforms, p))
+                          self.keep_masks(k * batch, steps, any_human, uniforms, p),
+                          scan=None if scan is None else np.tile(scan, (k, 1)))
         return (output.h.reshape(k, batch, -1), output.mean.reshape(k, batch, -1),
                 output.log_std.reshape(k, batch, -1))
 
@@ -372,15 +400,17 @@ class ExportedPolicy:
         return self.summarise(*self.samples(observation, uniforms))
 
     def __repr__(self) -> str:
+        scan = "" if self.scan is None else f", scan_beams={self.scan.beams}"
         return (f"ExportedPolicy({str(self.path)!r}, K={self.k}, p_test={self.p_test}, "
-                f"max_humans={self.max_humans})")
+                f"max_humans={self.max_humans}{scan})")
 
 
 class MCBatch:
     """The graph call of one observation repeated on ``deterministic_rows + k`` rows, with every buffer
     preallocated and bound to the onnxruntime session once (`SafeNavigator`'s per-decision call).
 
-    :meth:`run` copies the observation (already trimmed to ``steps`` human rows) into all rows, draws the
+    :meth:`run` copies the observation (already trimmed to ``steps`` human rows; with its scan for a network that
+    reads one) into all rows, draws the
     MC-dropout uniforms (ONE draw for all layers when the stream has a ``fill(out)`` method, as `DropoutStream`
     has, which must draw what the per-layer calls would; else one ``uniforms(layer, shape)`` call per layer, in
     forward order, with the shapes :meth:`ExportedPolicy.keep_masks` asks for), turns them into keep masks
@@ -395,6 +425,7 @@ class MCBatch:
         self.robot = np.zeros((rows, 5), np.float32)
         self.humans = np.zeros((rows, steps, 7), np.float32)
         self.humans_mask = np.zeros((rows, steps), np.float32)
+        self.scan = None if network.scan is None else np.zeros((rows, network.scan.beams), np.float32)
         # The keep masks: views of one flat buffer (so that one kernel call writes every layer's), each layer's
         # deterministic rows left at 1. The layers that draw (the LSTM-input layers only when a human is there,
         # as in torch) take their uniforms from consecutive pieces of one flat buffer, in forward order.
@@ -421,7 +452,8 @@ class MCBatch:
         outputs = {"h": self.h, "mean": self.mean, "log_std": self.log_std}
         self.binding = network.session.io_binding()
         self._values: list[Any] = []  # the OrtValues share the arrays' memory: keep them alive with the binding
-        inputs = (self.robot, self.humans, self.humans_mask, *self.keep)
+        ranges = () if self.scan is None else (self.scan,)
+        inputs = (self.robot, self.humans, self.humans_mask, *ranges, *self.keep)
         for name, array in zip(network.input_names, inputs):
             value = onnxruntime.OrtValue.ortvalue_from_numpy(array)
             self._values.append(value)
@@ -432,11 +464,16 @@ class MCBatch:
             self.binding.bind_ortvalue_output(name, value)
 
     def run(self, robot: np.ndarray, humans: np.ndarray, humans_mask: np.ndarray, uniforms: Uniforms,
-            p: float) -> None:
-        """One graph call: ``robot`` (1, 5), ``humans`` (1, steps, 7), ``humans_mask`` (1, steps) in every row."""
+            p: float, scan: np.ndarray | None = None) -> None:
+        """One graph call: ``robot`` (1, 5), ``humans`` (1, steps, 7), ``humans_mask`` (1, steps) and, for a
+        network that reads one, ``scan`` (1, beams) in every row."""
         self.robot[...] = robot
         self.humans[...] = humans
         self.humans_mask[...] = humans_mask
+        if self.scan is not None:
+            if scan is None:
+                raise ValueError("this network reads a range scan: pass scan")
+            self.scan[...] = scan
         self.draw_masks(uniforms, p)
         self.network.session.run_with_iobinding(self.binding)
 

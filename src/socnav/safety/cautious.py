@@ -9,16 +9,20 @@ into ``(v, dtheta)`` within the robot's limits (``holonomic_to_unicycle``: speed
 It reuses :class:`socnav.controllers.OrcaController` (same ORCA code as the humans). As there, the robot
 takes the config's ``robot_orca_share`` of the avoidance (default 1: it assumes nothing of the humans, which is the
 cautious choice when humans may not yield) and adds ``robot_orca_safety_margin`` metres to each (scaled) radius.
+In a world with walls it also keeps off them (RVO2's obstacle constraints, planned in the map frame from the
+observation's ``pose``): the config's walls, or the polygons given as ``walls`` (the deployed navigator's map).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from socnav.config import ConfigLike, load_config
 from socnav.controllers import OrcaController
+from socnav.sim.obstacles import ObstacleMap
 
 __all__ = ["CAUTIOUS_RADIUS_SCALE", "CautiousController"]
 
@@ -29,12 +33,19 @@ class CautiousController(OrcaController):
     """``OrcaController`` with human radii scaled by ``radius_scale`` (default 1.5); actions clipped to [-1, 1]^2.
 
     ``predict(observation, state=None, episode_start=None, deterministic=True) -> (actions, None)`` accepts a
-    single or a batched observation, like the other controllers.
+    single or a batched observation, like the other controllers; with walls the observation must hold ``pose``.
+
+    :param walls: the walls to keep off, polygons of (x, y) vertices in the map frame in RVO2's convention (as
+        `socnav.sim.walls.world_polygons` gives them; validated by the caller); None: the config's (its
+        scenario's map, ``obstacles`` and ``map``); an empty list: none.
     """
 
     def __init__(self, config: ConfigLike = None, radius_scale: float = CAUTIOUS_RADIUS_SCALE,
-                 share: float | None = None, safety_margin: float | None = None):
+                 share: float | None = None, safety_margin: float | None = None,
+                 walls: Sequence[np.ndarray] | None = None):
         super().__init__(load_config(config), radius_scale=radius_scale, share=share, safety_margin=safety_margin)
+        if walls is not None:  # OrcaController plans around `self.walls` (None: the open plane)
+            self.walls = ObstacleMap.from_polygons(list(walls)) if len(walls) else None
 
     def predict(self, observation: dict[str, np.ndarray], state: Any = None, episode_start: Any = None,
                 deterministic: bool = True):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from socnav.sim.walls import POSE_KEY, SCAN_KEY
 from socnav.sim.world import _observe as observe_batch
 from socnav.sim.world import _robot_command
 
@@ -29,14 +30,23 @@ def observe_robot(
     human_velocities: np.ndarray,
     human_radii: np.ndarray,
     max_humans: int,
+    *,
+    pose: np.ndarray | None = None,
+    scan: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The observation (batch of one, as `CrowdWorld.observe`) of a robot among ``n`` humans (world frame).
 
     Inputs are float64 arrays already checked by the caller: ``position``, ``velocity``, ``goal`` (2,);
     ``human_positions``, ``human_velocities`` (n, 2); ``human_radii`` (n,). With more than ``max_humans`` humans
     the closest ``max_humans`` (by gap) are kept, exactly as in the simulator. No observation noise is added.
+    The humans are those the robot sees: in a world with occlusion the caller leaves out those behind walls.
 
-    :return: ``{"robot": (1, 5), "humans": (1, max_humans, 7), "humans_mask": (1, max_humans)}``, float32.
+    In a world with walls the observation also holds ``pose`` (x, y, yaw in the map frame: ``pose`` (3,)), and
+    with a range scan ``scan`` (its ranges (beams,), as `socnav.sim.walls.Walls.scan` reads them); both are
+    passed through as float32, as the simulator rounds them.
+
+    :return: ``{"robot": (1, 5), "humans": (1, max_humans, 7), "humans_mask": (1, max_humans)}``, float32, and
+        ``"pose"`` (1, 3) / ``"scan"`` (1, beams) when given.
     """
     n_humans = len(human_radii)
     positions = np.empty((1, 1 + n_humans, 2))
@@ -50,7 +60,12 @@ def observe_robot(
     active = np.ones((1, 1 + n_humans), dtype=np.bool_)
     robot, humans, mask = observe_batch(positions, velocities, radii, goals, np.array([float(v_pref)]), active,
                                         np.array([float(heading)]), int(max_humans))
-    return {"robot": robot, "humans": humans, "humans_mask": mask}
+    observation = {"robot": robot, "humans": humans, "humans_mask": mask}
+    if pose is not None:
+        observation[POSE_KEY] = np.asarray(pose, dtype=np.float64).reshape(1, 3).astype(np.float32)
+    if scan is not None:
+        observation[SCAN_KEY] = np.array(scan, dtype=np.float32).reshape(1, -1)
+    return observation
 
 
 def robot_command(action: np.ndarray, v_pref: float, max_heading_change: float) -> tuple[float, float]:

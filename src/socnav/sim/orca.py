@@ -1,4 +1,4 @@
-"""ORCA reciprocal collision avoidance: an exact float64 port of RVO2's agent-agent ORCA, compiled with numba.
+"""ORCA reciprocal collision avoidance: an exact float64 port of RVO2's ORCA (agents and static obstacles), in numba.
 
 One kernel call updates all agents of all envs; per pair (i, j) it adds a radius pad, an avoidance share and visibility.
 """
@@ -8,20 +8,23 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from socnav.sim.obstacles import RVO_EPSILON, ObstacleBatch
+
 __all__ = [
     "RVO_EPSILON",
+    "TOUCH_MARGIN",
     "default_social_arrays",
     "linear_program1",
     "linear_program2",
     "linear_program3",
     "nearest_neighbors",
+    "obstacle_neighbors",
+    "obstacle_orca_lines",
     "orca_line",
     "orca_velocities",
     "orca_velocities_kernel",
+    "orca_velocities_obstacles_kernel",
 ]
-
-# RVO2 treats two lines as parallel when |det(d_a, d_b)| <= RVO_EPSILON.
-RVO_EPSILON = 1e-5
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -114,20 +117,28 @@ def linear_program2(points, directions, n_lines, radius, opt_x, opt_y, direction
 
 
 @numba.njit(cache=True)
-def linear_program3(points, directions, n_lines, begin_line, radius, rx, ry, proj_points, proj_directions):
-    """RVO2 linearProgram3 (no obstacle lines): when the 2-D LP is infeasible, minimise the largest violation.
+def linear_program3(
+    points, directions, n_lines, n_obstacle_lines, begin_line, radius, rx, ry, proj_points, proj_directions
+):
+    """RVO2 linearProgram3: when the 2-D LP is infeasible, minimise the largest violation of the agent lines while
+    keeping the first `n_obstacle_lines` lines (the obstacles') hard.
 
     Lines from `begin_line` on are handled one at a time: if line i is violated by more than the current worst
-    distance, solve a 2-D LP in the space of lines 0..i-1 projected onto line i (the bisectors where violating them
-    equals violating line i), optimising towards the inside of line i. Returns the new (x, y).
+    distance, solve a 2-D LP over the obstacle lines and the agent lines before i projected onto line i (the
+    bisectors where violating them equals violating line i), optimising towards the inside of line i. Returns the new
+    (x, y).
     """
     distance = 0.0
     for i in range(begin_line, n_lines):
         dix, diy = directions[i, 0], directions[i, 1]
         pix, piy = points[i, 0], points[i, 1]
         if _det(dix, diy, pix - rx, piy - ry) > distance:
-            n_proj = 0
-            for j in range(i):
+            # The obstacle lines are copied as they are: never relaxed.
+            for j in range(n_obstacle_lines):
+                proj_points[j, 0], proj_points[j, 1] = points[j, 0], points[j, 1]
+                proj_directions[j, 0], proj_directions[j, 1] = directions[j, 0], directions[j, 1]
+            n_proj = n_obstacle_lines
+            for j in range(n_obstacle_lines, i):
                 djx, djy = directions[j, 0], directions[j, 1]
                 pjx, pjy = points[j, 0], points[j, 1]
                 determinant = _det(dix, diy, djx, djy)
@@ -249,8 +260,429 @@ def orca_line(rel_px, rel_py, rel_vx, rel_vy, combined_radius, inv_time_horizon,
 
 
 # --------------------------------------------------------------------------------------------------------------------
-# The batched kernel.
+# Static obstacles (RVO2 Agent::computeNeighbors / insertObstacleNeighbor / computeNewVelocity, obstacle part), on one
+# env's `ObstacleBatch` rows. They live here, next to the kernel that runs them, not in `socnav.sim.obstacles`: numba
+# keys a cached kernel on its own file's content only, so a kernel calling njit code of another file keeps running
+# the old code after that file changes.
 # --------------------------------------------------------------------------------------------------------------------
+# An agent whose squared distance to an edge or vertex is within this relative margin of r^2 counts as touching it
+# (RVO2 tests `distSq <= radiusSq` exactly). At the exact touch RVO2's non-collision half-planes degenerate: seen from
+# distance r, a wall segment's two legs turn "foreign" (parallel to the wall) and tie with its cut-off line, rounding
+# can pick a foreign leg, and then no half-plane is added at all -- pyrvo itself lets an agent that converged onto a
+# wall walk through it that way. The collision half-plane (v . n <= 0) is the limit of the cut-off one
+# (v . n <= (d - r) / tau) as d -> r, so the margin changes velocities by at most ~1e-9 r / tau elsewhere.
+TOUCH_MARGIN = 1e-9
+
+
+@numba.njit(cache=True)
+def obstacle_neighbors(
+    px, py, range_sq, point, next_vertex, tree_vertex, tree_left, tree_right, n_vertices, stack, neighbor_vertex,
+    neighbor_dist_sq,
+):  # fmt: skip
+    """RVO2 computeObstacleNeighbors for an agent at p: the edges it faces within sqrt(range_sq), nearest first.
+
+    queryObstacleTreeRecursive, in its order: descend to the agent's side of each node's line first; then, if the
+    line is within range, offer the node's edge (only when the agent is strictly on its right, i.e. outside a solid
+    polygon's edge) and visit the other side. insertObstacleNeighbor keeps the edges whose closest point is within
+    range, insertion-sorted by squared distance with strict '<' (ties keep the earlier edge first).
+    `stack`: int64 scratch of n_vertices + 1 entries (entry 2 node + phase); fills neighbor_vertex / neighbor_dist_sq
+    (n_vertices entries each) and returns the neighbour count.
+    """
+    count = 0
+    if n_vertices == 0:
+        return 0
+    stack[0] = 0  # root, phase 0 (not yet descended)
+    depth = 1
+    while depth > 0:
+        depth -= 1
+        node, phase = stack[depth] >> 1, stack[depth] & 1
+        a = tree_vertex[node]
+        b = next_vertex[a]
+        ax, ay, bx, by = point[a, 0], point[a, 1], point[b, 0], point[b, 1]
+        agent_left = _det(ax - px, ay - py, bx - ax, by - ay)  # RVO2 leftOf(a, b, p)
+        near, far = (tree_left[node], tree_right[node]) if agent_left >= 0.0 else (tree_right[node], tree_left[node])
+        if phase == 0:
+            stack[depth] = 2 * node + 1
+            depth += 1
+            if near >= 0:
+                stack[depth] = 2 * near
+                depth += 1
+            continue
+        edge_x, edge_y = bx - ax, by - ay
+        edge_length_sq = edge_x * edge_x + edge_y * edge_y
+        if agent_left * agent_left / edge_length_sq < range_sq:
+            if agent_left < 0.0:
+                # Distance to the edge: to its closest point a + r (b - a), r clamped to [0, 1].
+                r = ((px - ax) * edge_x + (py - ay) * edge_y) / edge_length_sq
+                if r < 0.0:
+                    dx, dy = px - ax, py - ay
+                elif r > 1.0:
+                    dx, dy = px - bx, py - by
+                else:
+                    dx, dy = px - (ax + r * edge_x), py - (ay + r * edge_y)
+                dist_sq = dx * dx + dy * dy
+                if dist_sq < range_sq:
+                    k = count
+                    count += 1
+                    while k > 0 and dist_sq < neighbor_dist_sq[k - 1]:
+                        neighbor_dist_sq[k] = neighbor_dist_sq[k - 1]
+                        neighbor_vertex[k] = neighbor_vertex[k - 1]
+                        k -= 1
+                    neighbor_dist_sq[k] = dist_sq
+                    neighbor_vertex[k] = a
+            if far >= 0:
+                stack[depth] = 2 * far
+                depth += 1
+    return count
+
+
+@numba.njit(cache=True)
+def _any_edge_within(px, py, range_sq, point, next_vertex, n_vertices):
+    """Whether some edge (vertex a to next_vertex[a]) may have its closest point to p within sqrt(range_sq)."""
+    for a in range(n_vertices):
+        b = next_vertex[a]
+        ax, ay = point[a, 0], point[a, 1]
+        edge_x, edge_y = point[b, 0] - ax, point[b, 1] - ay
+        r = ((px - ax) * edge_x + (py - ay) * edge_y) / (edge_x * edge_x + edge_y * edge_y)
+        r = min(max(r, 0.0), 1.0)
+        dx, dy = px - (ax + r * edge_x), py - (ay + r * edge_y)
+        if dx * dx + dy * dy < range_sq * (1.0 + 1e-9) + 1e-12:  # a margin: the query itself decides at the edge
+            return True
+    return False
+
+
+@numba.njit(cache=True)
+def _push_line(line_points, line_directions, n_lines, point_x, point_y, direction_x, direction_y):
+    line_points[n_lines, 0], line_points[n_lines, 1] = point_x, point_y
+    line_directions[n_lines, 0], line_directions[n_lines, 1] = direction_x, direction_y
+    return n_lines + 1
+
+
+@numba.njit(cache=True)
+def obstacle_orca_lines(
+    px, py, vx, vy, radius, inv_time_horizon_obst, point, unit_dir, is_convex, next_vertex, prev_vertex,
+    neighbor_vertex, n_neighbors, line_points, line_directions,
+):  # fmt: skip
+    """RVO2 Agent::computeNewVelocity, obstacle part: one ORCA half-plane per obstacle neighbour (nearest first) that
+    is not already implied by the earlier ones, for an agent at p with velocity v and `radius`.
+
+    Velocity obstacle of an edge a -> b over the horizon tau = 1 / inv_time_horizon_obst: the edge seen from p and
+    truncated at (a - p) / tau, (b - p) / tau (cut-off centres, radius r / tau), bounded by legs tangent to the discs
+    of radius r around the (convex) end vertices. The velocity v is projected on its nearest boundary piece (cut-off
+    circle, cut-off line, left or right leg) and the half-plane is that piece's tangent line; obstacles are static, so
+    the agent takes the whole correction. Already overlapping (or touching, `TOUCH_MARGIN`) an edge or vertex: the
+    half-plane through v = 0 that forbids moving further in. Lines are appended to line_points / line_directions
+    (admissible side on the left of the direction); returns their count.
+    """
+    radius_sq = radius * radius
+    touch_sq = radius_sq * (1.0 + TOUCH_MARGIN)
+    n_lines = 0
+    for k in range(n_neighbors):
+        obstacle1 = neighbor_vertex[k]
+        obstacle2 = next_vertex[obstacle1]
+        r1x, r1y = point[obstacle1, 0] - px, point[obstacle1, 1] - py
+        r2x, r2y = point[obstacle2, 0] - px, point[obstacle2, 1] - py
+
+        # Skip an edge whose both cut-off discs already lie beyond an earlier half-plane (up to RVO_EPSILON).
+        already_covered = False
+        for j in range(n_lines):
+            ljx, ljy = line_points[j, 0], line_points[j, 1]
+            djx, djy = line_directions[j, 0], line_directions[j, 1]
+            c1x, c1y = inv_time_horizon_obst * r1x - ljx, inv_time_horizon_obst * r1y - ljy
+            c2x, c2y = inv_time_horizon_obst * r2x - ljx, inv_time_horizon_obst * r2y - ljy
+            if (
+                c1x * djy - c1y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
+                and c2x * djy - c2y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
+            ):
+                already_covered = True
+                break
+        if already_covered:
+            continue
+
+        dist_sq1 = r1x * r1x + r1y * r1y
+        dist_sq2 = r2x * r2x + r2y * r2y
+        ox, oy = point[obstacle2, 0] - point[obstacle1, 0], point[obstacle2, 1] - point[obstacle1, 1]
+        # s: where p projects on the edge's line, a + s (b - a).
+        s = (-r1x * ox - r1y * oy) / (ox * ox + oy * oy)
+        lx, ly = -r1x - s * ox, -r1y - s * oy
+        dist_sq_line = lx * lx + ly * ly
+
+        # Already overlapping (or touching, see TOUCH_MARGIN): forbid moving further into the vertex (only a convex
+        # one; a concave vertex's edges cover it) or the edge. An agent centred exactly on a vertex has no direction
+        # (RVO2: NaN line): no line.
+        if s < 0.0 and dist_sq1 <= touch_sq:
+            if is_convex[obstacle1] and dist_sq1 > 0.0:
+                norm = np.sqrt(dist_sq1)
+                n_lines = _push_line(line_points, line_directions, n_lines, 0.0, 0.0, -r1y / norm, r1x / norm)
+            continue
+        if s > 1.0 and dist_sq2 <= touch_sq:
+            # The right vertex is the next edge's left vertex; leave it to that edge unless the agent is behind it.
+            if is_convex[obstacle2] and r2x * unit_dir[obstacle2, 1] - r2y * unit_dir[obstacle2, 0] >= 0.0:
+                if dist_sq2 > 0.0:
+                    norm = np.sqrt(dist_sq2)
+                    n_lines = _push_line(line_points, line_directions, n_lines, 0.0, 0.0, -r2y / norm, r2x / norm)
+            continue
+        if s >= 0.0 and s <= 1.0 and dist_sq_line <= touch_sq:
+            n_lines = _push_line(
+                line_points, line_directions, n_lines, 0.0, 0.0, -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+            )
+            continue
+
+        # No overlap: the legs. Leg directions are the tangents from p to the disc of radius r around a vertex at
+        # relative position q: q rotated by +-asin(r / |q|), scaled to unit length: (q_x l -+ q_y r, +-q_x r + q_y l)
+        # / |q|^2 with l = sqrt(|q|^2 - r^2).
+        if s < 0.0 and dist_sq_line <= radius_sq:
+            # Seen obliquely: the left vertex alone shapes the velocity obstacle.
+            if not is_convex[obstacle1]:
+                continue
+            obstacle2 = obstacle1
+            leg1 = np.sqrt(dist_sq1 - radius_sq)
+            left_x = (r1x * leg1 - r1y * radius) / dist_sq1
+            left_y = (r1x * radius + r1y * leg1) / dist_sq1
+            right_x = (r1x * leg1 + r1y * radius) / dist_sq1
+            right_y = (-r1x * radius + r1y * leg1) / dist_sq1
+        elif s > 1.0 and dist_sq_line <= radius_sq:
+            # Seen obliquely: the right vertex alone shapes the velocity obstacle.
+            if not is_convex[obstacle2]:
+                continue
+            obstacle1 = obstacle2
+            leg2 = np.sqrt(dist_sq2 - radius_sq)
+            left_x = (r2x * leg2 - r2y * radius) / dist_sq2
+            left_y = (r2x * radius + r2y * leg2) / dist_sq2
+            right_x = (r2x * leg2 + r2y * radius) / dist_sq2
+            right_y = (-r2x * radius + r2y * leg2) / dist_sq2
+        else:
+            if is_convex[obstacle1]:
+                leg1 = np.sqrt(dist_sq1 - radius_sq)
+                left_x = (r1x * leg1 - r1y * radius) / dist_sq1
+                left_y = (r1x * radius + r1y * leg1) / dist_sq1
+            else:
+                # A concave left vertex: the left leg continues the cut-off line.
+                left_x, left_y = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+            if is_convex[obstacle2]:
+                leg2 = np.sqrt(dist_sq2 - radius_sq)
+                right_x = (r2x * leg2 + r2y * radius) / dist_sq2
+                right_y = (-r2x * radius + r2y * leg2) / dist_sq2
+            else:
+                right_x, right_y = unit_dir[obstacle1, 0], unit_dir[obstacle1, 1]
+
+        # A leg at a convex vertex must not point into the neighbouring edge: then that edge's direction replaces it
+        # ("foreign" leg), and a velocity projecting on a foreign leg adds no line (the neighbouring edge handles it).
+        left_neighbor = prev_vertex[obstacle1]
+        left_foreign = False
+        right_foreign = False
+        if is_convex[obstacle1] and (
+            left_x * -unit_dir[left_neighbor, 1] - left_y * -unit_dir[left_neighbor, 0] >= 0.0
+        ):
+            left_x, left_y = -unit_dir[left_neighbor, 0], -unit_dir[left_neighbor, 1]
+            left_foreign = True
+        if is_convex[obstacle2] and right_x * unit_dir[obstacle2, 1] - right_y * unit_dir[obstacle2, 0] <= 0.0:
+            right_x, right_y = unit_dir[obstacle2, 0], unit_dir[obstacle2, 1]
+            right_foreign = True
+
+        # Cut-off centres and where v projects: on the cut-off segment (t), on the left leg (t_left), right (t_right).
+        left_cx, left_cy = inv_time_horizon_obst * (point[obstacle1, 0] - px), inv_time_horizon_obst * (
+            point[obstacle1, 1] - py
+        )
+        right_cx, right_cy = inv_time_horizon_obst * (point[obstacle2, 0] - px), inv_time_horizon_obst * (
+            point[obstacle2, 1] - py
+        )
+        cut_x, cut_y = right_cx - left_cx, right_cy - left_cy
+        same_vertex = obstacle1 == obstacle2
+        if same_vertex:
+            t = 0.5
+        else:
+            t = ((vx - left_cx) * cut_x + (vy - left_cy) * cut_y) / (cut_x * cut_x + cut_y * cut_y)
+        t_left = (vx - left_cx) * left_x + (vy - left_cy) * left_y
+        t_right = (vx - right_cx) * right_x + (vy - right_cy) * right_y
+
+        if (t < 0.0 and t_left < 0.0) or (same_vertex and t_left < 0.0 and t_right < 0.0):
+            # Nearest to the left cut-off circle: its tangent at the projection. v on the centre: no direction.
+            wx, wy = vx - left_cx, vy - left_cy
+            w_length = np.sqrt(wx * wx + wy * wy)
+            if w_length > 0.0:
+                ux, uy = wx / w_length, wy / w_length
+                n_lines = _push_line(
+                    line_points, line_directions, n_lines,
+                    left_cx + radius * inv_time_horizon_obst * ux, left_cy + radius * inv_time_horizon_obst * uy,
+                    uy, -ux,
+                )  # fmt: skip
+            continue
+        if t > 1.0 and t_right < 0.0:
+            wx, wy = vx - right_cx, vy - right_cy
+            w_length = np.sqrt(wx * wx + wy * wy)
+            if w_length > 0.0:
+                ux, uy = wx / w_length, wy / w_length
+                n_lines = _push_line(
+                    line_points, line_directions, n_lines,
+                    right_cx + radius * inv_time_horizon_obst * ux, right_cy + radius * inv_time_horizon_obst * uy,
+                    uy, -ux,
+                )  # fmt: skip
+            continue
+
+        # Otherwise the nearest of the cut-off line, the left leg and the right leg (those v projects onto).
+        if t < 0.0 or t > 1.0 or same_vertex:
+            dist_sq_cutoff = np.inf
+        else:
+            dx, dy = vx - (left_cx + t * cut_x), vy - (left_cy + t * cut_y)
+            dist_sq_cutoff = dx * dx + dy * dy
+        if t_left < 0.0:
+            dist_sq_left = np.inf
+        else:
+            dx, dy = vx - (left_cx + t_left * left_x), vy - (left_cy + t_left * left_y)
+            dist_sq_left = dx * dx + dy * dy
+        if t_right < 0.0:
+            dist_sq_right = np.inf
+        else:
+            dx, dy = vx - (right_cx + t_right * right_x), vy - (right_cy + t_right * right_y)
+            dist_sq_right = dx * dx + dy * dy
+
+        # Each line passes r / tau outside its boundary piece, on the normal (-d_y, d_x).
+        offset = radius * inv_time_horizon_obst
+        if dist_sq_cutoff <= dist_sq_left and dist_sq_cutoff <= dist_sq_right:
+            dx, dy = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+            n_lines = _push_line(
+                line_points, line_directions, n_lines, left_cx - offset * dy, left_cy + offset * dx, dx, dy
+            )
+            continue
+        if dist_sq_left <= dist_sq_right:
+            if not left_foreign:
+                n_lines = _push_line(
+                    line_points, line_directions, n_lines, left_cx - offset * left_y, left_cy + offset * left_x,
+                    left_x, left_y,
+                )  # fmt: skip
+            continue
+        if not right_foreign:
+            dx, dy = -right_x, -right_y
+            n_lines = _push_line(
+                line_points, line_directions, n_lines, right_cx - offset * dy, right_cy + offset * dx, dx, dy
+            )
+    return n_lines
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The batched kernels.
+# --------------------------------------------------------------------------------------------------------------------
+@numba.njit(cache=True, inline="always")
+def _orca_kernel(
+    positions,
+    velocities,
+    radii,
+    preferred_velocities,
+    max_speeds,
+    active,
+    compute,
+    radius_pad,
+    avoidance_share,
+    sees,
+    time_horizon,
+    neighbor_dist,
+    max_neighbors,
+    time_step,
+    obstacles,
+    time_horizon_obst,
+    out,
+):
+    """The two kernels' common body. `obstacles` is None or the tuple `ObstacleBatch.kernel_arrays()`; numba prunes
+    the `obstacles is None` branches at compile time, so the obstacle-free kernel carries no obstacle code at all."""
+    n_envs, n_agents = positions.shape[0], positions.shape[1]
+    # Scratch buffers, reused for every agent: at most one ORCA line per obstacle edge and per other agent.
+    max_vertices = 0
+    if obstacles is not None:
+        max_vertices = obstacles[0].shape[1]
+        obstacle_vertex = np.empty(max_vertices, dtype=np.int64)
+        obstacle_dist_sq = np.empty(max_vertices, dtype=np.float64)
+        tree_stack = np.empty(max_vertices + 1, dtype=np.int64)
+    capacity = max(0, min(max_neighbors, n_agents - 1))
+    neighbor_index = np.empty(capacity, dtype=np.int64)
+    neighbor_dist_sq = np.empty(capacity, dtype=np.float64)
+    points = np.empty((max_vertices + capacity, 2), dtype=np.float64)
+    directions = np.empty((max_vertices + capacity, 2), dtype=np.float64)
+    proj_points = np.empty((max_vertices + capacity, 2), dtype=np.float64)
+    proj_directions = np.empty((max_vertices + capacity, 2), dtype=np.float64)
+    inv_time_horizon = 1.0 / time_horizon
+    inv_time_horizon_obst = 1.0 / time_horizon_obst
+    inv_time_step = 1.0 / time_step
+    n_fallbacks = 0
+
+    for e in range(n_envs):
+        for i in range(n_agents):
+            vix, viy = velocities[e, i, 0], velocities[e, i, 1]
+            if not (active[e, i] and compute[e, i]):
+                out[e, i, 0], out[e, i, 1] = vix, viy
+                continue
+
+            n_obstacle_lines = 0
+            if obstacles is not None:
+                point, unit_dir, is_convex, next_vertex, prev_vertex, tree_vertex, tree_left, tree_right, count = (
+                    obstacles
+                )
+                if count[e] > 0:
+                    # RVO2 computeNeighbors: the edges within the distance the agent covers in time_horizon_obst.
+                    px, py = positions[e, i, 0], positions[e, i, 1]
+                    obstacle_range = time_horizon_obst * max_speeds[e, i] + radii[e, i]
+                    range_sq = obstacle_range * obstacle_range
+                    n_obstacles = 0
+                    # The tree query returns only edges closer than the range: when a plain scan of the edges finds
+                    # none, it would return nothing (most agents, most steps), so it is skipped.
+                    if _any_edge_within(px, py, range_sq, point[e], next_vertex[e], count[e]):
+                        n_obstacles = obstacle_neighbors(
+                            px, py, range_sq, point[e], next_vertex[e], tree_vertex[e], tree_left[e], tree_right[e],
+                            count[e], tree_stack, obstacle_vertex, obstacle_dist_sq,
+                        )  # fmt: skip
+                    n_obstacle_lines = obstacle_orca_lines(
+                        px, py, vix, viy, radii[e, i], inv_time_horizon_obst, point[e], unit_dir[e], is_convex[e],
+                        next_vertex[e], prev_vertex[e], obstacle_vertex, n_obstacles, points, directions,
+                    )  # fmt: skip
+
+            n_agent_lines = nearest_neighbors(
+                positions, active, sees, e, i, neighbor_dist, max_neighbors, neighbor_index, neighbor_dist_sq
+            )
+
+            # One ORCA half-plane per neighbour, nearest first (the LPs are order-sensitive when infeasible).
+            for k in range(n_agent_lines):
+                j = neighbor_index[k]
+                combined_radius = radii[e, i] + radii[e, j] + radius_pad[e, i, j]
+                tie_sign = 1.0 if j < i else -1.0
+                dx, dy, ux, uy = orca_line(
+                    positions[e, j, 0] - positions[e, i, 0],
+                    positions[e, j, 1] - positions[e, i, 1],
+                    vix - velocities[e, j, 0],
+                    viy - velocities[e, j, 1],
+                    combined_radius,
+                    inv_time_horizon,
+                    inv_time_step,
+                    tie_sign,
+                )
+                # Agent i takes `share` of the correction u (RVO2: 0.5, each agent does half).
+                share = avoidance_share[e, i, j]
+                line = n_obstacle_lines + k
+                points[line, 0], points[line, 1] = vix + share * ux, viy + share * uy
+                directions[line, 0], directions[line, 1] = dx, dy
+            n_lines = n_obstacle_lines + n_agent_lines
+
+            # Closest velocity to the preferred one that satisfies every half-plane; if none does, the least bad one
+            # for the agent lines (linearProgram3 keeps the obstacle lines hard).
+            max_speed = max_speeds[e, i]
+            pref_x, pref_y = preferred_velocities[e, i, 0], preferred_velocities[e, i, 1]
+            fail, vx, vy = linear_program2(points, directions, n_lines, max_speed, pref_x, pref_y, False)
+            if fail < n_lines:
+                vx, vy = linear_program3(
+                    points, directions, n_lines, n_obstacle_lines, fail, max_speed, vx, vy, proj_points,
+                    proj_directions,
+                )  # fmt: skip
+                n_fallbacks += 1
+
+            # The LPs stay inside the speed disc by construction, but far-away projected lines (nearly anti-parallel
+            # constraints in linearProgram3) can push the result out by rounding; project it back.
+            speed_sq = vx * vx + vy * vy
+            if speed_sq > max_speed * max_speed:
+                scale = max_speed / np.sqrt(speed_sq)
+                vx, vy = vx * scale, vy * scale
+            out[e, i, 0], out[e, i, 1] = vx, vy
+    return n_fallbacks
+
+
 @numba.njit(cache=True)
 def orca_velocities_kernel(
     positions,
@@ -269,72 +701,58 @@ def orca_velocities_kernel(
     time_step,
     out,
 ):
-    """Write every agent's new ORCA velocity into `out` (E, N, 2); see `orca_velocities` for the arguments.
-
-    Returns how many agents needed the 3-D fallback (linearProgram3) because their 2-D LP was infeasible.
+    """Write every agent's new ORCA velocity into `out` (E, N, 2), without obstacles; see `orca_velocities` for the
+    arguments. Returns how many agents needed the 3-D fallback (linearProgram3) because their 2-D LP was infeasible.
     """
-    n_envs, n_agents = positions.shape[0], positions.shape[1]
-    # Scratch buffers, reused for every agent: at most N - 1 neighbours, hence at most N - 1 ORCA lines.
-    capacity = max(0, min(max_neighbors, n_agents - 1))
-    neighbor_index = np.empty(capacity, dtype=np.int64)
-    neighbor_dist_sq = np.empty(capacity, dtype=np.float64)
-    points = np.empty((capacity, 2), dtype=np.float64)
-    directions = np.empty((capacity, 2), dtype=np.float64)
-    proj_points = np.empty((capacity, 2), dtype=np.float64)
-    proj_directions = np.empty((capacity, 2), dtype=np.float64)
-    inv_time_horizon = 1.0 / time_horizon
-    inv_time_step = 1.0 / time_step
-    n_fallbacks = 0
+    return _orca_kernel(
+        positions, velocities, radii, preferred_velocities, max_speeds, active, compute, radius_pad, avoidance_share,
+        sees, time_horizon, neighbor_dist, max_neighbors, time_step, None, 1.0, out,
+    )  # fmt: skip
 
-    for e in range(n_envs):
-        for i in range(n_agents):
-            vix, viy = velocities[e, i, 0], velocities[e, i, 1]
-            if not (active[e, i] and compute[e, i]):
-                out[e, i, 0], out[e, i, 1] = vix, viy
-                continue
 
-            n_lines = nearest_neighbors(
-                positions, active, sees, e, i, neighbor_dist, max_neighbors, neighbor_index, neighbor_dist_sq
-            )
+@numba.njit(cache=True)
+def orca_velocities_obstacles_kernel(
+    positions,
+    velocities,
+    radii,
+    preferred_velocities,
+    max_speeds,
+    active,
+    compute,
+    radius_pad,
+    avoidance_share,
+    sees,
+    time_horizon,
+    neighbor_dist,
+    max_neighbors,
+    time_step,
+    obstacle_point,
+    obstacle_unit_dir,
+    obstacle_is_convex,
+    obstacle_next,
+    obstacle_prev,
+    obstacle_tree_vertex,
+    obstacle_tree_left,
+    obstacle_tree_right,
+    obstacle_count,
+    time_horizon_obst,
+    out,
+):
+    """`orca_velocities_kernel` with static obstacles: the obstacle arrays are `ObstacleBatch.kernel_arrays()`, in
+    order; returns the fallback count.
 
-            # One ORCA half-plane per neighbour, nearest first (the LPs are order-sensitive when infeasible).
-            for k in range(n_lines):
-                j = neighbor_index[k]
-                combined_radius = radii[e, i] + radii[e, j] + radius_pad[e, i, j]
-                tie_sign = 1.0 if j < i else -1.0
-                dx, dy, ux, uy = orca_line(
-                    positions[e, j, 0] - positions[e, i, 0],
-                    positions[e, j, 1] - positions[e, i, 1],
-                    vix - velocities[e, j, 0],
-                    viy - velocities[e, j, 1],
-                    combined_radius,
-                    inv_time_horizon,
-                    inv_time_step,
-                    tie_sign,
-                )
-                # Agent i takes `share` of the correction u (RVO2: 0.5, each agent does half).
-                share = avoidance_share[e, i, j]
-                points[k, 0], points[k, 1] = vix + share * ux, viy + share * uy
-                directions[k, 0], directions[k, 1] = dx, dy
-
-            # Closest velocity to the preferred one that satisfies every half-plane; if none does, the least bad one.
-            max_speed = max_speeds[e, i]
-            pref_x, pref_y = preferred_velocities[e, i, 0], preferred_velocities[e, i, 1]
-            fail, vx, vy = linear_program2(points, directions, n_lines, max_speed, pref_x, pref_y, False)
-            if fail < n_lines:
-                vx, vy = linear_program3(
-                    points, directions, n_lines, fail, max_speed, vx, vy, proj_points, proj_directions
-                )
-                n_fallbacks += 1
-
-            # The LPs stay inside the speed disc by construction, but far-away projected lines (nearly anti-parallel
-            # constraints in linearProgram3) can push the result out by rounding; project it back.
-            speed_sq = vx * vx + vy * vy
-            if speed_sq > max_speed * max_speed:
-                scale = max_speed / np.sqrt(speed_sq)
-                vx, vy = vx * scale, vy * scale
-            out[e, i, 0], out[e, i, 1] = vx, vy
-    return n_fallbacks
+    As RVO2's computeNewVelocity: the obstacle half-planes first (agent i's obstacle neighbours within
+    time_horizon_obst * max_speed + radius), then the agent ones; linearProgram3 never relaxes the obstacle lines.
+    An env without obstacles (count 0) gives bit for bit what `orca_velocities_kernel` gives.
+    """
+    obstacles = (
+        obstacle_point, obstacle_unit_dir, obstacle_is_convex, obstacle_next, obstacle_prev, obstacle_tree_vertex,
+        obstacle_tree_left, obstacle_tree_right, obstacle_count,
+    )  # fmt: skip
+    return _orca_kernel(
+        positions, velocities, radii, preferred_velocities, max_speeds, active, compute, radius_pad, avoidance_share,
+        sees, time_horizon, neighbor_dist, max_neighbors, time_step, obstacles, time_horizon_obst, out,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -364,13 +782,19 @@ def orca_velocities(
     neighbor_dist: float,
     max_neighbors: int,
     time_step: float,
+    *,
+    obstacles: ObstacleBatch | None = None,
+    time_horizon_obst: float | None = None,
 ) -> np.ndarray:
-    """New ORCA velocities of E environments of N agent slots each (RVO2 semantics, no obstacles).
+    """New ORCA velocities of E environments of N agent slots each (RVO2 semantics).
 
     positions, velocities, preferred_velocities: (E, N, 2) float64; radii, max_speeds: (E, N) float64;
     active (slot holds a real agent), compute (compute a new velocity): (E, N) bool;
     radius_pad (extra radius i adds to j), avoidance_share (share of the avoidance i takes w.r.t. j; 0.5 = RVO2):
     (E, N, N) float64; sees (i considers j): (E, N, N) bool.
+    obstacles: static obstacles of each env (`ObstacleBatch.from_maps`, E maps), avoided as RVO2 does with the agent's
+    own radius (no pad), hard constraints; time_horizon_obst (> 0, required with obstacles, unused without):
+    RVO2's timeHorizonObst. Without obstacles the result is bit-identical to the obstacle-free kernel.
     Returns (E, N, 2) float64; agents that are inactive or not computed keep their current velocity.
     """
     if not isinstance(positions, np.ndarray) or positions.ndim != 3:
@@ -396,24 +820,27 @@ def orca_velocities(
     if int(max_neighbors) != max_neighbors or max_neighbors < 0:
         raise ValueError(f"max_neighbors must be an integer >= 0, got {max_neighbors}")
 
+    if time_horizon_obst is not None and not time_horizon_obst > 0.0:
+        raise ValueError(f"time_horizon_obst must be > 0, got {time_horizon_obst}")
+
     out = np.empty(vectors, dtype=np.float64)
-    orca_velocities_kernel(
-        positions,
-        velocities,
-        radii,
-        preferred_velocities,
-        max_speeds,
-        active,
-        compute,
-        radius_pad,
-        avoidance_share,
-        sees,
-        float(time_horizon),
-        float(neighbor_dist),
-        int(max_neighbors),
-        float(time_step),
-        out,
-    )
+    if obstacles is None:
+        orca_velocities_kernel(
+            positions, velocities, radii, preferred_velocities, max_speeds, active, compute, radius_pad,
+            avoidance_share, sees, float(time_horizon), float(neighbor_dist), int(max_neighbors), float(time_step), out,
+        )  # fmt: skip
+        return out
+    if not isinstance(obstacles, ObstacleBatch):
+        raise TypeError(f"obstacles must be an ObstacleBatch (ObstacleBatch.from_maps), got {type(obstacles).__name__}")
+    if obstacles.n_envs != n_envs:
+        raise ValueError(f"obstacles must hold one map per env: {n_envs} envs, got {obstacles.n_envs} maps")
+    if time_horizon_obst is None:
+        raise ValueError("time_horizon_obst must be given (> 0) with obstacles")
+    orca_velocities_obstacles_kernel(
+        positions, velocities, radii, preferred_velocities, max_speeds, active, compute, radius_pad, avoidance_share,
+        sees, float(time_horizon), float(neighbor_dist), int(max_neighbors), float(time_step),
+        *obstacles.kernel_arrays(), float(time_horizon_obst), out,
+    )  # fmt: skip
     return out
 
 

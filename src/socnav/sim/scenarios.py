@@ -66,6 +66,7 @@ class ScenarioSettings(Protocol):
     time_step: float  # replay: its time windows and time grid
     timeout_factor: float
     timeout_margin: float
+    layout: Any  # the map scenarios' geometry (corridor_width, corridor_length, door_width, room_size)
 
     def humans_range(self) -> tuple[int, int]: ...
 

@@ -27,14 +27,19 @@ import numpy as np
 from socnav.config import ConfigError, EnvConfig, RewardConfig
 from socnav.sim.noise import ATTENTION_STREAM, HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
 from socnav.sim.humans import Crowd, MixedHumans, ScriptedHumans, make_human_model
+from socnav.sim.metrics import EpisodeMetrics
 from socnav.sim.orca import default_social_arrays
 from socnav.sim.scenarios import InitialState, get_scenario, n_slots
+from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons
 
 ROBOT_FEATURES = 5  # distance to goal, heading relative to goal direction, speed, v_pref, radius
 HUMAN_FEATURES = 7  # rel. position (2), rel. velocity (2), radius, combined radius, gap
 
-OUTCOME_RUNNING, OUTCOME_GOAL, OUTCOME_COLLISION, OUTCOME_TIMEOUT = 0, 1, 2, 3
-OUTCOME_NAMES = {OUTCOME_GOAL: "goal", OUTCOME_COLLISION: "collision", OUTCOME_TIMEOUT: "timeout"}
+OUTCOME_RUNNING, OUTCOME_GOAL, OUTCOME_COLLISION, OUTCOME_TIMEOUT, OUTCOME_COLLISION_WALL = 0, 1, 2, 3, 4
+OUTCOME_NAMES = {OUTCOME_GOAL: "goal", OUTCOME_COLLISION: "collision", OUTCOME_TIMEOUT: "timeout",
+                 OUTCOME_COLLISION_WALL: "collision_wall"}
+#: how many times a reset redraws an episode whose starts or goals do not fit among the walls before it gives up
+MAX_PLACEMENT_DRAWS = 100
 
 
 @dataclass
@@ -317,13 +322,14 @@ def _draw_attention(key, n_slots, inattentive_share):
 
 
 @numba.njit(cache=True)
-def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_half_fov, interaction_range):
+def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_half_fov, interaction_range, in_sight):
     """Field of view: update each human's facing direction and whether it has noticed the robot.
 
     A human faces where it walks (towards its goal while standing still, its last facing once at the goal). It
     notices the robot when the robot's centre is within its interaction range (`interaction_range` (E, N): that of
     the model moving it) and inside the cone of half-angle fov/2 around its facing; once noticed, it keeps reacting
-    while the robot stays within the interaction range.
+    while the robot stays within the interaction range. A human never notices a robot it has no line of sight to
+    (`in_sight` (E, N), a wall in between).
     """
     n_envs, n_agents = active.shape
     for env in range(n_envs):
@@ -343,7 +349,7 @@ def _notice_robot(positions, velocities, goals, active, facing, noticed, cos_hal
             distance = math.sqrt(dx * dx + dy * dy)
             in_range = distance < interaction_range[env, agent]
             in_view = False
-            if in_range:
+            if in_range and in_sight[env, agent]:
                 if distance < 1e-12:
                     in_view = True
                 else:
@@ -395,7 +401,7 @@ class CrowdWorld:
     `numpy.random.Generator` used only at its resets (and goal redraws), and a counter-based noise key per episode.
     """
 
-    def __init__(self, config: EnvConfig, n_envs: int):
+    def __init__(self, config: EnvConfig, n_envs: int, metrics: bool = False):
         self.config = config
         self.n_envs = n_envs
         self.n_slots = n_slots(config)
@@ -430,6 +436,11 @@ class CrowdWorld:
         self.intrusion_steps = np.zeros(n_envs, dtype=np.int64)
         self.intrusion_events = np.zeros(n_envs, dtype=np.int64)
         self.disturbance = np.zeros(n_envs)
+        # Obstacle hook: True when the robot hit an obstacle in the step just taken (set by obstacle code; cleared
+        # at every episode start); the metric collision_obstacle reads it at the episode's end.
+        self.wall_collision = np.zeros(n_envs, dtype=bool)
+        # The field's navigation metrics (socnav.sim.metrics), accumulated every step when asked for.
+        self.metrics = EpisodeMetrics(n_envs, self.n_slots, config.time_step) if metrics else None
         self.humans_slots = np.zeros(shape, dtype=bool)
         self.humans_slots[:, 1:] = True
         # attention (SPEC section 1): per episode; `noticed` and `facing` change every step with a field of view
@@ -457,6 +468,12 @@ class CrowdWorld:
         if self.script is not None:
             self.script.attach(n_envs, self.n_slots)
         self.entered = np.zeros(shape, dtype=bool)  # slots a human entered in the last step (scripted humans)
+        # walls (map scenarios, `obstacles`, `map`): one map for every environment; None in the open plane
+        polygons = world_polygons(config, self.scenario)
+        self.walls = Walls(polygons, n_envs) if polygons else None
+        self.occlusion = self.walls is not None and (
+            config.occlusion if config.occlusion is not None else bool(getattr(self.scenario, "has_map", False)))
+        self.in_sight = np.ones(shape, dtype=bool)  # (E, N): no wall between the robot and each agent
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -471,7 +488,7 @@ class CrowdWorld:
         envs = range(self.n_envs) if envs is None else envs
         for env in envs:
             rng = self.rngs[env]
-            initial = self.scenario.sample(rng, 1, self.config)
+            initial = self._placed_episode(rng)
             self.load(env, initial)
             self.noise_keys[env] = np.uint64(rng.integers(0, 2**63))
             self.set_attention(env, _draw_attention(self.noise_keys[env], self.n_slots, self.config.inattentive_share))
@@ -480,6 +497,22 @@ class CrowdWorld:
             if self.config.initial_heading == "random":
                 # Drawn last, so starts, goals and noise are the same episode for either setting.
                 self.heading[env] = rng.uniform(-math.pi, math.pi)
+
+    def _placed_episode(self, rng: np.random.Generator) -> InitialState:
+        """The scenario's next episode; with walls, redrawn until every start and goal fits among them."""
+        initial = self.scenario.sample(rng, 1, self.config)
+        if self.walls is None:
+            return initial
+        for _ in range(MAX_PLACEMENT_DRAWS):
+            active = initial.active[0]
+            points = np.concatenate([initial.positions[0, active], initial.goals[0, active]])
+            radii = np.concatenate([initial.radii[0, active]] * 2)
+            reason = self.walls.misplaced(points, radii)
+            if reason is None:
+                return initial
+            initial = self.scenario.sample(rng, 1, self.config)
+        raise ConfigError(f"scenario {self.config.scenario!r}: no episode in {MAX_PLACEMENT_DRAWS} draws has every "
+                          f"start and goal clear of the walls (last: {reason}); move the obstacles or the map")
 
     def load(self, env: int, initial: InitialState) -> None:
         """Start environment `env` from a given initial state (its first env), e.g. a staged encounter."""
@@ -506,6 +539,8 @@ class CrowdWorld:
         self.avoidance_share[env] = 0.5
         self.avoidance_share[env, :, 0] = self.cooperation[env]
         self.sees[env] = True
+        if self.walls is not None:
+            self.in_sight[env] = self.walls.in_sight_of_robot(self.positions[env:env + 1], self.active[env:env + 1])[0]
         self.set_attention(env, np.ones(self.n_slots, dtype=bool))
         self.was_intruded[env] = False
         self.episode_return[env] = 0.0
@@ -514,6 +549,7 @@ class CrowdWorld:
         self.intrusion_steps[env] = 0
         self.intrusion_events[env] = 0
         self.disturbance[env] = 0.0
+        self.wall_collision[env] = False
         if self.mix is not None:
             self.set_models(env, np.zeros(self.n_slots, dtype=np.int64))
         self.entered[env] = False
@@ -554,7 +590,8 @@ class CrowdWorld:
 
     def _update_robot_visibility(self, env: int | slice = slice(None)) -> None:
         """Which humans plan around the robot: visible robot, attentive human, robot noticed (field of view)."""
-        self.sees[env, :, 0] = self.config.robot_visible & self.attentive[env] & self.noticed[env]
+        self.sees[env, :, 0] = (self.config.robot_visible & self.attentive[env] & self.noticed[env]
+                                & self.in_sight[env])
 
     # ---------------------------------------------------------------------------------------------------- step
 
@@ -564,7 +601,9 @@ class CrowdWorld:
             positions=self.positions, velocities=self.velocities, goals=self.goals, radii=self.radii,
             max_speeds=self.max_speeds, active=self.active, radius_pad=self.radius_pad,
             avoidance_share=self.avoidance_share, sees=self.sees_without_robot if without_robot else self.sees,
-            model_index=self.model_index,
+            model_index=self.model_index, obstacles=None if self.walls is None else self.walls.obstacles,
+            wall_segments=None if self.walls is None else (self.walls.seg_start, self.walls.seg_end,
+                                                           self.walls.n_segments),
         )
 
     def human_velocities(self, without_robot: bool = False, only: np.ndarray | None = None) -> np.ndarray:
@@ -585,12 +624,17 @@ class CrowdWorld:
         )
         if self.has_field_of_view:
             _notice_robot(self.positions, self.velocities, self.goals, self.active, self.facing, self.noticed,
-                          self.cos_half_fov, self.interaction_ranges)
+                          self.cos_half_fov, self.interaction_ranges, self.in_sight)
+            self._update_robot_visibility()
+        elif self.walls is not None:
             self._update_robot_visibility()
         humans = self.human_velocities()
         near = self._humans_near_robot(rew.social_radius)
         scored = rew.disturbance > 0.0 and near.any()
         unhindered = self.human_velocities(without_robot=True, only=near) if scored else humans
+        if self.metrics is not None:
+            self.metrics.before_step(self)
+        robot_before = self.positions[:, 0].copy() if self.walls is not None else None
         reward, outcome, nearest_gap, nearest_speed, intrusions = _advance_and_score(
             self.positions, self.velocities, self.radii, self.goals, self.max_speeds, self.personal_space,
             self.active, self.heading, self.time, self.time_limit,
@@ -599,15 +643,21 @@ class CrowdWorld:
             self.was_intruded, self.episode_return, self.path_length, self.min_gap, self.intrusion_steps,
             self.intrusion_events, self.disturbance,
         )
+        if self.walls is not None:
+            self._end_at_walls(robot_before, outcome, reward)
+        if self.metrics is not None:
+            self.metrics.after_step(self)
         self.steps += 1
         if self.script is not None:  # on the script's positions; humans whose script starts enter
             self.entered = self.script.after_move(self.positions, self.velocities, self.goals, self.active)
             self.was_intruded[self.entered] = False
         if self.scenario.redraw_goals:
             self._redraw_reached_goals()
+        if self.walls is not None:  # who the robot sees now: its observation, and the humans' next step
+            self.in_sight = self.walls.in_sight_of_robot(self.positions, self.active)
         return StepResult(
             reward=reward,
-            terminated=(outcome == OUTCOME_GOAL) | (outcome == OUTCOME_COLLISION),
+            terminated=(outcome == OUTCOME_GOAL) | (outcome == OUTCOME_COLLISION) | (outcome == OUTCOME_COLLISION_WALL),
             truncated=outcome == OUTCOME_TIMEOUT,
             outcome=outcome,
             nearest_gap=nearest_gap,
@@ -615,14 +665,34 @@ class CrowdWorld:
             intrusions=intrusions,
         )
 
+    def _end_at_walls(self, robot_before: np.ndarray, outcome: np.ndarray, reward: np.ndarray) -> None:
+        """A robot whose disc touched a wall during the step (swept, like a collision with a human) ends its episode
+        with `OUTCOME_COLLISION_WALL` and the collision penalty instead of the step's goal bonus; a collision with a
+        human in the same step is counted as that. Updates `outcome`, `reward` and the episode return in place."""
+        hit = self.walls.robot_hit(robot_before, self.positions[:, 0], self.radii[:, 0])
+        hit &= outcome != OUTCOME_COLLISION
+        if not hit.any():
+            return
+        rew = self.config.reward
+        correction = -rew.collision - np.where(outcome == OUTCOME_GOAL, rew.goal, 0.0)
+        reward[hit] += correction[hit]
+        self.episode_return[hit] += correction[hit]
+        outcome[hit] = OUTCOME_COLLISION_WALL
+        self.wall_collision[hit] = True
+
     def _humans_near_robot(self, radius: float) -> np.ndarray:
         return _humans_within(self.positions, self.radii, self.active, radius)
 
     def _redraw_reached_goals(self) -> None:
         reached = self.active & self.humans_slots
         reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.arrival_distances
+        routed = hasattr(self.scenario, "next_goal")  # map scenarios: the next leg of a route after the goal reached
         for env, agent in zip(*np.nonzero(reached)):
-            self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config, self.positions[env, agent])
+            if routed:
+                self.goals[env, agent] = self.scenario.next_goal(self.rngs[env], self.config, self.goals[env, agent])
+            else:
+                self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config,
+                                                                self.positions[env, agent])
 
     # ---------------------------------------------------------------------------------------------------- observe
 
@@ -640,17 +710,31 @@ class CrowdWorld:
                                                    self.goals[envs])
             speeds, active, heading, keys, steps = (self.preferred_speeds[envs, 0], self.active[envs],
                                                     self.heading[envs], self.noise_keys[envs], self.steps[envs])
+        if self.occlusion:  # a human behind a wall is absent, exactly as one out of range
+            active = active & (self.in_sight if envs is None else self.in_sight[envs])
         robot, humans, mask = _observe(positions, velocities, radii, goals, speeds, active, heading,
                                        self.config.max_humans)
         if noisy and self.config.perturbation.observation_noise > 0.0:
             _add_observation_noise(robot, humans, mask, keys, steps, self.config.perturbation.observation_noise)
-        return {"robot": robot, "humans": humans, "humans_mask": mask}
+        observation = {"robot": robot, "humans": humans, "humans_mask": mask}
+        if self.walls is not None:  # where the robot is on the map (a localised robot: x, y, yaw in the map frame)
+            observation[POSE_KEY] = np.concatenate([positions[:, 0], heading[:, None]], axis=1).astype(np.float32)
+        scan = self.config.scan
+        if scan is not None:
+            if self.walls is None:
+                observation[SCAN_KEY] = np.full((len(positions), scan.beams), scan.range, dtype=np.float32)
+            else:
+                observation[SCAN_KEY] = self.walls.scan(positions[:, 0], heading, scan.beams, scan.range, scan.fov)
+        return observation
 
     def episode_summary(self, env: int, outcome: int) -> dict[str, float | int | str]:
-        """End-of-episode metrics of environment `env` (call before it is reset)."""
+        """End-of-episode metrics of environment `env` (call before it is reset); with ``metrics=True`` followed by
+        the columns `socnav.sim.metrics.METRIC_RECORD_COLUMNS`."""
         time = float(self.time[env])
+        name = OUTCOME_NAMES.get(int(outcome), "running")
+        extended = {} if self.metrics is None else self.metrics.summary(self, env, name)
         return {
-            "outcome": OUTCOME_NAMES.get(int(outcome), "running"),
+            "outcome": name,
             "return": float(self.episode_return[env]),
             "length": int(self.steps[env]),
             "duration": time,
@@ -660,4 +744,5 @@ class CrowdWorld:
             "intrusion_steps": int(self.intrusion_steps[env]),
             "intrusion_events": int(self.intrusion_events[env]),
             "disturbance": float(self.disturbance[env]),
+            **extended,
         }

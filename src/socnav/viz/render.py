@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.artist import Artist
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.collections import EllipseCollection, LineCollection
+from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
 from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
@@ -30,6 +30,8 @@ INATTENTIVE_EDGE_COLOR = "#555555"
 THRESHOLD_COLOR = "#d62828"
 ROBOT_GOAL_COLOR = "#2a9d8f"
 PANEL_BAR_COLOR = "#6c5b7b"
+WALL_COLOR = "#4a4a4a"  # walls: solid polygons filled, wall segments as thick lines
+HIDDEN_VEIL = (1.0, 1.0, 1.0, 0.65)  # a human the robot cannot see (behind a wall): drawn faded, dotted outline
 
 TRAIL_ALPHA_RANGE = (0.08, 0.6)  # oldest -> newest trail chunk
 TRAIL_BANDS = 6  # number of alpha steps along a trail
@@ -87,6 +89,10 @@ class SceneFrame:
     #: (N,) the name of the model moving each agent (slot 0, the robot, is ignored); None: not shown. Drawn (mark,
     #: outline colour, legend) when the active humans are not all ORCA humans.
     models: Sequence[str] | None = None
+    #: the world's walls: polygons (K, 2) in metres (K = 2: a wall segment); None or empty: the open plane
+    walls: Sequence[np.ndarray] | None = None
+    #: (N,) bool: the humans the robot cannot see (behind a wall, ``occlusion``), drawn faded; None: all seen
+    hidden: np.ndarray | None = None
 
 
 class SceneRenderer:
@@ -209,6 +215,10 @@ class SceneRenderer:
                 EllipseCollection([], [], [], units="xy", offsets=empty, offset_transform=ax.transData, **kw)
             )
 
+        self.wall_blocks = ax.add_collection(PolyCollection([], facecolors=WALL_COLOR, edgecolors=WALL_COLOR,
+                                                            linewidths=1.0))
+        self.wall_lines = ax.add_collection(LineCollection([], colors=WALL_COLOR, linewidths=3.0,
+                                                           capstyle="round"))
         self.trail_lines = ax.add_collection(LineCollection([], linewidths=1.5, joinstyle="round"))
         self.personal_space = discs(facecolors="none", edgecolors=to_rgba(HUMAN_COLOR, 0.45),
                                     linestyles="--", linewidths=0.9)
@@ -217,6 +227,8 @@ class SceneRenderer:
         self.inattentive = discs(facecolors=INATTENTIVE_COLOR, edgecolors=INATTENTIVE_EDGE_COLOR, linewidths=1.2,
                                  linestyles="--")
         self.human_vel = ax.add_collection(LineCollection([], colors=to_rgba(HUMAN_EDGE_COLOR, 0.5), linewidths=1.0))
+        self.hidden_humans = discs(facecolors=HIDDEN_VEIL, edgecolors=HUMAN_EDGE_COLOR, linewidths=1.0,
+                                   linestyles=":")
         (self.robot_goal,) = ax.plot([], [], "*", color=ROBOT_GOAL_COLOR, markeredgecolor="#14524b", markersize=15)
         self.robot = ax.add_patch(Circle((0.0, 0.0), 0.3, facecolor=ROBOT_COLOR, edgecolor="black", linewidth=1.0))
         (self.heading_line,) = ax.plot([], [], color="black", linewidth=2.0, solid_capstyle="round")
@@ -231,7 +243,9 @@ class SceneRenderer:
         self._model_marks: dict[str, Line2D] = {}  # per human model, its marks (made when first shown)
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
+            self.wall_blocks, self.wall_lines,
             self.trail_lines, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
+            self.hidden_humans,
             self.robot_goal, self.robot, self.heading_line, self.time_text, self.caption_text, self.title_text,
             self.outcome_text,
         ]  # fmt: skip
@@ -308,6 +322,15 @@ class SceneRenderer:
             discs.set_heights(diameters)
             discs.set_angles(np.zeros(len(agents)))
         self.human_vel.set_segments(np.stack([pos[humans], pos[humans] + vel[humans]], axis=1))
+        hidden = humans if f.hidden is None else humans[np.asarray(f.hidden, dtype=bool)[humans]]
+        hidden = hidden if f.hidden is not None else humans[:0]
+        self.hidden_humans.set_offsets(pos[hidden].reshape(-1, 2))
+        self.hidden_humans.set_widths(2 * radii[hidden])
+        self.hidden_humans.set_heights(2 * radii[hidden])
+        self.hidden_humans.set_angles(np.zeros(len(hidden)))
+        walls = [np.asarray(polygon, dtype=float) for polygon in (f.walls or ())]
+        self.wall_blocks.set_verts([polygon for polygon in walls if len(polygon) >= 3])
+        self.wall_lines.set_segments([polygon for polygon in walls if len(polygon) == 2])
         self.human_goals.set_data(goals[humans, 0], goals[humans, 1])
         self._update_models(f, models, pos, seeing, ignoring)
 

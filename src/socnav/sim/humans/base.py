@@ -40,6 +40,12 @@ class Crowd:
     #: (E, N) int: in a mixed crowd (``humans.mix``), the index of the model that moves each human (the order of
     #: `socnav.sim.humans.MixedHumans.models`); zeros otherwise. Single models ignore it.
     model_index: np.ndarray | None = None
+    #: the world's static walls (`socnav.sim.obstacles.ObstacleBatch`, RVO2's processed obstacles of each env);
+    #: None without walls. Models that avoid walls read it; ORCA uses RVO2's obstacle half-planes.
+    obstacles: Any = None
+    #: the same walls as their edges, unsplit (`socnav.sim.geometry.polygon_segments`): (seg_start (E, S, 2),
+    #: seg_end (E, S, 2), n_segments (E,) int64); None without walls. The social force samples points along them.
+    wall_segments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @runtime_checkable

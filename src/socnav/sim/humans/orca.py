@@ -37,6 +37,7 @@ class OrcaHumans:
     """`HumanModel` "orca": every input of the `Crowd` is used as ORCA's own.
 
     Attention: a robot a human does not see (``sees``) takes no neighbour slot and adds no ORCA half-plane.
+    Walls: RVO2's obstacle half-planes (``orca.time_horizon_obst``), before the agents' ones.
     Personal space: ``radius_pad`` enlarges the robot's radius in that human's ORCA. Cooperation:
     ``avoidance_share`` is the human's share of the velocity correction (RVO2's 0.5 between humans).
     """
@@ -44,8 +45,10 @@ class OrcaHumans:
     name = "orca"
     arrival_distance = 0.0  # a human slows down to stop exactly on its goal
 
-    def __init__(self, time_horizon: float, neighbor_dist: float, max_neighbors: int, time_step: float):
+    def __init__(self, time_horizon: float, neighbor_dist: float, max_neighbors: int, time_step: float,
+                 time_horizon_obst: float = 2.0):
         self.time_horizon = float(time_horizon)
+        self.time_horizon_obst = float(time_horizon_obst)
         self.neighbor_dist = float(neighbor_dist)
         self.max_neighbors = int(max_neighbors)
         self.time_step = float(time_step)
@@ -54,7 +57,8 @@ class OrcaHumans:
     @classmethod
     def from_config(cls, config: HumanSettings) -> "OrcaHumans":
         orca = config.orca
-        return cls(orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, config.time_step)
+        return cls(orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, config.time_step,
+                   orca.time_horizon_obst)
 
     def velocities(self, crowd: Crowd, compute: np.ndarray) -> np.ndarray:
         preferred = preferred_velocities(crowd.positions, crowd.goals, crowd.max_speeds, crowd.active,
@@ -63,4 +67,6 @@ class OrcaHumans:
             crowd.positions, crowd.velocities, crowd.radii, preferred, crowd.max_speeds, crowd.active, compute,
             crowd.radius_pad, crowd.avoidance_share, crowd.sees,
             self.time_horizon, self.neighbor_dist, self.max_neighbors, self.time_step,
+            **({} if crowd.obstacles is None else {"obstacles": crowd.obstacles,
+                                                    "time_horizon_obst": self.time_horizon_obst}),
         )

@@ -1,5 +1,12 @@
 """Social force humans: the extended social force model (Helbing & Molnár 1995; Moussaïd et al. 2009) as PySocialForce
-1.1.2 implements it, without obstacles or groups, one numba kernel over every human of every environment.
+1.1.2 implements it, walls included, groups left out, one numba kernel over every human of every environment.
+
+Walls push as PySocialForce's `ObstacleForce` pushes: from points sampled along each wall segment exactly as its
+`EnvState` samples its line obstacles (int(length x resolution) points, `np.linspace` from end to end), not from the
+closest point of each segment. The force is a sum over those points, so its size grows with the resolution and a
+closest-point force would differ from PySocialForce's by far more than the point spacing; sampling the same points
+keeps the oracle agreement exact. Segments are the walls' polygon edges, unsplit (`Crowd.wall_segments`), each
+sampled on its own as PySocialForce samples each line (a corner is sampled once per edge that meets there).
 """
 
 from __future__ import annotations
@@ -16,8 +23,13 @@ from socnav.sim.humans.base import Crowd, HumanSettings
 PARAMETERS = (
     "relaxation_time", "goal_threshold", "desired_force_factor", "social_force_factor", "lambda_importance",
     "gamma", "n", "n_prime", "wrap_theta", "max_speed_multiplier", "stop_distance", "field_of_view", "fov_phi",
-    "fov_factor",
+    "fov_factor", "obstacle_force_factor", "obstacle_sigma", "obstacle_threshold", "obstacle_resolution",
 )
+
+# Wall points are skipped unevaluated only when this much beyond the cut-off (a whole segment by its closest point,
+# the rest of a segment by where the cut-off circle crosses it): rounding (~1e-15 m) can then never skip a point
+# that PySocialForce counts.
+_SKIP_MARGIN = 1e-9
 
 
 @numba.njit(cache=True)
@@ -26,17 +38,80 @@ def _sign(x):
 
 
 @numba.njit(cache=True)
+def _segment_distance(px, py, ax, ay, bx, by):
+    """Distance from p to the closest point of the segment [a, b] (a point when a = b)."""
+    dx, dy = bx - ax, by - ay
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 == 0.0 else min(1.0, max(0.0, ((px - ax) * dx + (py - ay) * dy) / length2))
+    cx, cy = px - (ax + t * dx), py - (ay + t * dy)
+    return math.sqrt(cx * cx + cy * cy)
+
+
+@numba.njit(cache=True)
+def _wall_push(px, py, radius, seg_start, seg_end, n_segments, env, sigma, cutoff, resolution):
+    """PySocialForce's ObstacleForce on an agent at p of radius r, before its factor: (fx, fy, any point in range).
+
+    Each segment [a, b] is sampled as PySocialForce's EnvState samples a line: m = int(|a - b| resolution) points
+    q_k = k (b - a) / (m - 1) + a (numpy's linspace: q_{m-1} = b exactly; m = 1: a alone; m = 0: none). Every point
+    with d_k = |p - q_k| - r < cutoff = threshold + r pushes along u_k = (p - q_k) / |p - q_k| (0 when p = q_k):
+        F = sum_k exp(-d_k / sigma) u_k.
+    """
+    fx, fy, near = 0.0, 0.0, False
+    reach = cutoff + radius + _SKIP_MARGIN  # |p - q| below which a point may count
+    for s in range(n_segments[env]):
+        ax, ay = seg_start[env, s, 0], seg_start[env, s, 1]
+        bx, by = seg_end[env, s, 0], seg_end[env, s, 1]
+        if _segment_distance(px, py, ax, ay, bx, by) >= reach:
+            continue
+        lx, ly = ax - bx, ay - by
+        samples = int(math.sqrt(lx * lx + ly * ly) * resolution)
+        step_x = (bx - ax) / (samples - 1) if samples > 1 else 0.0
+        step_y = (by - ay) / (samples - 1) if samples > 1 else 0.0
+        first, last = 0, samples - 1
+        if samples > 2:
+            # Only points at t = k / (m - 1) inside the circle |p - q(t)| < reach, q(t) = a + t (b - a), can count:
+            # t in tc -+ h, tc the foot of p, h the half chord; one point more each side covers any rounding.
+            dx, dy = bx - ax, by - ay
+            length2 = dx * dx + dy * dy
+            foot = ((px - ax) * dx + (py - ay) * dy) / length2
+            off_x, off_y = px - (ax + foot * dx), py - (ay + foot * dy)
+            half_chord = math.sqrt(max(0.0, reach * reach - off_x * off_x - off_y * off_y) / length2)
+            first = max(0, int(math.floor((foot - half_chord) * (samples - 1))) - 1)
+            last = min(samples - 1, int(math.ceil((foot + half_chord) * (samples - 1))) + 1)
+        for k in range(first, last + 1):
+            if k == samples - 1 and samples > 1:
+                qx, qy = bx, by
+            else:
+                qx, qy = k * step_x + ax, k * step_y + ay
+            dx, dy = px - qx, py - qy
+            distance = math.sqrt(dx * dx + dy * dy)
+            clearance = distance - radius
+            if not clearance < cutoff:
+                continue
+            near = True
+            if distance == 0.0:
+                continue  # PySocialForce's normalize: a zero vector stays zero
+            weight = math.exp(-clearance / sigma)
+            fx += dx / distance * weight
+            fy += dy / distance * weight
+    return fx, fy, near
+
+
+@numba.njit(cache=True)
 def social_force_velocities_kernel(
-    positions, velocities, goals, max_speeds, active, compute, radius_pad, sees,  # the `Crowd`
+    positions, velocities, goals, radii, max_speeds, active, compute, radius_pad, sees,  # the `Crowd`
+    seg_start, seg_end, n_segments,  # its walls (`Crowd.wall_segments`; no segments without walls)
     time_step, relaxation_time, goal_threshold, desired_force_factor, social_force_factor, lambda_importance,
     gamma, n, n_prime, wrap_theta, max_speed_multiplier, stop_distance, field_of_view, cos_fov_phi, fov_factor,
+    obstacle_force_factor, obstacle_sigma, obstacle_threshold, obstacle_resolution,
     out,
 ):
     """Write every computed agent's new velocity into `out` (E, N, 2); the others keep their current velocity.
 
-    Per agent i: the desired force plus the social force of every agent j it sees, then PySocialForce's velocity
-    step. PySocialForce's sign convention is kept (vectors point from j to i) so that its unwrapped angle difference
-    theta, and with it every force, comes out the same (`wrap_theta` wraps it to [-pi, pi) instead).
+    Per agent i: the desired force, the social force of every agent j it sees and the walls' force, then
+    PySocialForce's velocity step. PySocialForce's sign convention is kept (vectors point from j to i) so that its
+    unwrapped angle difference theta, and with it every force, comes out the same (`wrap_theta` wraps it to
+    [-pi, pi) instead).
     """
     n_envs, n_agents = active.shape
     for env in range(n_envs):
@@ -106,6 +181,16 @@ def social_force_velocities_kernel(
             fx += social_force_factor * sx
             fy += social_force_factor * sy
 
+            # Walls (PySocialForce's ObstacleForce, `_wall_push`), the human's body radius as its agent_radius.
+            radius = radii[env, i]
+            push_x, push_y, near_wall = _wall_push(
+                positions[env, i, 0], positions[env, i, 1], radius, seg_start, seg_end, n_segments, env,
+                obstacle_sigma, obstacle_threshold + radius, obstacle_resolution,
+            )
+            if near_wall:
+                fx += obstacle_force_factor * push_x
+                fy += obstacle_force_factor * push_y
+
             # Velocity step (PySocialForce's PedState.step): v <- v + dt F, capped at the max speed,
             #   v <- v min(1, v_max / |v|)  (0 if |v| = 0),  and v <- 0 within stop_distance of the goal.
             # The world then moves the human by p <- p + v dt (semi-implicit Euler, as PySocialForce).
@@ -123,12 +208,13 @@ class SocialForceHumans:
     Attention: an agent a human does not see (``sees``; the robot while the human is inattentive or has not
     noticed it) exerts no force on it. Personal space: ``radius_pad`` shortens the distance d in the robot's force
     (never below 0), so a human with a larger personal space is pushed harder and from farther away. The social
-    force acts between centres, so body radii play no part (as in PySocialForce), and it has no reciprocal
+    force acts between centres, so body radii play no part in it (as in PySocialForce), and it has no reciprocal
     avoidance to share: ``avoidance_share`` (cooperation) is unused. The robot is one more agent, moved by the
     policy, not by this model. With ``field_of_view``, forces from outside the human's view cone are weighted by
     ``fov_factor`` (PySocialForce applies this weighting to its older pedestrian repulsion only, which its simulator
     leaves out; off by default, as there). The interaction angle theta is left unwrapped, as PySocialForce leaves
-    it, unless ``wrap_theta``.
+    it, unless ``wrap_theta``. Walls (``wall_segments``) push with PySocialForce's obstacle force, each human's body
+    radius playing its ``agent_radius``.
     """
 
     name = "social_force"
@@ -138,7 +224,8 @@ class SocialForceHumans:
     def __init__(self, time_step: float, *, relaxation_time: float, goal_threshold: float,
                  desired_force_factor: float, social_force_factor: float, lambda_importance: float, gamma: float,
                  n: float, n_prime: float, wrap_theta: bool, max_speed_multiplier: float, stop_distance: float,
-                 field_of_view: bool, fov_phi: float, fov_factor: float):
+                 field_of_view: bool, fov_phi: float, fov_factor: float, obstacle_force_factor: float,
+                 obstacle_sigma: float, obstacle_threshold: float, obstacle_resolution: float):
         self.time_step = float(time_step)
         self.parameters = {
             "relaxation_time": float(relaxation_time), "goal_threshold": float(goal_threshold),
@@ -147,6 +234,8 @@ class SocialForceHumans:
             "n_prime": float(n_prime), "wrap_theta": bool(wrap_theta),
             "max_speed_multiplier": float(max_speed_multiplier), "stop_distance": float(stop_distance),
             "field_of_view": bool(field_of_view), "fov_phi": float(fov_phi), "fov_factor": float(fov_factor),
+            "obstacle_force_factor": float(obstacle_force_factor), "obstacle_sigma": float(obstacle_sigma),
+            "obstacle_threshold": float(obstacle_threshold), "obstacle_resolution": float(obstacle_resolution),
         }
         self.arrival_distance = self.parameters["stop_distance"]
         # The kernel's scalar arguments in `PARAMETERS` order, the view cone's half-angle as its cosine.
@@ -160,8 +249,20 @@ class SocialForceHumans:
 
     def velocities(self, crowd: Crowd, compute: np.ndarray) -> np.ndarray:
         out = np.empty_like(crowd.velocities)
+        if crowd.wall_segments is None:
+            n_envs = len(crowd.positions)
+            walls = (np.zeros((n_envs, 0, 2)), np.zeros((n_envs, 0, 2)), np.zeros(n_envs, dtype=np.int64))
+        else:
+            walls = crowd.wall_segments
+            seg_start, seg_end, n_segments = walls
+            # numba does not check bounds: a mismatch would read past the arrays
+            if (seg_start.shape != seg_end.shape or seg_start.shape[0] != len(crowd.positions)
+                    or n_segments.shape != (len(crowd.positions),) or np.any(n_segments > seg_start.shape[1])):
+                raise ValueError(f"Crowd.wall_segments: expected (seg_start (E, S, 2), seg_end (E, S, 2), "
+                                 f"n_segments (E,) <= S) for E = {len(crowd.positions)}, got shapes "
+                                 f"{seg_start.shape}, {seg_end.shape}, {n_segments.shape}")
         social_force_velocities_kernel(
-            crowd.positions, crowd.velocities, crowd.goals, crowd.max_speeds, crowd.active, compute,
-            crowd.radius_pad, crowd.sees, self.time_step, *self._arguments, out,
+            crowd.positions, crowd.velocities, crowd.goals, crowd.radii, crowd.max_speeds, crowd.active, compute,
+            crowd.radius_pad, crowd.sees, *walls, self.time_step, *self._arguments, out,
         )
         return out

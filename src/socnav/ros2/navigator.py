@@ -1,0 +1,380 @@
+"""`NavigatorNode`: the torch-free `SafeNavigator` as a ROS 2 node (``socnav ros2 navigator``).
+Odometry, goal and tracked humans in; geometry_msgs/Twist on ``cmd_vel`` out, with diagnostics, state and markers.
+
+Each decision (every ``1 / rate`` s of the node's clock — simulated time with ``use_sim_time`` — or, with
+``lockstep``, once per set of odometry, humans and goal carrying one stamp, as a lock-step simulator sends them):
+
+1. the inputs are checked: present, not older than ``max_input_age`` (nor stamped that far in the future: another
+   clock), in the configured frames, finite (`socnav.ros2.messages`); the goal not yet reached (``goal_tolerance``);
+2. `SafeNavigator.act` decides (policy, MC-dropout uncertainty, collision-probability rule, cautious fallback);
+3. the command goes out on ``cmd_vel``; the decision's state on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray),
+   ``~/fallback`` (std_msgs/Bool), ``~/uncertainty`` (std_msgs/Float64MultiArray: :data:`UNCERTAINTY_NAMES`),
+   ``~/latency`` (std_msgs/Float64: seconds from the triggering callback to the command's publication) and
+   ``~/markers`` (visualization_msgs/MarkerArray).
+
+Whenever step 1 fails, or `act` refuses its input, the node publishes a zero Twist (the robot stops) and says why on
+``/diagnostics`` (level ERROR for a missing, stale or invalid input; OK for "no goal yet" and "goal reached"). No
+message makes a callback raise: a message is parsed once, when it arrives, and a bad one is kept as its error, so the
+next decision stops the robot until a good one replaces it. A goal at a new position starts a new navigation task
+(`SafeNavigator.reset`: empty uncertainty window, no held fallback).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PoseStamped, Twist
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Bool, ColorRGBA, Float64, Float64MultiArray, MultiArrayDimension
+from visualization_msgs.msg import Marker, MarkerArray
+
+from socnav.ros2.messages import (MessageError, RobotOdometry, TrackedHumans, cloud_to_humans, command_to_twist,
+                                  goal_to_position, odometry_to_robot, stamp_to_ns)
+from socnav.runtime import InputError, SafeNavigator
+
+__all__ = ["DEFAULT_NODE_NAME", "UNCERTAINTY_NAMES", "NavigatorNode", "NavigatorSetupError", "Outcome"]
+
+DEFAULT_NODE_NAME = "socnav_navigator"
+#: The order of ``~/uncertainty``'s values: the windowed uncertainties the collision rule read (NaN when none).
+UNCERTAINTY_NAMES = ("u_ep_speed", "u_ep_heading", "u_al_speed", "u_al_heading", "u_feat")
+#: Lock-step: how often (wall clock) a decision waiting for ``cmd_vel``'s first subscriber is retried.
+_PENDING_RETRY_S = 0.01
+_NS = 1_000_000_000
+
+
+class NavigatorSetupError(ValueError):
+    """A parameter of the node that it cannot start with (the text names it and the allowed values)."""
+
+
+@dataclass
+class _Latest:
+    """The last message of one input: its parsed value, or why it could not be used; its header stamp either way."""
+
+    value: Any = None
+    error: str | None = None
+    stamp_ns: int | None = None
+    received: int = 0
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one decision published: the command, whether the robot was stopped and why, the decision's state."""
+
+    speed: float
+    turn: float
+    stopped: bool
+    level: int  # diagnostic_msgs/DiagnosticStatus level
+    message: str
+    fallback: bool = False
+    windowed: dict[str, float] = field(default_factory=lambda: dict.fromkeys(UNCERTAINTY_NAMES, math.nan))
+    fault: str | None = None
+    humans: int = 0
+    goal_distance: float = math.nan
+
+
+def _descriptor(description: str, read_only: bool = True) -> ParameterDescriptor:
+    return ParameterDescriptor(description=description, read_only=read_only)
+
+
+class NavigatorNode(Node):
+    """The safe navigator as a ROS 2 node; see the module's docstring and docs/ros2.md for topics and parameters.
+
+    :param model: the navigator file (``socnav export``); the ``model`` parameter overrides it.
+    :param node_name: the node's name. :param parameter_overrides: parameters (e.g. from a test) that take
+        precedence over ``--ros-args -p``. :param context: the rclpy context (None: the default one).
+    :raises NavigatorSetupError: an invalid parameter value.
+    :raises socnav.runtime.NavigatorLoadError: the navigator file cannot be used.
+    """
+
+    def __init__(self, model: str | Path | None = None, node_name: str = DEFAULT_NODE_NAME,
+                 parameter_overrides: list[Parameter] | None = None, context: Any = None) -> None:
+        super().__init__(node_name, parameter_overrides=parameter_overrides, context=context)
+        declare = self.declare_parameter
+        path = declare("model", "" if model is None else str(model),
+                       _descriptor("navigator file written by `socnav export`")).value
+        if not path:
+            raise NavigatorSetupError("parameter model is empty: name the navigator file (socnav export's output)")
+        thresholds = declare("thresholds", "", _descriptor("safety thresholds: '' (the file's), mc, ensemble or a "
+                                                           "`socnav calibrate` file")).value
+        k = declare("k", 0, _descriptor("MC-dropout samples per decision (0: the file's)")).value
+        seed = declare("seed", -1, _descriptor("seed of the MC-dropout masks (-1: fresh entropy)")).value
+        self.navigator = SafeNavigator.load(path, thresholds=thresholds or None, k=k or None,
+                                            seed=None if seed < 0 else seed)
+        config = self.navigator.config
+        self.time_step = float(config.time_step)
+        self.rate = float(declare("rate", 1.0 / self.time_step,
+                                  _descriptor("decisions (cmd_vel messages) per second of the node's clock")).value)
+        self.lockstep = bool(declare("lockstep", False, _descriptor(
+            "decide once per set of odometry, humans and goal with one stamp (lock-step simulators), not on a "
+            "timer")).value)
+        topics = {name: declare(f"{name}_topic", default, _descriptor(f"topic of the {what}")).value
+                  for name, default, what in (
+                      ("odom", "odom", "robot's odometry (nav_msgs/Odometry)"),
+                      ("humans", "humans", "tracked humans (sensor_msgs/PointCloud2: x, y, vx, vy[, radius])"),
+                      ("goal", "goal_pose", "goal (geometry_msgs/PoseStamped)"),
+                      ("cmd_vel", "cmd_vel", "command (geometry_msgs/Twist)"),
+                      ("diagnostics", "/diagnostics", "diagnostics (diagnostic_msgs/DiagnosticArray)"))}
+        self.odom_frame = declare("odom_frame", "odom", _descriptor("the odometry frame: odometry, humans and goal "
+                                                                    "are in it")).value
+        self.base_frame = declare("base_frame", "base_link", _descriptor("the robot's frame (odometry's "
+                                                                         "child_frame_id)")).value
+        dynamic = {
+            "max_input_age": (0.5, "seconds: older odometry or humans (by header stamp) stop the robot"),
+            "preferred_speed": (float(config.preferred_speed[1]), "the robot's preferred speed v_pref (m/s), at "
+                                                                   "most the navigator's largest"),
+            "robot_radius": (float(config.robot_radius), "the robot's radius (m)"),
+            "human_radius": (float(config.human_radius), "radius (m) of humans in a cloud without a radius field"),
+            "goal_tolerance": (float(config.goal_tolerance), "metres: closer to the goal, the robot stops"),
+        }
+        for name, (default, description) in dynamic.items():
+            declare(name, default, _descriptor(description, read_only=False))
+        self.settings = {name: float(self.get_parameter(name).value) for name in dynamic}
+        self.publish_markers = bool(declare("markers", True, _descriptor("publish ~/markers for RViz")).value)
+        for name, value in [("rate", self.rate), *self.settings.items()]:
+            problem = self._problem(name, value)
+            if problem:
+                raise NavigatorSetupError(problem)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.odometry, self.humans, self.goal = _Latest(), _Latest(), _Latest()
+        self._last_decided_stamp: int | None = None
+        self._pending_trigger: float | None = None  # lock-step: a decision waiting for cmd_vel's first subscriber
+        self._last_report = ""
+        self.decisions = 0
+        # Lock-step loses no message (the simulator waits for each command); on a robot, best effort also accepts
+        # sensor drivers' best-effort publishers.
+        sensor_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE) if self.lockstep \
+            else qos_profile_sensor_data
+        self.create_subscription(Odometry, topics["odom"], self._on_odometry, sensor_qos)
+        self.create_subscription(PointCloud2, topics["humans"], self._on_humans, sensor_qos)
+        self.create_subscription(PoseStamped, topics["goal"], self._on_goal, 10)
+        self.cmd_vel = self.create_publisher(Twist, topics["cmd_vel"], 10)
+        self.diagnostics = self.create_publisher(DiagnosticArray, topics["diagnostics"], 10)
+        self.fallback_topic = self.create_publisher(Bool, "~/fallback", 10)
+        self.uncertainty_topic = self.create_publisher(Float64MultiArray, "~/uncertainty", 10)
+        self.latency_topic = self.create_publisher(Float64, "~/latency", 10)
+        self.markers = self.create_publisher(MarkerArray, "~/markers", 10) if self.publish_markers else None
+        if self.lockstep:
+            self.create_timer(_PENDING_RETRY_S, self._retry_pending, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        else:
+            self.create_timer(1.0 / self.rate, self._on_timer)
+        self.get_logger().info(f"{self.navigator!r}; {'lock-step' if self.lockstep else f'{self.rate:g} Hz'}, "
+                               f"topics {topics}")
+
+    # ------------------------------------------------------------------------------------------------- parameters
+
+    def _problem(self, name: str, value: Any) -> str | None:
+        """Why ``value`` is not allowed for parameter ``name`` (None: it is)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return f"parameter {name} must be a finite number, got {value!r}"
+        if name == "preferred_speed" and not 0.0 < value <= self.navigator.max_speed:
+            return (f"parameter preferred_speed must be > 0 and <= {self.navigator.max_speed} (the navigator's "
+                    f"largest trained preferred speed), got {value}")
+        if name in ("robot_radius", "human_radius") and value < 0.0:
+            return f"parameter {name} must be >= 0, got {value}"
+        if name in ("rate", "max_input_age", "goal_tolerance") and value <= 0.0:
+            return f"parameter {name} must be > 0, got {value}"
+        return None
+
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        updates = {}
+        for parameter in parameters:
+            if parameter.name in self.settings:
+                problem = self._problem(parameter.name, parameter.value)
+                if problem:
+                    return SetParametersResult(successful=False, reason=problem)
+                updates[parameter.name] = float(parameter.value)
+        self.settings.update(updates)
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------------------------------------- inputs
+
+    def _on_odometry(self, message: Odometry) -> None:
+        self._store(self.odometry, message, "odometry",
+                    lambda: odometry_to_robot(message, self.odom_frame, self.base_frame))
+
+    def _on_humans(self, message: PointCloud2) -> None:
+        self._store(self.humans, message, "humans",
+                    lambda: cloud_to_humans(message, self.odom_frame, self.settings["human_radius"]))
+
+    def _on_goal(self, message: PoseStamped) -> None:
+        previous = self.goal.value
+        self._store(self.goal, message, "goal", lambda: goal_to_position(message, self.odom_frame))
+        if self.goal.value is not None and (previous is None or not np.array_equal(previous, self.goal.value)):
+            self.navigator.reset()  # a new navigation task
+
+    def _store(self, latest: _Latest, message: Any, what: str, parse: Callable[[], Any]) -> None:
+        """Keep ``message`` parsed, or its problem; then, in lock-step, decide if the inputs now share a stamp."""
+        started = time.perf_counter()
+        latest.received += 1
+        try:
+            latest.stamp_ns = stamp_to_ns(message.header.stamp)
+            latest.value, latest.error = parse(), None
+        except MessageError as exc:
+            latest.value, latest.error = None, str(exc)
+        except Exception as exc:  # noqa: BLE001 -- a message must never stop the node: the robot stops instead
+            latest.value, latest.error = None, f"{what} message could not be read ({type(exc).__name__}: {exc})"
+        if self.lockstep:
+            self._pending_trigger = started
+            self._decide_if_complete()
+
+    def _decide_if_complete(self) -> None:
+        stamps = {self.odometry.stamp_ns, self.humans.stamp_ns, self.goal.stamp_ns}
+        if len(stamps) != 1 or None in stamps or self._pending_trigger is None:
+            return
+        stamp = stamps.pop()
+        if self._last_decided_stamp is not None and stamp <= self._last_decided_stamp:
+            self._pending_trigger = None  # a repeated stamp: decided already
+            return
+        if self.cmd_vel.get_subscription_count() == 0:
+            return  # nobody would receive it: `_retry_pending` decides once the simulator's subscription matched
+        started, self._pending_trigger = self._pending_trigger, None
+        self._last_decided_stamp = stamp
+        self._decide(started)
+
+    def _retry_pending(self) -> None:
+        if self._pending_trigger is not None:
+            self._decide_if_complete()
+
+    def _on_timer(self) -> None:
+        self._decide(time.perf_counter())
+
+    # ------------------------------------------------------------------------------------------------- decision
+
+    def _input_problem(self, latest: _Latest, what: str, now_ns: int) -> str | None:
+        if latest.error is not None:
+            return latest.error
+        if latest.value is None:
+            return f"no {what} received yet"
+        age = (now_ns - latest.stamp_ns) / _NS
+        limit = self.settings["max_input_age"]
+        if age > limit:
+            return f"{what} is stale: {age:.3f} s old (max_input_age {limit:g} s)"
+        if -age > limit:
+            return (f"{what} is stamped {-age:.3f} s in the future (max_input_age {limit:g} s): does it use the node's "
+                    "clock (use_sim_time)?")
+        return None
+
+    def _decide(self, started: float) -> None:
+        """One decision from the latest inputs; publishes the command and the decision's state. Never raises."""
+        try:
+            outcome = self._outcome(self.get_clock().now().nanoseconds)
+        except Exception as exc:  # noqa: BLE001 -- the last guard: stop the robot, keep the node running
+            outcome = Outcome(0.0, 0.0, True, DiagnosticStatus.ERROR,
+                              f"stopped: internal error ({type(exc).__name__}: {exc})")
+        self.cmd_vel.publish(command_to_twist(outcome.speed, outcome.turn, self.time_step))
+        latency = time.perf_counter() - started
+        self.decisions += 1
+        try:
+            self._publish_state(outcome, latency)
+        except Exception as exc:  # noqa: BLE001 -- the command is out; a failing report must not stop the node
+            self.get_logger().error(f"could not publish the decision's state: {type(exc).__name__}: {exc}")
+
+    def _outcome(self, now_ns: int) -> Outcome:
+        stop = DiagnosticStatus.ERROR
+        for latest, what in ((self.odometry, "odometry"), (self.humans, "humans")):
+            problem = self._input_problem(latest, what, now_ns)
+            if problem:
+                return Outcome(0.0, 0.0, True, stop, f"stopped: {problem}")
+        if self.goal.error is not None:
+            return Outcome(0.0, 0.0, True, stop, f"stopped: {self.goal.error}")
+        if self.goal.value is None:
+            return Outcome(0.0, 0.0, True, DiagnosticStatus.OK, "stopped: no goal yet")
+        robot: RobotOdometry = self.odometry.value
+        humans: TrackedHumans = self.humans.value
+        goal_distance = float(np.hypot(*(self.goal.value - robot.position)))
+        if goal_distance < self.settings["goal_tolerance"]:
+            return Outcome(0.0, 0.0, True, DiagnosticStatus.OK,
+                           f"stopped: goal reached ({goal_distance:.3f} m from it)", humans=len(humans.radii),
+                           goal_distance=goal_distance)
+        state = {"position": robot.position, "velocity": robot.velocity, "heading": robot.heading,
+                 "goal": self.goal.value, "v_pref": self.settings["preferred_speed"],
+                 "radius": self.settings["robot_radius"]}
+        try:
+            decision = self.navigator.act(state, humans.as_mapping())
+        except InputError as exc:
+            return Outcome(0.0, 0.0, True, stop, f"stopped: {exc}", humans=len(humans.radii),
+                           goal_distance=goal_distance)
+        stopped = decision.fault is not None and not decision.fallback
+        level = stop if stopped else DiagnosticStatus.WARN if decision.fallback or decision.fault else \
+            DiagnosticStatus.OK
+        message = ("stopped: " + decision.fault if stopped else
+                   "fallback: the cautious controller drives" if decision.fallback else "policy drives")
+        return Outcome(decision.speed, decision.turn, stopped, level, message, decision.fallback,
+                       dict(decision.windowed), decision.fault, len(humans.radii), goal_distance)
+
+    # ------------------------------------------------------------------------------------------------- reports
+
+    def _publish_state(self, outcome: Outcome, latency: float) -> None:
+        stamp = self.get_clock().now().to_msg()
+        if outcome.message != self._last_report and outcome.stopped:
+            self.get_logger().warning(outcome.message)
+        self._last_report = outcome.message
+        values = {"stopped": outcome.stopped, "fallback": outcome.fallback, "speed": outcome.speed,
+                  "turn_rate": outcome.turn / self.time_step, "latency_s": latency, "humans": outcome.humans,
+                  "goal_distance": outcome.goal_distance, "fault": outcome.fault or "", **outcome.windowed}
+        status = DiagnosticStatus(level=outcome.level, name=f"{self.get_name()}: safe navigator",
+                                  message=outcome.message, hardware_id=self.get_fully_qualified_name(),
+                                  values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = stamp
+        self.diagnostics.publish(array)
+        self.fallback_topic.publish(Bool(data=outcome.fallback))
+        uncertainty = Float64MultiArray(data=[float(outcome.windowed[name]) for name in UNCERTAINTY_NAMES])
+        uncertainty.layout.dim = [MultiArrayDimension(label=",".join(UNCERTAINTY_NAMES), size=len(UNCERTAINTY_NAMES),
+                                                      stride=len(UNCERTAINTY_NAMES))]
+        self.uncertainty_topic.publish(uncertainty)
+        self.latency_topic.publish(Float64(data=latency))
+        if self.markers is not None:
+            self.markers.publish(self._marker_array(outcome, stamp))
+
+    def _marker_array(self, outcome: Outcome, stamp: Any) -> MarkerArray:
+        """Humans (grey cylinders), goal (green disc), robot (blue: policy, orange: fallback, red: stopped) and a
+        text with the windowed uncertainties, in the odometry frame; a DELETEALL first drops humans no longer seen."""
+        markers = [Marker(action=Marker.DELETEALL)]
+
+        def marker(namespace: str, ident: int, kind: int, x: float, y: float, diameter: float, height: float,
+                   color: tuple[float, float, float, float]) -> Marker:
+            item = Marker(ns=namespace, id=ident, type=kind, action=Marker.ADD)
+            item.header.frame_id, item.header.stamp = self.odom_frame, stamp
+            item.pose.position = Point(x=float(x), y=float(y), z=height / 2.0)
+            item.pose.orientation.w = 1.0
+            item.scale.x = item.scale.y = float(diameter)
+            item.scale.z = float(height)
+            item.color = ColorRGBA(r=color[0], g=color[1], b=color[2], a=color[3])
+            return item
+
+        humans: TrackedHumans | None = self.humans.value
+        if humans is not None:
+            for index, (position, radius) in enumerate(zip(humans.positions, humans.radii)):
+                markers.append(marker("humans", index, Marker.CYLINDER, *position, 2 * radius, 1.7,
+                                      (0.6, 0.6, 0.6, 0.8)))
+        if self.goal.value is not None:
+            markers.append(marker("goal", 0, Marker.CYLINDER, *self.goal.value, 2 * self.settings["goal_tolerance"],
+                                  0.02, (0.1, 0.8, 0.2, 0.8)))
+        robot: RobotOdometry | None = self.odometry.value
+        if robot is not None:
+            color = (0.9, 0.1, 0.1, 0.9) if outcome.stopped else (1.0, 0.55, 0.0, 0.9) if outcome.fallback \
+                else (0.2, 0.4, 1.0, 0.9)
+            markers.append(marker("robot", 0, Marker.CYLINDER, *robot.position, 2 * self.settings["robot_radius"],
+                                  0.3, color))
+            text = marker("uncertainty", 0, Marker.TEXT_VIEW_FACING, robot.position[0], robot.position[1], 0.0, 0.25,
+                          (1.0, 1.0, 1.0, 1.0))
+            text.pose.position.z = 1.0
+            text.text = (outcome.message if outcome.stopped else
+                         f"{'FALLBACK' if outcome.fallback else 'policy'}  u_ep {outcome.windowed['u_ep_heading']:.3f}"
+                         f"  u_feat {outcome.windowed['u_feat']:.3f}")
+            markers.append(text)
+        return MarkerArray(markers=markers)
