@@ -109,3 +109,22 @@ def test_renamed_options_keep_their_old_names_as_hidden_deprecated_aliases(tmp_p
     assert result.exit_code == 2 and "--out must be a .yaml or .json" in result.output  # then the usual checks
     for command, old in (("evaluate", "--policy"), ("calibrate", "--budget")):
         assert old not in runner.invoke(app, [command, "--help"]).output
+
+
+def test_evaluate_in_a_world_with_walls_reports_wall_collisions_apart(tmp_path):
+    out = tmp_path / "straight.csv"
+    result = runner.invoke(app, ["evaluate", "--controller", "straight", "--config", str(_pillar_config(tmp_path)),
+                                 "--episodes", "8", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "Wall %" in result.output
+    records = pd.read_csv(out)
+    # straight drives into the pillar on its path: those episodes end as wall collisions, not human collisions
+    assert (records["outcome"] == "collision_wall").sum() >= 6
+    assert records.loc[records["outcome"] == "collision_wall", "collision_obstacle"].all()
+
+
+def _pillar_config(tmp_path):
+    path = tmp_path / "pillar.yaml"
+    path.write_text("scenario: circle_crossing\nn_humans: 0\n"
+                    "obstacles: [[[0.2, 0.2], [1.0, 0.2], [1.0, 1.0], [0.2, 1.0]]]\n")
+    return path

@@ -3,6 +3,11 @@
     socnav run configs/experiments/table3.yaml --budget check --out runs/before   # on the old code
     socnav run configs/experiments/table3.yaml --budget check --out runs/after    # on the new code
     python docs/analysis/compare_runs.py runs/before runs/after                    # exit 1 if anything differs
+    python docs/analysis/compare_runs.py runs/before runs/after --allow-added-columns
+
+With ``--allow-added-columns``, a table of `after` may hold columns `before` lacks (a new metric recorded beside the
+old ones): its shared columns must still be identical, and the added columns are listed, not counted as a
+difference.
 
 Every result file of every unit is compared without tolerance: Parquet and CSV frames (wall-clock columns dropped),
 JSON (wall-clock, host, version and output-hash keys dropped: the hashed files are compared themselves), threshold
@@ -43,13 +48,25 @@ def _model_tensors(path: Path) -> dict[str, bytes]:
         return {name: archive.read(name) for name in archive.namelist() if not name.endswith(("json", "txt"))}
 
 
-def compare_file(before: Path, after: Path) -> str | None:
-    """None if the two files hold the same results, else what differs."""
+def _shared(a: pd.DataFrame, b: pd.DataFrame, added: list[str] | None) -> pd.DataFrame:
+    """`b` restricted to `a`'s columns when added columns are allowed (their names appended to `added`)."""
+    extra = [column for column in b.columns if column not in a.columns]
+    if added is None or not extra or [c for c in b.columns if c in a.columns] != list(a.columns):
+        return b
+    added.extend(extra)
+    return b[list(a.columns)]
+
+
+def compare_file(before: Path, after: Path, added: list[str] | None = None) -> str | None:
+    """None if the two files hold the same results, else what differs. `added`: a list to collect the columns
+    `after`'s tables add (then they are allowed), or None (then they are a difference)."""
     try:
         if before.suffix == ".parquet":
-            pd.testing.assert_frame_equal(pd.read_parquet(before), pd.read_parquet(after), check_exact=True)
+            a, b = pd.read_parquet(before), pd.read_parquet(after)
+            pd.testing.assert_frame_equal(a, _shared(a, b, added), check_exact=True)
         elif before.suffix == ".csv":
             a, b = pd.read_csv(before), pd.read_csv(after)
+            b = _shared(a, b, added)
             wall = [column for column in a.columns if column.startswith("wall")]
             pd.testing.assert_frame_equal(a.drop(columns=wall), b.drop(columns=wall), check_exact=True)
         elif before.suffix == ".json":
@@ -65,8 +82,9 @@ def compare_file(before: Path, after: Path) -> str | None:
     return None
 
 
-def compare_runs(before: Path, after: Path) -> tuple[int, list[str]]:
-    """(files compared, differences) over every result file of `before`."""
+def compare_runs(before: Path, after: Path, added: dict[str, list[str]] | None = None) -> tuple[int, list[str]]:
+    """(files compared, differences) over every result file of `before`; `added`: a dict to collect, per file, the
+    columns its table gains in `after` (allowed), or None (a difference)."""
     compared, differences = 0, []
     for path in sorted(before.rglob("*")):
         relative = path.relative_to(before)
@@ -77,20 +95,30 @@ def compare_runs(before: Path, after: Path) -> tuple[int, list[str]]:
         compared += 1
         if not (after / relative).exists():
             differences.append(f"{relative}: missing in {after}")
-        elif (problem := compare_file(path, after / relative)) is not None:
-            differences.append(f"{relative}: {problem}")
+        else:
+            columns: list[str] | None = None if added is None else []
+            if (problem := compare_file(path, after / relative, columns)) is not None:
+                differences.append(f"{relative}: {problem}")
+            elif columns:
+                added[str(relative)] = columns
     return compared, differences
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 2:
+    allow_added = "--allow-added-columns" in argv
+    paths = [argument for argument in argv if argument != "--allow-added-columns"]
+    if len(paths) != 2:
         print(__doc__)
         return 2
-    before, after = map(Path, argv)
-    compared, differences = compare_runs(before, after)
+    before, after = map(Path, paths)
+    added: dict[str, list[str]] | None = {} if allow_added else None
+    compared, differences = compare_runs(before, after, added)
     print(f"{before} vs {after}: {compared} files compared, {len(differences)} differ")
     for line in differences:
         print("  ", line)
+    if added:
+        columns = sorted({column for names in added.values() for column in names})
+        print(f"   {len(added)} tables gained columns (shared columns identical): {', '.join(columns)}")
     return 1 if differences else 0
 
 

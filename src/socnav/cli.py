@@ -129,7 +129,10 @@ def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table
 
     table = Table(title=title, caption=f"PV per {PV_PER} episodes; nav time of the episodes reaching the goal")
     fallback = any("fallback_pct" in m for _, m in rows)
+    walls = any("collision_obstacle_pct" in m for _, m in rows)  # worlds with walls: wall collisions, apart
     columns = ["run", "episodes", "Goal %", "Col. %", "TO %", f"PV/{PV_PER} ep.", "nav time (s)", "Return"]
+    if walls:
+        columns.insert(4, "Wall %")
     for column in columns + (["fallback % steps"] if fallback else []):
         table.add_column(column, justify="right" if column != "run" else "left", no_wrap=column != "run")
     for name, m in rows:
@@ -137,6 +140,8 @@ def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table
         cells = [escape(name), str(m["episodes"]), f"{m['goal_pct']:.1f}", f"{m['collision_pct']:.1f}",
                  f"{m['timeout_pct']:.1f}", f"{m['pv']:.0f}", "–" if math.isnan(nav_time) else f"{nav_time:.1f}",
                  f"{m['return_mean']:.2f} ± {m['return_std']:.2f}"]
+        if walls:
+            cells.insert(4, f"{m['collision_obstacle_pct']:.1f}" if "collision_obstacle_pct" in m else "–")
         if fallback:
             cells.append(f"{m['fallback_pct']:.1f}" if "fallback_pct" in m else "–")
         table.add_row(*cells)
@@ -502,6 +507,7 @@ def evaluate(
     from socnav.envs.rollout import EPISODE_COLUMNS, summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
     from socnav.sim.metrics import DEFAULT_METRICS, metric_table_rows, select_metrics
+    from socnav.sim.walls import has_walls
 
     try:
         chosen = select_metrics(metrics)
@@ -557,9 +563,11 @@ def evaluate(
     _check_n_envs(min(n_envs, episodes), env_config)  # a rollout never steps more environments than episodes
     records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
                         deterministic=not stochastic, observer=observer)
+    walls = has_walls(env_config)  # a world with walls also counts the episodes that ended against a wall
     if not extended:  # today's records: the world's episode columns only
-        records = records[list(EPISODE_COLUMNS)].copy()
-    summary = summarize(records, pv_per=PV_PER, metrics=chosen if extended else DEFAULT_METRICS)
+        records = records[list(EPISODE_COLUMNS) + (["collision_obstacle"] if walls else [])].copy()
+    defaults = DEFAULT_METRICS + (("collision_obstacle_pct",) if walls else ())
+    summary = summarize(records, pv_per=PV_PER, metrics=chosen if extended else defaults)
     if observer is not None:
         records["fallback_steps"] = observer.per_episode(records["episode"])
         summary["fallback_pct"] = fallback_percent(records)

@@ -46,6 +46,8 @@ from socnav.rl.persistence import (
 )
 from socnav.rl.policy import NonFiniteError
 from socnav.rl.presets import AlgoConfig, AlgoName, make_model, resolve_config
+from socnav.sim.metrics import DEFAULT_METRICS
+from socnav.sim.walls import has_walls
 
 TRAIN_SEED_BASE = 2**40
 VALIDATION_SEED_BASE = 2**41
@@ -54,6 +56,7 @@ MAX_SEED = 2**28  # run seeds below this keep training environments (2**40 + see
 CURVE_COLUMNS = ["timesteps", "wall_time_s", "ep_rew_mean", "ep_len_mean", "success_rate"]
 EVAL_COLUMNS = ["timesteps", "wall_time_s", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
                 "return_mean", "return_std"]
+WALL_EVAL_COLUMNS = ["collision_obstacle_pct"]  # eval.csv of a world with walls (maps, obstacles, map scenarios)
 
 CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.zip$")  # the only files of checkpoints/ a run writes or deletes
 
@@ -397,6 +400,8 @@ class _Run:
                  eval_every: int, eval_episodes: int):
         self.out_dir = out_dir
         self.env_config = env_config
+        # a world with walls also reports the episodes that ended against a wall (apart from collisions with people)
+        self.eval_columns = EVAL_COLUMNS + (WALL_EVAL_COLUMNS if has_walls(env_config) else [])
         self.algo = algo
         self.algo_config = algo_config
         self.seed = seed
@@ -442,9 +447,9 @@ class _Run:
         `learn`, e.g. when resuming a run that had already reached its total)."""
         records = rollout_episodes(model.policy, self.env_config, self.eval_episodes, seed=VALIDATION_SEED_BASE,
                                    n_envs=min(self.eval_episodes, 64))
-        metrics = summarize(records)
+        metrics = summarize(records, metrics=DEFAULT_METRICS + tuple(self.eval_columns[len(EVAL_COLUMNS):]))
         row = {"timesteps": int(model.num_timesteps), "wall_time_s": self.wall_time(),
-               **{key: metrics[key] for key in EVAL_COLUMNS[2:]}}
+               **{key: metrics[key] for key in self.eval_columns[2:]}}
         if self.evals and int(self.evals[-1]["timesteps"]) == row["timesteps"]:
             self.evals[-1] = row  # the same step evaluated again (a finished run resumed): one row, not two
         else:
@@ -457,7 +462,7 @@ class _Run:
 
     def write_logs(self) -> None:
         write_table_atomic(pd.DataFrame(self.curve, columns=CURVE_COLUMNS), self.out_dir / "curve.csv")
-        write_table_atomic(pd.DataFrame(self.evals, columns=EVAL_COLUMNS), self.out_dir / "eval.csv")
+        write_table_atomic(pd.DataFrame(self.evals, columns=self.eval_columns), self.out_dir / "eval.csv")
 
     # ---- checkpoints ----
     def maybe_checkpoint(self, model: ODVPPO) -> None:

@@ -32,6 +32,13 @@ def world_polygons(config: Any, scenario: Any) -> list[np.ndarray]:
     return polygons
 
 
+def has_walls(config: Any) -> bool:
+    """Whether a world of this config has walls (a map scenario, ``obstacles`` or ``map``)."""
+    from socnav.sim.scenarios import get_scenario
+
+    return bool(getattr(get_scenario(config.scenario), "has_map", False) or config.obstacles or config.map)
+
+
 class Walls:
     """The walls of E environments (one map shared by all), in the forms the world's kernels read."""
 
