@@ -4,6 +4,7 @@ with 95 % intervals from a bootstrap over episodes.
 
     python docs/analysis/baseline_table.py                              # 200 episodes each (1-3 min, 1 core)
     python docs/analysis/baseline_table.py --episodes 20 --out /tmp/b   # a quick look
+    python docs/analysis/baseline_table.py --scenarios corridor doorway intersection room --out runs/baselines-maps
 
 What is played: per scenario the default world (``socnav.load_config(scenario=...)``, the shipped policy's training
 world with that scenario, as ``socnav evaluate --model pretrained --scenario ...`` plays it), episodes ``seed``..
@@ -39,6 +40,7 @@ from socnav.sim.metrics import ALL_METRICS, METRICS, STD, episode_values
 from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "position_swap", "random")
+MAP_SCENARIOS = ("corridor", "doorway", "intersection", "room")  # walls (docs/maps.md): --scenarios to play them
 CONTROLLERS = ("orca", "straight", "shipped policy", "shipped policy + safety (mc)")
 MC_SAMPLES = 20  # socnav evaluate's --k default
 RESAMPLES = 2000
@@ -113,7 +115,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--n-envs", type=int, default=50)
-    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS))
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS + MAP_SCENARIOS))
     parser.add_argument("--out", type=Path, default=Path("runs/baselines"))
     args = parser.parse_args()
     import torch

@@ -176,3 +176,24 @@ def test_routes_of_the_doorway_go_through_the_door():
     assert route[1][0] > scenario.exit  # into the right room
     assert route[2] == pytest.approx([scenario.approach, 0.0])  # back to the door from the right
     assert route[3] == pytest.approx([-scenario.exit, 0.0])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_compiled_placement_check_agrees_with_the_shapely_rule(seed):
+    from socnav.sim.geometry import discs_clear
+    from socnav.sim.maps import clearance_violation
+    from socnav.sim.walls import Walls
+
+    rng = np.random.default_rng(seed)
+    room = [[-6.0, -6.0], [-6.0, 6.0], [6.0, 6.0], [6.0, -6.0]]  # clockwise: free space inside
+    pillar = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]  # counter-clockwise: solid
+    wall = [[2.0, -3.0], [2.0, 3.0]]
+    polygons = [np.array(p, dtype=float) for p in (room, pillar, wall)][: 1 + seed % 3]
+    walls = Walls(polygons, 1)
+    points, radii = rng.uniform(-8.0, 8.0, (60, 2)), rng.uniform(0.1, 0.6, 60)
+    for point, radius in zip(points, radii):
+        fits = clearance_violation(polygons, point, radius, name="walls") is None
+        assert discs_clear(point[None], np.array([radius]), walls.seg_start[0], walls.seg_end[0],
+                           int(walls.n_segments[0]), walls._closed_vertices, walls._closed_offsets,
+                           walls._area_sizes, walls._solid_inside, walls._solid_outside) == fits
+        assert (walls.misplaced(point[None], np.array([radius])) is None) == fits

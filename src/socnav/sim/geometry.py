@@ -14,6 +14,7 @@ import numba
 import numpy as np
 
 __all__ = [
+    "discs_clear",
     "distance_to_segments",
     "line_of_sight",
     "polygon_segments",
@@ -250,6 +251,28 @@ def points_in_polygons(points, vertices, offsets):
     return inside
 
 
+@numba.njit(cache=True)
+def discs_clear(points, radii, seg_start, seg_end, n_segments, vertices, offsets, area_sizes, solid_inside,
+                solid_outside):
+    """Whether every disc (points (K, 2), radii (K,)) lies in free space at least its radius from every wall of ONE
+    map: `points_to_segments` >= radius, and free by the nesting rule of `socnav.sim.maps.clearance_violation` (the
+    smallest closed polygon containing the point is clockwise; in none: no top-level clockwise polygon,
+    `solid_outside` False). Closed polygons as in `points_in_polygons`, with their areas and orientations."""
+    inside = points_in_polygons(points, vertices, offsets)
+    distance = points_to_segments(points, seg_start, seg_end, n_segments)
+    for k in range(points.shape[0]):
+        if distance[k] < radii[k]:
+            return False
+        innermost, smallest = -1, np.inf
+        for p in range(area_sizes.shape[0]):
+            if inside[k, p] and area_sizes[p] < smallest:
+                innermost, smallest = p, area_sizes[p]
+        solid = solid_outside if innermost < 0 else solid_inside[innermost]
+        if solid:
+            return False
+    return True
+
+
 def scan_angles(n_beams: int, fov: float) -> tuple[float, float]:
     """(angle_min, angle_increment) of a scan, relative to the heading, as in sensor_msgs/LaserScan.
 
@@ -283,7 +306,7 @@ def _scan_segment(ranges, env, low, high, ox, oy, beam_x, beam_y, n_beams, wraps
 
 @numba.njit(cache=True)
 def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beams, angle_min, angle_increment,
-                       max_range, circle_positions, circle_radii, circle_active):
+                       max_range, circle_positions, circle_radii, circle_active, one_sided):
     # Each wall is tested only against the beams within its angular extent seen from the origin (one beam of margin
     # each side), and not at all when it lies beyond max_range: the exact ray test decides every remaining pair, so
     # the ranges are those of testing every beam against every wall.
@@ -291,15 +314,25 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
     ranges = np.full((n_envs, n_beams), max_range)
     full_turn = 2.0 * math.pi
     wraps = abs(n_beams * angle_increment - full_turn) < 1e-12  # a 360-degree scan: beam indices wrap around
+    # The beams' directions relative to the heading, once; each environment rotates them by its heading (a rotation
+    # instead of a cosine and a sine per beam: equal to them within a few ulps).
+    relative_x, relative_y = np.empty(n_beams), np.empty(n_beams)
+    for beam in range(n_beams):
+        relative_x[beam] = math.cos(angle_min + beam * angle_increment)
+        relative_y[beam] = math.sin(angle_min + beam * angle_increment)
     beam_x, beam_y = np.empty(n_beams), np.empty(n_beams)
+    n_circles = circle_radii.shape[1]
     for env in range(n_envs):
         ox, oy = origins[env, 0], origins[env, 1]
         first = headings[env] + angle_min
-        for beam in range(n_beams):  # once per environment, not once per wall
-            angle = first + beam * angle_increment
-            beam_x[beam], beam_y[beam] = math.cos(angle), math.sin(angle)
+        cos_h, sin_h = math.cos(headings[env]), math.sin(headings[env])
+        for beam in range(n_beams):
+            beam_x[beam] = cos_h * relative_x[beam] - sin_h * relative_y[beam]
+            beam_y[beam] = sin_h * relative_x[beam] + cos_h * relative_y[beam]
         for s in range(n_segments[env]):
             ax, ay, bx, by = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
+            if one_sided[env, s] and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
+                continue  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
             if _point_segment_distance(ox, oy, ax, ay, bx, by) >= max_range:
                 continue
             if angle_increment == 0.0 or _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9:
@@ -318,7 +351,7 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
                 high = int(math.ceil((start + offset + abs(span)) / angle_increment)) + 1
                 _scan_segment(ranges, env, low, high, ox, oy, beam_x, beam_y, n_beams, wraps,
                               ax, ay, bx, by)
-        for beam in range(n_beams):
+        for beam in range(n_beams if n_circles > 0 else 0):
             ux, uy = beam_x[beam], beam_y[beam]
             nearest = ranges[env, beam]
             for c in range(circle_radii.shape[1]):
@@ -339,6 +372,7 @@ def range_scan(
     max_range: float,
     fov: float = 2.0 * math.pi,
     circles: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    one_sided: np.ndarray | None = None,
 ) -> np.ndarray:
     """(E, n_beams) float64 ranges of a planar laser scan from each environment's `origins[e]` (E, 2), like a
     sensor_msgs/LaserScan: beam b points at headings[e] + angle_min + b angle_increment (`scan_angles`), and reads
@@ -347,6 +381,10 @@ def range_scan(
     Walls only by default. `circles` = (positions (E, M, 2), radii (E, M), active (E, M)) adds discs the beams stop
     at, e.g. the humans: ``(positions[:, 1:], radii[:, 1:], active[:, 1:])`` -- leave the robot's own slot out, as a
     beam starting inside a disc reads 0 (as does one starting on a wall).
+
+    `one_sided` (E, S) bool, optional: the segments that are edges of closed polygons (RVO2 orientation: solid on
+    their left); a beam from free space first enters solid through an edge whose left side faces away from the
+    origin, so the others are skipped -- the same ranges from any origin in free space, in about half the time.
     """
     if not (math.isfinite(max_range) and max_range > 0.0):
         raise ValueError(f"max_range must be a finite number > 0 (metres), got {max_range!r}")
@@ -356,10 +394,12 @@ def range_scan(
     if circles is None:
         circles = (np.zeros((n_envs, 0, 2)), np.zeros((n_envs, 0)), np.zeros((n_envs, 0), dtype=np.bool_))
     circle_positions, circle_radii, circle_active = circles
+    if one_sided is None:
+        one_sided = np.zeros(seg_start.shape[:2], dtype=np.bool_)
     return _range_scan_kernel(
         origins, np.asarray(headings, dtype=np.float64), seg_start, seg_end, n_segments, int(n_beams), angle_min,
         angle_increment, float(max_range), np.asarray(circle_positions, dtype=np.float64),
-        np.asarray(circle_radii, dtype=np.float64), np.asarray(circle_active, dtype=np.bool_),
+        np.asarray(circle_radii, dtype=np.float64), np.asarray(circle_active, dtype=np.bool_), one_sided,
     )
 
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from shapely.geometry import Polygon
 
-from socnav.sim.geometry import (points_in_polygons, points_to_segments, polygon_segments, range_scan,
+from socnav.sim.geometry import (discs_clear, points_in_polygons, points_to_segments, polygon_segments, range_scan,
                                  robot_line_of_sight, swept_segment_hit)
 from socnav.sim.maps import clearance_violation, load_map, validate_polygons
 from socnav.sim.obstacles import ObstacleBatch, ObstacleMap
@@ -46,12 +46,18 @@ class Walls:
         self.polygons = polygons
         self.obstacles = ObstacleBatch.from_maps([ObstacleMap.from_polygons(polygons)] * n_envs)
         self.seg_start, self.seg_end, self.n_segments = polygon_segments([polygons] * n_envs)
+        # the edges of closed polygons (solid on their left, RVO2's orientation), in polygon_segments' order
+        edge_sides = [np.full(len(vertices), len(vertices) >= 3) if len(vertices) >= 3 else np.zeros(1, dtype=bool)
+                      for vertices in polygons]
+        sides = np.concatenate(edge_sides) if edge_sides else np.zeros(0, dtype=bool)
+        self.one_sided = np.zeros(self.seg_start.shape[:2], dtype=bool)
+        self.one_sided[:, : len(sides)] = sides
         # The placement check's solid space (`maps.clearance_violation`'s rule, vectorised): a point belongs to the
         # smallest closed polygon containing it, solid if that one is counter-clockwise; a point in none is solid
         # when some clockwise polygon (a boundary agents stay inside) lies in no other polygon.
         closed = [np.asarray(vertices, dtype=np.float64) for vertices in polygons if len(vertices) >= 3]
         self._areas = [Polygon(vertices) for vertices in closed]
-        self._area_sizes = np.array([area.area for area in self._areas])
+        self._area_sizes = np.array([area.area for area in self._areas], dtype=np.float64)
         self._closed_vertices = np.concatenate(closed) if closed else np.zeros((0, 2))
         self._closed_offsets = np.cumsum([0] + [len(vertices) for vertices in closed]).astype(np.int64)
         self._solid_inside = np.array([_counter_clockwise(vertices) for vertices in closed], dtype=bool)
@@ -75,7 +81,8 @@ class Walls:
              fov_deg: float) -> np.ndarray:
         """(E, beams) float32 ranges to the walls, as a sensor_msgs/LaserScan from -fov/2 counter-clockwise."""
         fov = 2.0 * math.pi if fov_deg >= 360.0 else math.radians(fov_deg)
-        ranges = range_scan(origins, headings, *self._segments(len(origins)), beams, max_range, fov)
+        ranges = range_scan(origins, headings, *self._segments(len(origins)), beams, max_range, fov,
+                            one_sided=self.one_sided[: len(origins)])
         return ranges.astype(np.float32)
 
     def misplaced(self, points: np.ndarray, radii: np.ndarray) -> str | None:
@@ -83,6 +90,10 @@ class Walls:
         enclosing boundary, or closer than its radius), or None if every one fits (`maps.clearance_violation`'s
         rule; this vectorised pre-check calls it only for the discs that may not fit, to name the reason)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
+        if discs_clear(points, np.asarray(radii, dtype=np.float64), self.seg_start[0], self.seg_end[0],
+                       int(self.n_segments[0]), self._closed_vertices, self._closed_offsets, self._area_sizes,
+                       self._solid_inside, self._solid_outside):
+            return None  # the common case, in one compiled call; otherwise find which disc and why
         distance = points_to_segments(points, self.seg_start[0], self.seg_end[0], int(self.n_segments[0]))
         suspect = distance < np.asarray(radii)
         solid = np.full(len(points), self._solid_outside)
