@@ -450,8 +450,13 @@ def _swept_hit_kernel(p0, p1, radius, seg_start, seg_end, n_segments):
     hit = np.zeros(n_envs, dtype=np.bool_)
     for env in range(n_envs):
         step = math.hypot(p1[env, 0] - p0[env, 0], p1[env, 1] - p0[env, 1])
+        reach = radius[env]  # the path's bounding box grown by the radius: walls outside it cannot be touched
+        low_x, high_x = min(p0[env, 0], p1[env, 0]) - reach, max(p0[env, 0], p1[env, 0]) + reach
+        low_y, high_y = min(p0[env, 1], p1[env, 1]) - reach, max(p0[env, 1], p1[env, 1]) + reach
         for s in range(n_segments[env]):
             ax, ay, bx, by = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
+            if max(ax, bx) < low_x or min(ax, bx) > high_x or max(ay, by) < low_y or min(ay, by) > high_y:
+                continue
             if _point_segment_distance(p0[env, 0], p0[env, 1], ax, ay, bx, by) - step >= radius[env]:
                 continue
             if _segment_segment_distance(p0[env, 0], p0[env, 1], p1[env, 0], p1[env, 1], ax, ay, bx, by) < radius[env]:

@@ -163,7 +163,7 @@ class SceneRenderer:
         self.ax.text(x1 - length / 2, y + 0.2, f"{length:g} m (grid 1 m)", ha="center", va="bottom", fontsize=8,
                      zorder=5)
 
-    def _add_legend(self, models: Sequence[str] = ()) -> None:
+    def _add_legend(self, models: Sequence[str] = (), walls: bool = False) -> None:
         """Proxy artists for every kind of thing in the scene, in the side column (and each human model shown)."""
         handles = [
             Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=ROBOT_COLOR,
@@ -183,6 +183,12 @@ class SceneRenderer:
                    markeredgecolor="#14524b", label="robot's goal (x: humans' goals)"),
             Line2D([], [], color=ROBOT_COLOR, linewidth=1.5, label="trail (recent path)"),
         ]
+        if walls:
+            handles += [
+                Line2D([], [], color=WALL_COLOR, linewidth=4.0, label="wall"),
+                Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=to_rgba(HUMAN_COLOR, 0.35),
+                       markeredgecolor=HUMAN_EDGE_COLOR, label="human behind a wall (faded: unseen)"),
+            ]
         handles += self._model_handles(models)
         self.legend_ax.legend(handles=handles, loc="lower left", fontsize=7, frameon=False, borderaxespad=0.0,
                               handletextpad=0.4, labelspacing=0.5)
@@ -255,10 +261,11 @@ class SceneRenderer:
     def _set_layout(self, layout: tuple) -> None:
         """Place the axes for this side-panel layout and rasterise the static layer.
 
-        `layout` = (bar labels or None, ticks, threshold marks, panel title, human models shown), all hashable."""
-        panel_keys, ticks, marks, panel_title, models = layout
+        `layout` = (bar labels or None, ticks, threshold marks, panel title, human models shown, walls shown), all
+        hashable."""
+        panel_keys, ticks, marks, panel_title, models, walls = layout
         if self.annotate:
-            self._add_legend(models)
+            self._add_legend(models, walls)
         self._add_model_legend(models)
         ticks, marks = dict(ticks or ()), dict(marks or ())
         side = bool(panel_keys) or self.annotate
@@ -441,7 +448,7 @@ class SceneRenderer:
         """Draw `frame` and return a new uint8 array of shape `(height, width, 3)`."""
         panel_keys = tuple(frame.side_panel) if frame.side_panel else None
         layout = (panel_keys, tuple((frame.panel_ticks or {}).items()), tuple((frame.panel_marks or {}).items()),
-                  frame.panel_title, self._models_shown(frame))
+                  frame.panel_title, self._models_shown(frame), bool(frame.walls))
         if self._background is None or layout != self._layout:
             self._set_layout(layout)
         self._update_scene(frame)
