@@ -5,6 +5,8 @@ One kernel call updates all agents of all envs; per pair (i, j) it adds a radius
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -339,10 +341,13 @@ def obstacle_neighbors(
 @numba.njit(cache=True)
 def _any_edge_within(px, py, range_sq, point, next_vertex, n_vertices):
     """Whether some edge (vertex a to next_vertex[a]) may have its closest point to p within sqrt(range_sq)."""
+    reach = math.sqrt(range_sq) * (1.0 + 1e-9) + 1e-9
     for a in range(n_vertices):
         b = next_vertex[a]
-        ax, ay = point[a, 0], point[a, 1]
-        edge_x, edge_y = point[b, 0] - ax, point[b, 1] - ay
+        ax, ay, bx, by = point[a, 0], point[a, 1], point[b, 0], point[b, 1]
+        if px < min(ax, bx) - reach or px > max(ax, bx) + reach or py < min(ay, by) - reach or py > max(ay, by) + reach:
+            continue  # the edge's bounding box, grown by the range, misses p: so does the edge
+        edge_x, edge_y = bx - ax, by - ay
         r = ((px - ax) * edge_x + (py - ay) * edge_y) / (edge_x * edge_x + edge_y * edge_y)
         r = min(max(r, 0.0), 1.0)
         dx, dy = px - (ax + r * edge_x), py - (ay + r * edge_y)
@@ -630,10 +635,12 @@ def _orca_kernel(
                             px, py, range_sq, point[e], next_vertex[e], tree_vertex[e], tree_left[e], tree_right[e],
                             count[e], tree_stack, obstacle_vertex, obstacle_dist_sq,
                         )  # fmt: skip
-                    n_obstacle_lines = obstacle_orca_lines(
-                        px, py, vix, viy, radii[e, i], inv_time_horizon_obst, point[e], unit_dir[e], is_convex[e],
-                        next_vertex[e], prev_vertex[e], obstacle_vertex, n_obstacles, points, directions,
-                    )  # fmt: skip
+                    if n_obstacles > 0:  # no neighbour, no line: the env's views are not even taken
+                        n_obstacle_lines = obstacle_orca_lines(
+                            px, py, vix, viy, radii[e, i], inv_time_horizon_obst, point[e], unit_dir[e],
+                            is_convex[e], next_vertex[e], prev_vertex[e], obstacle_vertex, n_obstacles, points,
+                            directions,
+                        )  # fmt: skip
 
             n_agent_lines = nearest_neighbors(
                 positions, active, sees, e, i, neighbor_dist, max_neighbors, neighbor_index, neighbor_dist_sq
