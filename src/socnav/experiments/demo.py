@@ -90,7 +90,9 @@ def baseline_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
     from socnav.controllers import make_controller
     from socnav.envs.rollout import summarize
     from socnav.io import write_table_atomic
+    from socnav.sim.metrics import DEFAULT_METRICS
     from socnav.sim.scenarios import scenario_names
+    from socnav.sim.walls import has_walls
 
     rows = []
     for scenario in scenario_names(self_contained=True):
@@ -99,7 +101,8 @@ def baseline_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
             label = f"{name} / {scenario}"
             records = _rollout(make_controller(name, config), config, episodes, seed, n_envs, label, progress)
             write_table_atomic(records, Path(out) / f"{name}_{scenario}.csv")
-            rows.append((label, summarize(records)))
+            walls = ("collision_obstacle_pct",) if has_walls(config) else ()  # a map scenario: wall hits apart
+            rows.append((label, summarize(records, metrics=DEFAULT_METRICS + walls)))
     return rows
 
 
