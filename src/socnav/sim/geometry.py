@@ -292,14 +292,17 @@ def scan_angles(n_beams: int, fov: float) -> tuple[float, float]:
 
 
 @numba.njit(cache=True)
-def _scan_segment(ranges, env, low, high, ox, oy, beam_x, beam_y, n_beams, wraps, ax, ay, bx, by):
+def _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps, ax, ay, bx,
+                  by):
     """Shorten beams low..high (indices wrapped in a 360-degree scan, else clipped) to the wall [a, b] they hit;
-    beam_x, beam_y: the beams' unit directions in this environment."""
+    a beam's direction is its direction relative to the heading (relative_x, relative_y) turned by the heading."""
     for k in range(low, high + 1):
         beam = k % n_beams if wraps else k
         if beam < 0 or beam >= n_beams:
             continue
-        t = _ray_segment_distance(ox, oy, beam_x[beam], beam_y[beam], ax, ay, bx, by)
+        ux = cos_h * relative_x[beam] - sin_h * relative_y[beam]
+        uy = sin_h * relative_x[beam] + cos_h * relative_y[beam]
+        t = _ray_segment_distance(ox, oy, ux, uy, ax, ay, bx, by)
         if t < ranges[env, beam]:
             ranges[env, beam] = t
 
@@ -320,23 +323,22 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
     for beam in range(n_beams):
         relative_x[beam] = math.cos(angle_min + beam * angle_increment)
         relative_y[beam] = math.sin(angle_min + beam * angle_increment)
-    beam_x, beam_y = np.empty(n_beams), np.empty(n_beams)
     n_circles = circle_radii.shape[1]
     for env in range(n_envs):
         ox, oy = origins[env, 0], origins[env, 1]
         first = headings[env] + angle_min
         cos_h, sin_h = math.cos(headings[env]), math.sin(headings[env])
-        for beam in range(n_beams):
-            beam_x[beam] = cos_h * relative_x[beam] - sin_h * relative_y[beam]
-            beam_y[beam] = sin_h * relative_x[beam] + cos_h * relative_y[beam]
         for s in range(n_segments[env]):
             ax, ay, bx, by = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
             if one_sided[env, s] and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
                 continue  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
-            if _point_segment_distance(ox, oy, ax, ay, bx, by) >= max_range:
-                continue
-            if angle_increment == 0.0 or _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9:
-                _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, beam_x, beam_y, n_beams, wraps,
+            if (min(ax, bx) - ox >= max_range or ox - max(ax, bx) >= max_range or min(ay, by) - oy >= max_range
+                    or oy - max(ay, by) >= max_range):
+                continue  # beyond max_range along an axis, so beyond it (a hit there would read max_range anyway)
+            on_wall = (min(ax, bx) <= ox <= max(ax, bx) and min(ay, by) <= oy <= max(ay, by)
+                       and _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9)
+            if angle_increment == 0.0 or on_wall:
+                _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
                               ax, ay, bx, by)  # one beam, or the origin on the wall: every beam
                 continue
             angle_a = math.atan2(ay - oy, ax - ox)
@@ -349,10 +351,11 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
                     break
                 low = int(math.floor((start + offset) / angle_increment)) - 1
                 high = int(math.ceil((start + offset + abs(span)) / angle_increment)) + 1
-                _scan_segment(ranges, env, low, high, ox, oy, beam_x, beam_y, n_beams, wraps,
+                _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
                               ax, ay, bx, by)
         for beam in range(n_beams if n_circles > 0 else 0):
-            ux, uy = beam_x[beam], beam_y[beam]
+            ux = cos_h * relative_x[beam] - sin_h * relative_y[beam]
+            uy = sin_h * relative_x[beam] + cos_h * relative_y[beam]
             nearest = ranges[env, beam]
             for c in range(circle_radii.shape[1]):
                 if circle_active[env, c]:
