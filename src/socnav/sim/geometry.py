@@ -343,9 +343,15 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
                 continue
             angle_a = math.atan2(ay - oy, ax - ox)
             span = math.atan2(by - oy, bx - ox) - angle_a
-            span = (span + math.pi) % full_turn - math.pi  # the segment subtends at most pi
+            if span > math.pi:  # the segment subtends at most pi
+                span -= full_turn
+            elif span < -math.pi:
+                span += full_turn
             start = (angle_a if span >= 0.0 else angle_a + span) - first
-            start = (start + math.pi) % full_turn - math.pi  # in [-pi, pi): the extent is [start, start + |span|]
+            while start >= math.pi:  # into [-pi, pi): the extent is [start, start + |span|]
+                start -= full_turn
+            while start < -math.pi:
+                start += full_turn
             for offset in (0.0, full_turn):  # beams run over [0, fov]: the extent, or its copy one turn on
                 if wraps and offset > 0.0:
                     break
