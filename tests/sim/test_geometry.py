@@ -322,7 +322,8 @@ def test_the_robot_row_of_sight_is_that_of_all_pairs(seed, n_walls, n_agents):
     active = rng.random((3, n_agents)) < 0.8
     walls = [[rng.uniform(-5.0, 5.0, (2, 2)) for _ in range(n_walls)] for _ in range(3)]
     segments = polygon_segments(walls)
-    np.testing.assert_array_equal(robot_line_of_sight(positions, active, *segments),
+    everything = np.zeros(segments[0].shape[:2], dtype=bool)
+    np.testing.assert_array_equal(robot_line_of_sight(positions, active, *segments, everything),
                                   line_of_sight(positions, active, *segments)[:, 0, :])
 
 
@@ -395,3 +396,25 @@ def test_skipping_the_edges_facing_away_changes_no_range_from_free_space(seed):
                         one_sided=walls.one_sided)
     every = range_scan(origins, headings, walls.seg_start, walls.seg_end, walls.n_segments, 45, 9.0)
     np.testing.assert_array_equal(culled[free], every[free])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_skipping_the_edges_facing_away_changes_no_sight_line_from_free_space(seed):
+    from socnav.sim.geometry import robot_line_of_sight
+    from socnav.sim.walls import Walls
+
+    rng = np.random.default_rng(seed)
+    boxes = []
+    for _ in range(4):
+        x, y, w, h = rng.uniform(-5, 4), rng.uniform(-5, 4), rng.uniform(0.3, 2), rng.uniform(0.3, 2)
+        boxes.append(np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]]))
+    polygons = boxes + [np.array([[-8.0, -8.0], [-8.0, 8.0], [8.0, 8.0], [8.0, -8.0]]), rng.uniform(-6, 6, (2, 2))]
+    walls = Walls(polygons, 6)
+    positions = rng.uniform(-7.5, 7.5, (6, 7, 2))
+    active = np.ones((6, 7), dtype=bool)
+    free = np.array([walls.misplaced(p[:1], np.array([1e-6])) is None for p in positions])
+    every = np.zeros_like(walls.one_sided)
+    culled = robot_line_of_sight(positions, active, walls.seg_start, walls.seg_end, walls.n_segments, walls.one_sided)
+    full = robot_line_of_sight(positions, active, walls.seg_start, walls.seg_end, walls.n_segments, every)
+    np.testing.assert_array_equal(culled[free], full[free])

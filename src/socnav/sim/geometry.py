@@ -189,11 +189,14 @@ def line_of_sight(positions, active, seg_start, seg_end, n_segments):
 
 
 @numba.njit(cache=True)
-def robot_line_of_sight(positions, active, seg_start, seg_end, n_segments):
+def robot_line_of_sight(positions, active, seg_start, seg_end, n_segments, one_sided):
     """(E, N) bool: `line_of_sight(...)[:, 0, :]`, the row of the robot (slot 0) alone: which agents it sees.
 
     The per-step form: N - 1 sight lines per environment instead of N (N - 1) / 2, and a wall whose bounding box
     misses the sight line's is skipped before the exact test (the same answer, `tests/sim/test_geometry.py`).
+    `one_sided` (E, S) bool marks the edges of closed polygons (solid on their left, as `range_scan` reads it): from
+    a robot in free space a sight line into a polygon crosses an edge facing the robot first, so the edges with the
+    robot on their solid side are skipped (all False: every edge is tested).
     """
     n_envs, n_agents = active.shape
     visible = np.zeros((n_envs, n_agents), dtype=np.bool_)
@@ -211,6 +214,8 @@ def robot_line_of_sight(positions, active, seg_start, seg_end, n_segments):
             for s in range(n_segments[env]):
                 cx, cy, dx, dy = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
                 if max(cx, dx) < low_x or min(cx, dx) > high_x or max(cy, dy) < low_y or min(cy, dy) > high_y:
+                    continue
+                if one_sided[env, s] and _orientation(cx, cy, dx, dy, ax, ay) > 0.0:
                     continue
                 if _segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
                     clear = False

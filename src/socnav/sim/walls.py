@@ -71,7 +71,7 @@ class Walls:
 
     def in_sight_of_robot(self, positions: np.ndarray, active: np.ndarray) -> np.ndarray:
         """(E, N) bool: no wall crosses the line between the robot's centre (slot 0) and agent j's."""
-        return robot_line_of_sight(positions, active, *self._segments(len(positions)))
+        return robot_line_of_sight(positions, active, *self._segments(len(positions)), self.one_sided[: len(positions)])
 
     def robot_hit(self, before: np.ndarray, after: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """(E,) bool: the robot's disc, moving straight from `before` to `after` (E, 2), touched a wall."""
