@@ -211,3 +211,16 @@ def test_example_control_loop_runs_without_torch(navigator_file):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "step" in result.stdout
+
+
+def test_the_command_uses_the_full_precision_preferred_speed(navigator_file):
+    # 0.7123456789 has no exact float32: the speed must come from the float64 v_pref, as the simulator computes it
+    from socnav.sim.observation import robot_command
+
+    navigator = SafeNavigator.load(navigator_file, thresholds=Thresholds.never(), seed=0)
+    v_pref = 0.7123456789
+    decision = navigator.act({**ROBOT, "v_pref": v_pref})
+    expected = robot_command(decision.action, v_pref, navigator.config.max_heading_change)
+    assert (decision.speed, decision.turn) == expected
+    assert decision.speed != robot_command(decision.action, float(np.float32(v_pref)),
+                                           navigator.config.max_heading_change)[0] or decision.speed == 0.0

@@ -401,12 +401,15 @@ class SafeNavigator:
             if not _finite(value):
                 raise InputError(f"the robot's and humans' states give a non-finite observation ({key}): "
                                  "positions or velocities beyond float32's range (about 3.4e38)")
-        return self.act_observation(observation)
+        return self.act_observation(observation, v_pref=robot.v_pref)
 
-    def act_observation(self, observation: Mapping[str, np.ndarray]) -> Decision:
+    def act_observation(self, observation: Mapping[str, np.ndarray], v_pref: float | None = None) -> Decision:
         """One decision from an observation already in the environment's layout (batch of one, float32), e.g.
         one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` its input is not checked, but
         its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot).
+
+        `v_pref`: the robot's preferred speed at full precision, to turn the action into a speed as the simulator
+        does (None: the observation's float32 copy; :meth:`act` passes the robot state's).
 
         :raises InputError: the observation lacks the ``scan`` the policy reads or the ``pose`` the fallback needs
             with walls."""
@@ -451,7 +454,8 @@ class SafeNavigator:
         if observed:
             if fallback:
                 action = self.cautious.predict(observation)[0][0]
-            speed, turn = robot_command(action, float(observation["robot"][0, 3]), self.config.max_heading_change)
+            preferred = float(observation["robot"][0, 3]) if v_pref is None else float(v_pref)
+            speed, turn = robot_command(action, preferred, self.config.max_heading_change)
         if not (math.isfinite(speed) and math.isfinite(turn)):  # the last guard: never a NaN command
             speed, turn, action, fallback = 0.0, 0.0, _STOP_ACTION.copy(), False
             fault = f"{fault}; {STOPPED}" if fault else STOPPED
