@@ -81,8 +81,8 @@ class Walls:
              fov_deg: float) -> np.ndarray:
         """(E, beams) float32 ranges to the walls, as a sensor_msgs/LaserScan from -fov/2 counter-clockwise."""
         fov = 2.0 * math.pi if fov_deg >= 360.0 else math.radians(fov_deg)
-        ranges = range_scan(origins, headings, *self._segments(len(origins)), beams, max_range, fov,
-                            one_sided=self.one_sided[: len(origins)])
+        ranges = range_scan(np.ascontiguousarray(origins), headings, *self._segments(len(origins)), beams, max_range,
+                            fov, one_sided=self.one_sided[: len(origins)])
         return ranges.astype(np.float32)
 
     def misplaced(self, points: np.ndarray, radii: np.ndarray) -> str | None:
