@@ -58,6 +58,8 @@ __all__ = ["DEFAULT_NODE_NAME", "SimulatorError", "SimulatorNode"]
 
 DEFAULT_NODE_NAME = "socnav_sim"
 _NS = 1_000_000_000
+#: seconds a lock-step simulator waits for a command before it sends the step's messages again (same stamp)
+RESEND_PERIOD = 1.0
 #: Navigator topics recorded besides the simulator's own (relative to the navigator node's name).
 _NAVIGATOR_TOPICS = (("fallback", "std_msgs/msg/Bool"), ("uncertainty", "std_msgs/msg/Float64MultiArray"),
                      ("latency", "std_msgs/msg/Float64"), ("markers", "visualization_msgs/msg/MarkerArray"))
@@ -177,11 +179,17 @@ class SimulatorNode(Node):
             return pd.DataFrame(columns=list(EPISODE_COLUMNS))
         return pd.DataFrame.from_records(self.records)
 
-    def _spin_until(self, executor: Executor, done: Any, timeout: float, what: str) -> None:
+    def _spin_until(self, executor: Executor, done: Any, timeout: float, what: str, resend: Any = None) -> None:
+        """Spin until `done()`; `resend()`, if given, every RESEND_PERIOD s while waiting."""
         deadline = time.monotonic() + timeout
+        next_resend = time.monotonic() + RESEND_PERIOD
         while not done():
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise SimulatorError(f"{what} within {timeout:g} s (parameter wait_timeout)")
+            if resend is not None and now >= next_resend:
+                resend()
+                next_resend = now + RESEND_PERIOD
             executor.spin_once(timeout_sec=0.01)
 
     def _wait_for_navigator(self, executor: Executor) -> None:
@@ -228,8 +236,15 @@ class SimulatorNode(Node):
             answered = self.commands_received
             self._spin_until(executor, lambda: self.commands_received > answered, self.wait_timeout,
                              f"no command on {self.cmd_vel_topic} for step {self.world.steps[0]} of episode "
-                             f"{self.episode} (is the navigator running with lockstep:=true?)")
+                             f"{self.episode} (is the navigator running with lockstep:=true?)",
+                             resend=self._resend_state)
             self._advance(executor, self._command)
+
+    def _resend_state(self) -> None:
+        """The step's messages again, same stamp, not recorded: one lost before a subscriber was matched (a relay
+        node starting, a graph still discovering) would otherwise stall the lock-step for good; a navigator decides
+        once per stamp, so a repeat changes nothing else."""
+        self._publish_state(record=False)
 
     def _run_real_time(self, executor: Executor) -> None:
         period = self.time_step / self.real_time_factor
@@ -265,24 +280,24 @@ class SimulatorNode(Node):
 
     # ------------------------------------------------------------------------------------------------- output
 
-    def _publish(self, publisher: Any, message: Any) -> None:
+    def _publish(self, publisher: Any, message: Any, record: bool = True) -> None:
         publisher.publish(message)
-        if self.recorder is not None:
+        if self.recorder is not None and record:
             self.recorder.write(publisher.topic_name, message, self.now_ns)
 
-    def _publish_state(self) -> None:
+    def _publish_state(self, record: bool = True) -> None:
         """This step's clock, goal, odometry, humans and markers, all stamped with the simulated time; the humans
         last, so that a navigator deciding on them has the rest."""
         world, stamp = self.world, self.now_ns
         humans = np.flatnonzero(world.active[0, 1:]) + 1
-        self._publish(self.clock, Clock(clock=ns_to_stamp(stamp)))
-        self._publish(self.goal, position_to_goal(world.goals[0, 0], stamp, self.odom_frame))
+        self._publish(self.clock, Clock(clock=ns_to_stamp(stamp)), record)
+        self._publish(self.goal, position_to_goal(world.goals[0, 0], stamp, self.odom_frame), record)
         self._publish(self.odometry, robot_to_odometry(world.positions[0, 0], world.velocities[0, 0],
                                                        float(world.heading[0]), self._turn_rate, stamp,
-                                                       self.odom_frame, self.base_frame))
+                                                       self.odom_frame, self.base_frame), record)
         self._publish(self.humans, humans_to_cloud(world.positions[0, humans], world.velocities[0, humans],
-                                                   world.radii[0, humans], stamp, self.odom_frame))
-        self._publish(self.markers, self._marker_array(humans))
+                                                   world.radii[0, humans], stamp, self.odom_frame), record)
+        self._publish(self.markers, self._marker_array(humans), record)
 
     def _marker_array(self, humans: np.ndarray) -> MarkerArray:
         """The world as the simulator has it: humans and their personal spaces, the robot and its heading, the
