@@ -47,7 +47,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_humans import measure_interleaved, warmed_vec_env  # noqa: E402  (same sampling, same warm-up)
+from bench_humans import _verdict, measure_interleaved, warmed_vec_env  # noqa: E402  (same sampling and verdicts)
 
 N_ENVS = 256
 TARGET_RATIO = 0.5
@@ -66,10 +66,6 @@ WORLDS = {
     "20-segment map + occlusion + 72-beam scan": {"obstacles": PILLARS, "occlusion": True, "scan": {"beams": 72}},
     "20-segment map only": {"obstacles": PILLARS},
 }
-
-
-def _verdict(ok: bool) -> str:
-    return "[green]PASS[/]" if ok else "[red]FAIL[/]"
 
 
 def main(argv: list[str] | None = None) -> int:
