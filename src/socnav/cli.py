@@ -5,9 +5,10 @@ Every command validates its options up front and reports bad input as one clear 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Optional
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.markup import escape
@@ -67,8 +68,8 @@ def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
         fail(str(exc))
 
 
-def _env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
-                max_humans: Optional[int] = None, base: Any = None, observes: Optional[int] = None) -> EnvConfig:
+def _env_config(scenario: str | None, config_file: Path | None, n_humans: int | None,
+                max_humans: int | None = None, base: Any = None, observes: int | None = None) -> EnvConfig:
     """The env config of a command: `base` (a config file, or e.g. a model's stored config), then the options.
 
     :param observes: the max_humans of the model the command runs, if any: raising max_humans is then no way out
@@ -178,7 +179,7 @@ def _yaml(option: str, text: str) -> Any:
         fail(f"{option} {shown} is refused: {reason}")
 
 
-def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str]) -> dict[str, Any]:
+def _algo_overrides(algo: str, algo_config: Path | None, settings: list[str]) -> dict[str, Any]:
     """Hyperparameter overrides from a YAML file, then `--set key=value` pairs (values parsed as YAML)."""
     from socnav.rl.presets import ALGOS, describe_override_error, resolve_config
 
@@ -207,31 +208,37 @@ def _algo_overrides(algo: str, algo_config: Optional[Path], settings: list[str])
 @app.command()
 def train(
     ctx: typer.Context,
-    scenario: Optional[str] = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
+    scenario: str | None = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
     algo: str = typer.Option("odv-ppo-drop", help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
     seed: int = typer.Option(0, min=0, max=2**28 - 1,
                              help="seed of the run (network init, dropout, training episodes)"),
     timesteps: int = typer.Option(200_000, min=1, max=MAX_TIMESTEPS, help="total environment steps"),
     n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; at least the "
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; at least the "
                                                                "most humans per episode)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    algo_config: Optional[Path] = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    algo_config: Path | None = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
     settings: list[str] = typer.Option([], "--set", help="hyperparameter override key=value (repeatable)"),
-    eval_every: Optional[int] = typer.Option(None, min=1, max=MAX_TIMESTEPS,
+    eval_every: int | None = typer.Option(None, min=1, max=MAX_TIMESTEPS,
                                              help="timesteps between evaluations/checkpoints"),
     eval_episodes: int = typer.Option(50, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
-    out: Optional[Path] = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>); "
+    out: Path | None = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>); "
                                                   "must be new or empty unless --force"),
-    resume: Optional[Path] = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
+    resume: Path | None = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
     force: bool = typer.Option(False, "--force", help="move an existing --out directory aside to "
                                                       "OUT.old-<timestamp> (never deleted) and start afresh"),
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
     from socnav.rl.training import (
-        CheckpointError, RunDirectoryBusy, TrainingInterrupted, check_run_links, finished_result, move_run_aside,
-        read_run_info, resume_step,
+        CheckpointError,
+        RunDirectoryBusy,
+        TrainingInterrupted,
+        check_run_links,
+        finished_result,
+        move_run_aside,
+        read_run_info,
+        resume_step,
     )
     from socnav.rl.training import resume as resume_run
     from socnav.rl.training import train as train_run
@@ -390,8 +397,8 @@ def _explain_rounding(asked: int, algo: str, overrides: dict[str, Any], n_envs: 
                   "trained (lower --n-envs or n_steps to stay closer)", highlight=False)
 
 
-def _single_agent_env_config(scenario: Optional[str], config_file: Optional[Path], n_humans: Optional[int],
-                             max_humans: Optional[int] = None) -> EnvConfig:
+def _single_agent_env_config(scenario: str | None, config_file: Path | None, n_humans: int | None,
+                             max_humans: int | None = None) -> EnvConfig:
     """`_env_config` for animate / calibrate: without --config, position swap with one human unless given."""
     if config_file is None:
         scenario = "position_swap" if scenario is None else scenario
@@ -413,8 +420,8 @@ def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
                  f"use {fix}")
 
 
-def _model_world(model: Optional[str], scenario: Optional[str], config: Optional[Path], n_humans: Optional[int],
-                 max_humans: Optional[int], default: Callable[[], EnvConfig]) -> EnvConfig:
+def _model_world(model: str | None, scenario: str | None, config: Path | None, n_humans: int | None,
+                 max_humans: int | None, default: Callable[[], EnvConfig]) -> EnvConfig:
     """The world a command plays: with --model and without --config, the world the model was trained in (as
     `evaluate` does; --scenario, --n-humans, --max-humans change it), else `default()`. Prints which world."""
     if model is None or config is not None:
@@ -468,33 +475,33 @@ def _default_records_path(label: str, config: EnvConfig, seed: int, episodes: in
 def evaluate(
     controller: str = typer.Option("orca", help="non-learned baseline controller: orca | straight (ignored with "
                                                 "--model, which evaluates a trained policy)"),
-    policy: Optional[str] = typer.Option(None, "--policy", hidden=True,
+    policy: str | None = typer.Option(None, "--policy", hidden=True,
                                          callback=_deprecated_alias("--policy", "--controller"),
                                          help="deprecated name of --controller"),
-    model: Optional[str] = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
+    model: str | None = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
-    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
+    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
                                                      "model's training world with --model, else circle_crossing)"),
     episodes: int = typer.Option(200, min=1, max=MAX_EPISODES, help="number of evaluation episodes"),
     seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; a model needs "
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; a model needs "
                                                                "the value it was trained with)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
     perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. "
                                                             "heading_noise=0.8"),
-    safety: Optional[str] = typer.Option(None, help="wrap the model in the safety layer with these thresholds: "
+    safety: str | None = typer.Option(None, help="wrap the model in the safety layer with these thresholds: "
                                                     "mc | ensemble | FILE (from socnav calibrate)"),
-    estimator: Optional[str] = typer.Option(None, help="uncertainty estimator of --safety: mc | ensemble "
+    estimator: str | None = typer.Option(None, help="uncertainty estimator of --safety: mc | ensemble "
                                                        "(default: ensemble for --safety ensemble, else mc)"),
-    sensing: Optional[str] = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
+    sensing: str | None = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
                                                      "perceived (the noisy observation) | true (the simulator's "
                                                      "state); default: the thresholds' own (perceived for mc, "
                                                      "ensemble)"),
-    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
     k: int = typer.Option(20, min=2, help="MC-dropout samples, for --estimator mc"),
     n_envs: int = typer.Option(32, min=1, help="environments stepped together"),
-    out: Optional[Path] = typer.Option(None, help="per-episode records (.csv or .parquet; default a name unique "
+    out: Path | None = typer.Option(None, help="per-episode records (.csv or .parquet; default a name unique "
                                                   "to the policy, world, seed and episodes under runs/evaluate)"),
     metrics: str = typer.Option("default", "--metrics", help="default (Goal %, Col. %, TO %, PV, nav time, "
                                                              "Return) | all | NAME,... (docs/metrics.md); other than "
@@ -591,7 +598,7 @@ def evaluate(
     console.print(f"per-episode records: {escape(str(out))}", highlight=False)
 
 
-def _load_thresholds_option(safety: str, sensing: Optional[str] = None) -> Any:
+def _load_thresholds_option(safety: str, sensing: str | None = None) -> Any:
     """`--safety mc | ensemble | FILE` (with `--sensing perceived | true` if given) as `Thresholds`, or a clear
     error."""
     from socnav.safety import SENSING_CHOICES, Thresholds, ThresholdsError, load_thresholds
@@ -622,7 +629,7 @@ def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
         raise
 
 
-def _estimator(kind: str, model: Optional[str], members: Optional[str], k: int,
+def _estimator(kind: str, model: str | None, members: str | None, k: int,
                env_config: EnvConfig, required: bool = True) -> tuple[Any, Any]:
     """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`.
 
@@ -678,18 +685,18 @@ def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
 
 @app.command()
 def animate(
-    model: Optional[str] = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
+    model: str | None = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
     estimator: str = typer.Option("mc", help="mc | ensemble"),
-    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
     k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
+    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
                                                      "(default: position_swap, or the --config file's)"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
-    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
+    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
     perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. heading_noise=0.8"),
-    safety: Optional[str] = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
-    sensing: Optional[str] = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
+    safety: str | None = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
+    sensing: str | None = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
                                                      "perceived (the noisy observation) | true (the simulator's "
                                                      "state); default: the thresholds' own (perceived for mc, "
                                                      "ensemble)"),
@@ -698,7 +705,6 @@ def animate(
 ) -> None:
     """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
     from socnav.experiments.animate import animate_episode
-
     from socnav.viz import check_animation_path
 
     if out.suffix not in (".gif", ".mp4"):
@@ -746,20 +752,20 @@ def calibration_table(thresholds: Any, report: dict[str, Any], title: str) -> Ta
 
 @app.command()
 def calibrate(
-    model: Optional[str] = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
+    model: str | None = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
     estimator: str = typer.Option("mc", help="mc | ensemble"),
-    members: Optional[str] = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
+    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
     k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
+    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
                                                      "(default: position_swap, or the --config file's)"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
-    max_humans: Optional[int] = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
+    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
     episodes: int = typer.Option(40, min=1, max=MAX_EPISODES, help="episodes per calibration configuration"),
     false_activation_budget: float = typer.Option(
         0.05, min=0.0, max=1.0, help="allowed false-activation rate: the share of unperturbed steps on which the "
                                      "fallback may act (the experiment's safety.false_activation_budget)"),
-    budget: Optional[float] = typer.Option(None, "--budget", min=0.0, max=1.0, hidden=True,
+    budget: float | None = typer.Option(None, "--budget", min=0.0, max=1.0, hidden=True,
                                            callback=_deprecated_alias("--budget", "--false-activation-budget"),
                                            help="deprecated name of --false-activation-budget"),
     proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
@@ -901,7 +907,7 @@ def export(
     # option and its allowed range (socnav.runtime.format's MAX_K, MAX_WINDOW) for any bad value, 1e9 included.
     # typer does not enforce min / max on text: they document the range (docs/configuration_table.py reads them).
     k: str = typer.Option("20", min=2, max=1000, metavar="INTEGER", help="MC-dropout samples per decision"),
-    p_test: Optional[str] = typer.Option(None, metavar="FLOAT", help="MC-dropout p, in (0, 1) (default: the "
+    p_test: str | None = typer.Option(None, metavar="FLOAT", help="MC-dropout p, in (0, 1) (default: the "
                                                                      "policy's; 0 would disable the uncertainty)"),
     window: str = typer.Option("4", min=1, max=10_000, metavar="INTEGER", help="uncertainty window in steps"),
     value: bool = typer.Option(False, "--value", help="also export the critic (output 'value')"),

@@ -5,12 +5,20 @@ base model, the bounded YAML reader, the deep merge and the one formatter of val
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence, Union
+from typing import Any, Literal, Union
 
 import yaml
 from pydantic import (
-    BaseModel, ConfigDict, Field, StrictInt, ValidationError, field_validator, model_serializer, model_validator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
 )
 
 
@@ -84,7 +92,7 @@ def safe_load_yaml(text: str) -> Any:
     if len(text) > YAML_MAX_BYTES:
         raise YAMLTooLargeError(f"{len(text):,} characters; socnav reads YAML of at most {YAML_MAX_BYTES:,}")
     try:
-        return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 -- a SafeLoader subclass
+        return yaml.load(text, Loader=_BoundedLoader)
     except RecursionError:
         raise YAMLTooLargeError("nested too deeply") from None
 
@@ -570,7 +578,7 @@ class HumansConfig(_Strict):
         return value
 
     @model_validator(mode="after")
-    def _model_fits_its_settings(self) -> "HumansConfig":
+    def _model_fits_its_settings(self) -> HumansConfig:
         if self.model == "mix" and self.mix is None:
             raise ValueError("model: mix needs humans.mix, the share of each model, e.g. {orca: 0.5, social_force: "
                              "0.5}")
@@ -586,7 +594,7 @@ class EnvConfig(_Strict):
     """Everything that defines a socnav world and its Gymnasium environment."""
 
     scenario: str = Field("circle_crossing", description="registered scenario name")
-    n_humans: Union[StrictInt, tuple[StrictInt, StrictInt], None] = Field(
+    n_humans: StrictInt | tuple[StrictInt, StrictInt] | None = Field(
         None, description="humans per episode: an int, a [min, max] range drawn per episode, or null for the scenario default"
     )
     max_humans: StrictInt = Field(10, ge=1, le=64, description="rows of the padded 'humans' observation")
@@ -702,7 +710,7 @@ class EnvConfig(_Strict):
 
     @field_validator("n_humans")
     @classmethod
-    def _humans_count(cls, value: Union[int, tuple[int, int], None]) -> Union[int, tuple[int, int], None]:
+    def _humans_count(cls, value: int | tuple[int, int] | None) -> int | tuple[int, int] | None:
         if value is None:
             return value
         lo, hi = (value, value) if isinstance(value, int) else value
@@ -711,7 +719,7 @@ class EnvConfig(_Strict):
         return value
 
     @model_validator(mode="after")
-    def _replay_needs_its_scenario(self) -> "EnvConfig":
+    def _replay_needs_its_scenario(self) -> EnvConfig:
         # Recorded people need the scene the replay scenario builds around them, and that scene has no goals for
         # reactive humans: the two go together, in both directions (a behaviour shift to replay included).
         replayed = {"humans.model": self.humans.model == "replay",
@@ -728,7 +736,7 @@ class EnvConfig(_Strict):
         return self
 
     @model_validator(mode="after")
-    def _humans_fit_observation(self) -> "EnvConfig":
+    def _humans_fit_observation(self) -> EnvConfig:
         most = self.humans_range()[1]
         if most > self.max_humans:
             raise ValueError(

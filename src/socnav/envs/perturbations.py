@@ -17,9 +17,10 @@ human model) reads strength 0 as unperturbed and strength k = 1, 2, ... as its k
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 

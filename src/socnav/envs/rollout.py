@@ -7,7 +7,8 @@ records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, ev
 
 from __future__ import annotations
 
-from typing import Any, Callable, Protocol, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import pandas as pd

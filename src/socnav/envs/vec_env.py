@@ -6,7 +6,8 @@ Auto-reset, `terminal_observation` and `TimeLimit.truncated` follow SB3's conven
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np

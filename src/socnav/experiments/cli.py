@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 
@@ -77,15 +77,15 @@ class _ProgressReporter:
 
 def run(
     experiment: Path = typer.Argument(..., help="experiment YAML (e.g. configs/experiments/table1.yaml)"),
-    budget: Optional[str] = typer.Option(None, help="named budget of the experiment, e.g. quick | paper "
+    budget: str | None = typer.Option(None, help="named budget of the experiment, e.g. quick | paper "
                                                     "(default: the grid as written)"),
     backend: str = typer.Option("local", help="local (process pool on this machine) | ray (Ray cluster)"),
-    address: Optional[str] = typer.Option(None, help="Ray cluster address (e.g. auto or ray://head:10001); "
+    address: str | None = typer.Option(None, help="Ray cluster address (e.g. auto or ray://head:10001); "
                                                      "default: start a local Ray"),
-    workers: Optional[int] = typer.Option(None, min=0, help="units at a time (local default: CPU count; "
+    workers: int | None = typer.Option(None, min=0, help="units at a time (local default: CPU count; "
                                                             "0 runs in this process; ray default: cluster CPUs)"),
     retries: int = typer.Option(1, min=0, help="retries of a unit whose worker died (Ray: max_retries)"),
-    out: Optional[Path] = typer.Option(None, help="run directory (default runs/<name>-<budget>, or runs/<name> without --budget)"),
+    out: Path | None = typer.Option(None, help="run directory (default runs/<name>-<budget>, or runs/<name> without --budget)"),
     dry_run: bool = typer.Option(False, "--dry-run", help="validate and list the units and their state; run nothing"),
 ) -> None:
     """Run an experiment: train and evaluate every unit not yet done; resumable, failures reported per unit."""
@@ -146,7 +146,7 @@ def run(
 
 def report(
     results_dir: Path = typer.Argument(..., help="run directory written by `socnav run`"),
-    out: Optional[Path] = typer.Option(None, help="report directory (default RESULTS_DIR/report)"),
+    out: Path | None = typer.Option(None, help="report directory (default RESULTS_DIR/report)"),
 ) -> None:
     """Tables (Markdown + CSV), figures (PNG + SVG) and report.md from an experiment's run directory."""
     from socnav.experiments.report import build_report
@@ -174,19 +174,19 @@ def tune(
     trials: int = typer.Option(..., min=1, max=100_000, help="trials to run (added to the study if it exists)"),
     storage: str = typer.Option("sqlite:///runs/tune.db", help="Optuna storage URL (any Optuna RDB URL)"),
     timesteps: int = typer.Option(100_000, min=1, max=MAX_TIMESTEPS, help="training timesteps per trial"),
-    study_name: Optional[str] = typer.Option(None, help="study name (default <algo>_<scenario>)"),
+    study_name: str | None = typer.Option(None, help="study name (default <algo>_<scenario>)"),
     n_envs: int = typer.Option(16, min=1, help="training environments per trial"),
-    eval_every: Optional[int] = typer.Option(None, min=1, max=MAX_TIMESTEPS,
+    eval_every: int | None = typer.Option(None, min=1, max=MAX_TIMESTEPS,
                                              help="timesteps between validations reported to the pruner "
                                                   "(default a fifth of the trial)"),
     eval_episodes: int = typer.Option(20, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
     metric: str = typer.Option("return_mean", help="objective: return_mean | goal_pct | collision_pct"),
     seed: int = typer.Option(0, help="training seed of every trial (and the sampler's seed)"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    out: Optional[Path] = typer.Option(None, help="trial run directories (default runs/tune/<study>)"),
-    timeout: Optional[float] = typer.Option(None, min=1, help="stop starting trials after this many seconds"),
-    write_preset: Optional[Path] = typer.Option(None, "--write-preset", help="write the best values as a "
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    out: Path | None = typer.Option(None, help="trial run directories (default runs/tune/<study>)"),
+    timeout: float | None = typer.Option(None, min=1, help="stop starting trials after this many seconds"),
+    write_preset: Path | None = typer.Option(None, "--write-preset", help="write the best values as a "
                                                                             "preset YAML here"),
 ) -> None:
     """Optuna search of PPO hyperparameters with median pruning; prints the best values, writes a preset YAML."""
@@ -197,7 +197,9 @@ def tune(
 
     if algo not in ALGOS:
         fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
-    from socnav.experiments.tune import METRICS, tune as run_tune, write_preset as save_preset
+    from socnav.experiments.tune import METRICS
+    from socnav.experiments.tune import tune as run_tune
+    from socnav.experiments.tune import write_preset as save_preset
 
     if metric not in METRICS:
         fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")

@@ -14,10 +14,11 @@ screening episodes disjoint from the demo's: the strength among `STRENGTHS` at w
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, ContextManager
+from typing import TYPE_CHECKING, Any, ContextManager
 
 import pandas as pd
 
@@ -154,9 +155,8 @@ def animate_learned_policy(policy: Any, world: EnvConfig, out: Path, seed: int, 
 
 
 def _safe_policy(policy: Any, config: EnvConfig) -> Any:
-    from socnav.uncertainty import MC_SEED
     from socnav.safety import SafePolicy
-    from socnav.uncertainty import MCDropoutEstimator
+    from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
     # A private, seeded mask stream: the same command gives the same result.
     return SafePolicy(policy, MCDropoutEstimator(policy, k=MC_SAMPLES, seed=MC_SEED), THRESHOLDS, config)
@@ -224,8 +224,7 @@ def animate_saved_episode(policy: Any, config: EnvConfig, episode_seed: int, out
                           policy_label: str) -> tuple[Path, Path]:
     """The episode `episode_seed` without the safety layer (a collision) and with it (saved), as two GIFs."""
     from socnav.experiments.animate import animate_episode
-    from socnav.uncertainty import MC_SEED
-    from socnav.uncertainty import MCDropoutEstimator
+    from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
     without, _ = animate_episode(policy, None, config, out_dir / f"safety_off_seed{episode_seed}.gif",
                                  seed=episode_seed, policy_label=policy_label)

@@ -27,8 +27,8 @@ any decisive one: *holds* or *does not hold*.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 import pandas as pd

@@ -33,9 +33,10 @@ part (:func:`claims_frame`); ``training_runs.csv``: the per-run training-curve s
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -698,7 +699,12 @@ def claims_frame(per_seed: pd.DataFrame, runs: pd.DataFrame, confidence: float =
     not hold if one does not, and otherwise cannot be told.
     """
     from socnav.experiments.statistics import (
-        CANNOT_TELL, DOES_NOT_HOLD, HOLDS, adjust_family, variance_ratio_test, welch_test,
+        CANNOT_TELL,
+        DOES_NOT_HOLD,
+        HOLDS,
+        adjust_family,
+        variance_ratio_test,
+        welch_test,
     )
 
     all_cells = list(dict.fromkeys(map(tuple, per_seed[["train_scenario", "eval_scenario"]].drop_duplicates()
@@ -761,7 +767,9 @@ def _power_note(per_seed: pd.DataFrame, n_claims: int) -> list[str]:
     :func:`socnav.experiments.power.min_detectable_difference`, at the Bonferroni level: Holm's first step), and the
     normal-theory sizes for the two training-curve claims."""
     from socnav.experiments.power import (
-        estimate_design, min_detectable_difference, min_detectable_standardised_difference,
+        estimate_design,
+        min_detectable_difference,
+        min_detectable_standardised_difference,
         min_detectable_variance_ratio,
     )
 

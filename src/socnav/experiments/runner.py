@@ -42,14 +42,30 @@ from socnav.config import YAML_MAX_BYTES
 # Ray workers too) knows them.
 from socnav.experiments import uncertainty_units  # noqa: F401
 from socnav.experiments.registry import (
-    EXECUTORS, PROGRESS_FILE, RESUMABLE, ExecutorResult, UnitProgress, file_digest, json_safe, read_progress,
-    register_executor, single_threaded_torch, unit_dir,
+    EXECUTORS,
+    PROGRESS_FILE,
+    RESUMABLE,
+    ExecutorResult,
+    UnitProgress,
+    file_digest,
+    json_safe,
+    read_progress,
+    register_executor,
+    single_threaded_torch,
+    unit_dir,
 )
 from socnav.experiments.spec import Experiment, Unit, plan_units
 from socnav.extras import install_hint
 from socnav.io import (
-    UntrustedInputError, first_link, read_bounded, read_json, real_directory, refuse_links, remove_links,
-    remove_stale_temporaries, write_text_atomic,
+    UntrustedInputError,
+    first_link,
+    read_bounded,
+    read_json,
+    real_directory,
+    refuse_links,
+    remove_links,
+    remove_stale_temporaries,
+    write_text_atomic,
 )
 from socnav.io import file_lock as _file_lock
 

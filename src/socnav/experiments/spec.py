@@ -35,18 +35,35 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Optional, Union
+from typing import Any, Literal, Union
 
 from pydantic import Field, StrictInt, ValidationError, field_validator, model_validator
 
-from socnav.config import (ConfigError, StrictModel, deep_merge, format_validation_error, load_config,
-                           read_mapping_file, short_repr)
+from socnav.config import (
+    ConfigError,
+    StrictModel,
+    deep_merge,
+    format_validation_error,
+    load_config,
+    read_mapping_file,
+    short_repr,
+)
 
 __all__ = [
-    "Budget", "Evaluation", "Experiment", "ExperimentError", "Grid", "PLANNERS", "Unit", "load_experiment",
-    "plan_units", "register_planner", "resolve_budget",
+    "PLANNERS",
+    "Budget",
+    "Evaluation",
+    "Experiment",
+    "ExperimentError",
+    "Grid",
+    "Unit",
+    "load_experiment",
+    "plan_units",
+    "register_planner",
+    "resolve_budget",
 ]
 
 SPEC_VERSION = 1
@@ -122,12 +139,12 @@ class Grid(StrictModel):
     seeds: Seeds = Field(description="an int n (seeds 0..n-1) or a list of seeds")
     timesteps: StrictInt = Field(gt=0, le=MAX_TIMESTEPS, description="environment steps per training run")
     n_envs: StrictInt = Field(16, gt=0, description="training environments per run (must fit in memory)")
-    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS,
+    eval_every: StrictInt | None = Field(None, gt=0, le=MAX_TIMESTEPS,
                                             description="timesteps between validations (null: a tenth)")
     validation_episodes: StrictInt = Field(50, gt=0, le=MAX_EPISODES,
                                            description="episodes per periodic validation during training")
     overrides: dict[str, Any] = Field(default_factory=dict, description="AlgoConfig fields for every algorithm")
-    algo_overrides: dict[str, Union[dict[str, Any], str]] = Field(
+    algo_overrides: dict[str, dict[str, Any] | str] = Field(
         default_factory=dict, description="per algorithm: AlgoConfig fields, or a preset YAML path"
     )
 
@@ -209,7 +226,7 @@ class Study(StrictModel):
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
                                                   description=PERTURBATIONS_DESCRIPTION)
     k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
-    p_test: Optional[float] = Field(None, ge=0, lt=1, description="MC-dropout probability (null: the policy's)")
+    p_test: float | None = Field(None, ge=0, lt=1, description="MC-dropout probability (null: the policy's)")
     window: StrictInt = Field(4, ge=1, le=MAX_SAMPLES, description="steps of the windowed uncertainty")
     mc_seed: StrictInt = Field(0, ge=0, le=TRAIN_SEED_LIMIT,
                                description="training seed of the acting / MC-dropout policy")
@@ -265,7 +282,7 @@ class Safety(StrictModel):
     ablation: list[Ablated] = Field(default_factory=list,
                                     description="rule variants calibrated and evaluated next to the paper's rule "
                                                 "(eq. (10)): proximity-only and/or uncertainty-only")
-    ablation_sensing: Optional[Literal["perceived", "true"]] = Field(
+    ablation_sensing: Literal["perceived", "true"] | None = Field(
         None, description="the sensing the ablation and the trade-off curve are run with (one of `sensing`; null: "
                           "true if listed, else the first)")
     tradeoff_budgets: list[float] = Field(default_factory=list,
@@ -275,7 +292,7 @@ class Safety(StrictModel):
         "full", description="calibration at the trade-off budgets other than false_activation_budget: full (as at "
                             "that budget) or light (one proxy budget, the c_prox reading chosen at that budget, no "
                             "refinement stage; every rule alike)")
-    tradeoff_repeats: Optional[StrictInt] = Field(
+    tradeoff_repeats: StrictInt | None = Field(
         None, ge=1, le=MAX_SAMPLES, description="the first repeats the rules of those budgets are evaluated on "
                                                 "(null: every repeat); the curve uses the repeats all its points share")
 
@@ -306,7 +323,7 @@ class Safety(StrictModel):
         return value
 
     @model_validator(mode="after")
-    def _ablation_needs_calibration(self) -> "Safety":
+    def _ablation_needs_calibration(self) -> Safety:
         if (self.ablation or self.tradeoff_budgets) and not self.calibrate:
             raise ValueError("ablation / tradeoff_budgets: the rules are calibrated, so calibrate must be true")
         if self.ablation_sensing is not None and self.ablation_sensing not in self.sensing:
@@ -339,47 +356,47 @@ class Budget(StrictModel):
     `overrides` merges."""
 
     description: str = ""
-    seeds: Optional[Seeds] = Field(None, description="grid.seeds: an int n (seeds 0..n-1) or a list of seeds")
-    timesteps: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.timesteps")
-    n_envs: Optional[StrictInt] = Field(None, gt=0, description="grid.n_envs")
-    eval_every: Optional[StrictInt] = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.eval_every")
-    validation_episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES,
+    seeds: Seeds | None = Field(None, description="grid.seeds: an int n (seeds 0..n-1) or a list of seeds")
+    timesteps: StrictInt | None = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.timesteps")
+    n_envs: StrictInt | None = Field(None, gt=0, description="grid.n_envs")
+    eval_every: StrictInt | None = Field(None, gt=0, le=MAX_TIMESTEPS, description="grid.eval_every")
+    validation_episodes: StrictInt | None = Field(None, gt=0, le=MAX_EPISODES,
                                                      description="grid.validation_episodes")
-    episodes: Optional[StrictInt] = Field(None, gt=0, le=MAX_EPISODES,
+    episodes: StrictInt | None = Field(None, gt=0, le=MAX_EPISODES,
                                           description="evaluation.episodes: episodes per policy and scenario")
-    eval_n_envs: Optional[StrictInt] = Field(None, gt=0, description="evaluation.n_envs")
-    algorithms: Optional[list[str]] = Field(None, description="grid.algorithms")
-    train_scenarios: Optional[list[str]] = Field(None, description="grid.train_scenarios")
-    eval_scenarios: Optional[list[str]] = Field(None, description="evaluation.scenarios")
-    overrides: Optional[dict[str, Any]] = Field(None, description="merged into grid.overrides")
-    study_perturbations: Optional[dict[str, list[float]]] = Field(None, description="study.perturbations")
-    safety_perturbations: Optional[dict[str, list[float]]] = Field(None, description="safety.perturbations")
-    repeats: Optional[StrictInt] = Field(None, ge=1, le=MAX_SAMPLES, description="safety.repeats")
-    calibration_episodes: Optional[StrictInt] = Field(None, ge=1, le=MAX_EPISODES,
+    eval_n_envs: StrictInt | None = Field(None, gt=0, description="evaluation.n_envs")
+    algorithms: list[str] | None = Field(None, description="grid.algorithms")
+    train_scenarios: list[str] | None = Field(None, description="grid.train_scenarios")
+    eval_scenarios: list[str] | None = Field(None, description="evaluation.scenarios")
+    overrides: dict[str, Any] | None = Field(None, description="merged into grid.overrides")
+    study_perturbations: dict[str, list[float]] | None = Field(None, description="study.perturbations")
+    safety_perturbations: dict[str, list[float]] | None = Field(None, description="safety.perturbations")
+    repeats: StrictInt | None = Field(None, ge=1, le=MAX_SAMPLES, description="safety.repeats")
+    calibration_episodes: StrictInt | None = Field(None, ge=1, le=MAX_EPISODES,
                                                       description="safety.calibration_episodes")
-    eval_seed: Optional[StrictInt] = Field(None, ge=0, le=EPISODE_SEED_LIMIT,
+    eval_seed: StrictInt | None = Field(None, ge=0, le=EPISODE_SEED_LIMIT,
                                            description="evaluation.seed: episode k uses seed + k")
-    mc_seed: Optional[StrictInt] = Field(None, ge=0, le=TRAIN_SEED_LIMIT,
+    mc_seed: StrictInt | None = Field(None, ge=0, le=TRAIN_SEED_LIMIT,
                                          description="study.mc_seed and safety.mc_seed (one of the seeds trained)")
 
     @field_validator("study_perturbations", "safety_perturbations")
     @classmethod
-    def _grids(cls, value: Optional[dict[str, list[float]]]) -> Optional[dict[str, list[float]]]:
+    def _grids(cls, value: dict[str, list[float]] | None) -> dict[str, list[float]] | None:
         return None if value is None else _perturbation_grid(value)
 
     @field_validator("seeds")
     @classmethod
-    def _seeds(cls, value: Optional[Seeds]) -> Optional[list[int]]:
+    def _seeds(cls, value: Seeds | None) -> list[int] | None:
         return None if value is None else _seed_list(value)
 
     @field_validator("algorithms")
     @classmethod
-    def _known_algorithms(cls, value: Optional[list[str]]) -> Optional[list[str]]:
+    def _known_algorithms(cls, value: list[str] | None) -> list[str] | None:
         return None if value is None else _check_names(value, _algorithms(), "algorithm")
 
     @field_validator("train_scenarios", "eval_scenarios")
     @classmethod
-    def _known_scenarios(cls, value: Optional[list[str]]) -> Optional[list[str]]:
+    def _known_scenarios(cls, value: list[str] | None) -> list[str] | None:
         return None if value is None else _check_names(value, _scenarios(), "scenario")
 
 
@@ -393,10 +410,10 @@ class Experiment(StrictModel):
     scenario_env: dict[str, dict[str, Any]] = Field(default_factory=dict, description="env overrides per scenario")
     grid: Grid
     evaluation: Evaluation
-    study: Optional[Study] = Field(None, description="kind uncertainty: the perturbation study (Table 2)")
-    safety: Optional[Safety] = Field(None, description="kind uncertainty: the safety evaluation (Table 3)")
+    study: Study | None = Field(None, description="kind uncertainty: the perturbation study (Table 2)")
+    safety: Safety | None = Field(None, description="kind uncertainty: the safety evaluation (Table 3)")
     budgets: dict[str, Budget] = Field(default_factory=dict)
-    budget: Optional[str] = Field(None, description="set by resolve_budget: the budget applied (null: none)")
+    budget: str | None = Field(None, description="set by resolve_budget: the budget applied (null: none)")
 
     @field_validator("name")
     @classmethod
@@ -608,7 +625,7 @@ class Unit:
                 "spec_hash": self.spec_hash}
 
     @classmethod
-    def from_json(cls, data: dict[str, Any]) -> "Unit":
+    def from_json(cls, data: dict[str, Any]) -> Unit:
         return cls(data["id"], data["kind"], data["params"], tuple(data.get("deps", ())))
 
 

@@ -50,8 +50,8 @@ clusters per stratum those intervals understate the uncertainty; they are shown,
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 import scipy.stats

@@ -17,9 +17,10 @@ A batch larger than one rollout (n_steps x n_envs) is cut to the rollout. Studie
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
@@ -239,7 +240,7 @@ class _Objective:
                 return
             try:
                 rows = read_table(evals)
-            except Exception:  # noqa: BLE001 - a file being replaced; the next call reads it
+            except Exception:
                 return
             for row in rows.itertuples(index=False):
                 step = int(row.timesteps)

@@ -55,8 +55,9 @@ Definitions:
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -66,7 +67,12 @@ from socnav.experiments.registry import ReportContext, register_section, unit_di
 from socnav.experiments.spec import NO_ESTIMATOR
 from socnav.experiments.statistics import Interval
 from socnav.io import (
-    UntrustedInputError, read_json, read_table, save_figure, write_table_atomic, write_text_atomic,
+    UntrustedInputError,
+    read_json,
+    read_table,
+    save_figure,
+    write_table_atomic,
+    write_text_atomic,
 )
 from socnav.sim.metrics import ALL_METRICS, METRIC_RECORD_COLUMNS, summarize_episodes, summarize_groups
 

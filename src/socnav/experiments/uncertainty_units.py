@@ -6,16 +6,23 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pandas as pd
 
 from socnav.envs.perturbations import PERTURBATIONS, perturbed_config, strength_zero
 from socnav.envs.rollout import rollout_episodes
 from socnav.experiments.registry import (
-    ExecutorResult, UnitProgress, file_digest, json_safe, register_executor, single_threaded_torch, unit_dir,
+    ExecutorResult,
+    UnitProgress,
+    file_digest,
+    json_safe,
+    register_executor,
+    single_threaded_torch,
+    unit_dir,
 )
 from socnav.experiments.spec import NO_ESTIMATOR, Unit, calibration_unit_id, tradeoff_thresholds_file
 from socnav.io import write_table_atomic, write_text_atomic

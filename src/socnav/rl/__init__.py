@@ -9,12 +9,12 @@ from socnav.rl.presets import ALGOS, PRESETS, AlgoConfig, large_batch_overrides,
 
 __all__ = [
     "ALGOS",
+    "ODVPPO",
     "PRESETS",
     "AlgoConfig",
     "HumanLSTMExtractor",
     "NonFiniteError",
     "ODVActorCriticPolicy",
-    "ODVPPO",
     "check_finite",
     "large_batch_overrides",
     "make_model",

@@ -28,11 +28,18 @@ import zipfile
 from collections import deque
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 import torch as th
 from pydantic import (
-    BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator, model_validator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
 )
 
 from socnav.rl.policy import ODVActorCriticPolicy
@@ -107,7 +114,7 @@ class _Header(BaseModel):
     algo: AlgoName
     algo_config: AlgoConfig
     env_config: dict[str, Any]
-    seed: Optional[StrictInt] = Field(None, ge=0)
+    seed: StrictInt | None = Field(None, ge=0)
 
     @field_validator("algo_config")
     @classmethod
@@ -120,7 +127,7 @@ class PolicyHeader(_Header):
 
     format: Literal["socnav-policy"]
     version: Literal[1]
-    timesteps: Optional[StrictInt] = Field(None, ge=0)
+    timesteps: StrictInt | None = Field(None, ge=0)
 
 
 class ScheduleData(BaseModel):
@@ -154,13 +161,13 @@ class CheckpointHeader(_Header):
     progress_remaining: float = Field(allow_inf_nan=False)
     learning_rate: ScheduleData
     clip_range: ScheduleData
-    clip_range_vf: Optional[ScheduleData]
+    clip_range_vf: ScheduleData | None
     ep_info_buffer: list[EpisodeInfo] = Field(max_length=10_000)
     ep_success_buffer: list[StrictBool] = Field(max_length=10_000)
     run: dict[str, Any] = Field(default_factory=dict, description="the training run's own counters (opaque here)")
 
     @model_validator(mode="after")
-    def _schedules_are_the_config(self) -> "CheckpointHeader":
+    def _schedules_are_the_config(self) -> CheckpointHeader:
         """The stored schedules must be the constants of the header's own hyperparameters (what training uses)."""
         config = self.algo_config
         for name, schedule, value in (("learning_rate", self.learning_rate, config.learning_rate),
@@ -277,13 +284,12 @@ def _write_archive(path: Path, members: dict[str, bytes]) -> Path:
     """Write a zip atomically, with fixed timestamps: the same content always gives the same bytes."""
     from socnav.io import atomic_path
 
-    with atomic_path(path) as temporary:
-        with zipfile.ZipFile(temporary, "w") as archive:
-            for name, data in members.items():
-                info = zipfile.ZipInfo(name, date_time=_FIXED_ZIP_TIME)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                archive.writestr(info, data)
+    with atomic_path(path) as temporary, zipfile.ZipFile(temporary, "w") as archive:
+        for name, data in members.items():
+            info = zipfile.ZipInfo(name, date_time=_FIXED_ZIP_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, data)
     return path
 
 
@@ -652,8 +658,9 @@ def load_checkpoint(path: str | Path, env: Any, tensorboard_log: str | None = No
 
     :raises CheckpointError: missing, foreign, crafted or invalid file; nothing in it is unpickled.
     """
-    from socnav.rl.presets import make_model
     from stable_baselines3.common.utils import FloatSchedule
+
+    from socnav.rl.presets import make_model
 
     path = Path(path)
     header, weights, optimizer_state = _validated_checkpoint(path)

@@ -23,9 +23,10 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -36,13 +37,27 @@ from socnav.config import ConfigError, ConfigLike, load_config
 from socnav.envs.rollout import rollout_episodes, summarize
 from socnav.envs.vec_env import make_vec_env
 from socnav.io import (
-    UnsafePathError, UntrustedInputError, file_lock, find_links, read_json, read_table, remove_stale_temporaries,
-    write_table_atomic, write_text_atomic,
+    UnsafePathError,
+    UntrustedInputError,
+    file_lock,
+    find_links,
+    read_json,
+    read_table,
+    remove_stale_temporaries,
+    write_table_atomic,
+    write_text_atomic,
 )
 from socnav.rl.odv_ppo import ODVPPO
 from socnav.rl.persistence import (
-    MAX_HEADER_BYTES, CheckpointError, CheckpointHeader, load_checkpoint, read_checkpoint_header, save_checkpoint, save_policy,
-    validation_message, verify_checkpoint,
+    MAX_HEADER_BYTES,
+    CheckpointError,
+    CheckpointHeader,
+    load_checkpoint,
+    read_checkpoint_header,
+    save_checkpoint,
+    save_policy,
+    validation_message,
+    verify_checkpoint,
 )
 from socnav.rl.policy import NonFiniteError
 from socnav.rl.presets import AlgoConfig, AlgoName, make_model, resolve_config
@@ -377,7 +392,7 @@ def _resume_seeds(seed: int, step: int) -> tuple[int, int]:
 class _RunMonitor(BaseCallback):
     """Records the training curve, evaluates and checkpoints on schedule, and drives the progress display."""
 
-    def __init__(self, run: "_Run"):
+    def __init__(self, run: _Run):
         super().__init__()
         self.run = run
 

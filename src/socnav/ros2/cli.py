@@ -7,8 +7,9 @@ remapping and node name works as with ``ros2 run``; the command's own options ta
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
 import typer
 from rich.markup import escape
@@ -71,10 +72,10 @@ def _spin(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Calla
 def navigator(
     ctx: typer.Context,
     model: Path = typer.Option(..., help="navigator file written by `socnav export`"),
-    thresholds: Optional[str] = typer.Option(None, help="safety thresholds: mc | ensemble | a `socnav calibrate` "
+    thresholds: str | None = typer.Option(None, help="safety thresholds: mc | ensemble | a `socnav calibrate` "
                                                         "FILE (default: the navigator file's)"),
-    k: Optional[int] = typer.Option(None, min=2, help="MC-dropout samples per decision (default: the file's)"),
-    seed: Optional[int] = typer.Option(None, min=0, help="seed of the MC-dropout masks (default: fresh entropy)"),
+    k: int | None = typer.Option(None, min=2, help="MC-dropout samples per decision (default: the file's)"),
+    seed: int | None = typer.Option(None, min=0, help="seed of the MC-dropout masks (default: fresh entropy)"),
     lockstep: bool = typer.Option(False, "--lockstep", help="decide once per set of odometry, humans and goal with "
                                                             "one stamp (for `socnav ros2 sim --lockstep`)"),
     use_sim_time: bool = typer.Option(False, "--use-sim-time", help="read the time from /clock"),
@@ -102,7 +103,7 @@ def navigator(
     _spin(rclpy, ctx.args, lambda: NavigatorNode(parameter_overrides=overrides), run)
 
 
-def _world(scenario: Optional[str], model: Optional[Path], config: Optional[Path], n_humans: Optional[int]) -> Any:
+def _world(scenario: str | None, model: Path | None, config: Path | None, n_humans: int | None) -> Any:
     """The simulated world: a navigator file's training world (``--model``), a config file, or the defaults; then
     ``--scenario`` (another scenario than the base's starts from its own number of humans) and ``--n-humans``."""
     from socnav.config import ConfigError, load_config
@@ -127,16 +128,16 @@ def _world(scenario: Optional[str], model: Optional[Path], config: Optional[Path
 @app.command(context_settings=_ROS_ARGUMENTS)
 def sim(
     ctx: typer.Context,
-    scenario: Optional[str] = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
+    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
                                                      "--model's or --config's, else circle_crossing)"),
-    model: Optional[Path] = typer.Option(None, help="navigator file: simulate the world it was trained in"),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML env config (instead of --model's world)"),
-    n_humans: Optional[int] = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
+    model: Path | None = typer.Option(None, help="navigator file: simulate the world it was trained in"),
+    config: Path | None = typer.Option(None, "--config", help="YAML env config (instead of --model's world)"),
+    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
     episodes: int = typer.Option(10, min=1, max=100_000, help="episodes to play, then exit"),
     seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
-    out: Optional[Path] = typer.Option(None, help="per-episode records, .csv or .parquet (default: "
+    out: Path | None = typer.Option(None, help="per-episode records, .csv or .parquet (default: "
                                                   "runs/ros2/<scenario>_seed<seed>_<episodes>ep.csv)"),
-    record: Optional[Path] = typer.Option(None, help="also record every message to this .mcap file"),
+    record: Path | None = typer.Option(None, help="also record every message to this .mcap file"),
     lockstep: bool = typer.Option(False, "--lockstep", help="wait for the navigator's command at every step "
                                                             "(run the navigator with --lockstep)"),
     real_time_factor: float = typer.Option(1.0, min=1e-3, max=1e3, help="simulated seconds per wall second"),

@@ -23,9 +23,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -40,8 +41,16 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Bool, ColorRGBA, Float64, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
-from socnav.ros2.messages import (MessageError, RobotOdometry, TrackedHumans, cloud_to_humans, command_to_twist,
-                                  goal_to_position, odometry_to_robot, stamp_to_ns)
+from socnav.ros2.messages import (
+    MessageError,
+    RobotOdometry,
+    TrackedHumans,
+    cloud_to_humans,
+    command_to_twist,
+    goal_to_position,
+    odometry_to_robot,
+    stamp_to_ns,
+)
 from socnav.runtime import InputError, SafeNavigator
 
 __all__ = ["DEFAULT_NODE_NAME", "UNCERTAINTY_NAMES", "NavigatorNode", "NavigatorSetupError", "Outcome"]
@@ -224,7 +233,7 @@ class NavigatorNode(Node):
             latest.value, latest.error = parse(), None
         except MessageError as exc:
             latest.value, latest.error = None, str(exc)
-        except Exception as exc:  # noqa: BLE001 -- a message must never stop the node: the robot stops instead
+        except Exception as exc:
             latest.value, latest.error = None, f"{what} message could not be read ({type(exc).__name__}: {exc})"
         if self.lockstep:
             self._pending_trigger = started
@@ -271,7 +280,7 @@ class NavigatorNode(Node):
         """One decision from the latest inputs; publishes the command and the decision's state. Never raises."""
         try:
             outcome = self._outcome(self.get_clock().now().nanoseconds)
-        except Exception as exc:  # noqa: BLE001 -- the last guard: stop the robot, keep the node running
+        except Exception as exc:
             outcome = Outcome(0.0, 0.0, True, DiagnosticStatus.ERROR,
                               f"stopped: internal error ({type(exc).__name__}: {exc})")
         self.cmd_vel.publish(command_to_twist(outcome.speed, outcome.turn, self.time_step))
@@ -279,7 +288,7 @@ class NavigatorNode(Node):
         self.decisions += 1
         try:
             self._publish_state(outcome, latency)
-        except Exception as exc:  # noqa: BLE001 -- the command is out; a failing report must not stop the node
+        except Exception as exc:
             self.get_logger().error(f"could not publish the decision's state: {type(exc).__name__}: {exc}")
 
     def _outcome(self, now_ns: int) -> Outcome:

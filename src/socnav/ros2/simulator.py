@@ -49,8 +49,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 from socnav.config import EnvConfig
 from socnav.envs.rollout import EPISODE_COLUMNS
 from socnav.io import write_table_atomic
-from socnav.ros2.messages import (MessageError, humans_to_cloud, ns_to_stamp, position_to_goal, robot_to_odometry,
-                                  twist_to_command)
+from socnav.ros2.messages import (
+    MessageError,
+    humans_to_cloud,
+    ns_to_stamp,
+    position_to_goal,
+    robot_to_odometry,
+    twist_to_command,
+)
 from socnav.ros2.recording import McapRecorder
 from socnav.sim.world import CrowdWorld
 

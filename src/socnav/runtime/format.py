@@ -35,7 +35,7 @@ import hashlib
 import hmac
 import math
 import re
-from typing import Annotated, Any, Literal, Optional
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -47,10 +47,30 @@ from socnav.sim.scenarios import get_scenario
 from socnav.sim.walls import SCAN_KEY, world_polygons
 
 __all__ = [
-    "CHECKSUM_KEY", "FORMAT_NAME", "FORMAT_VERSION", "MAX_DROPOUT_INPUTS", "MAX_HUMANS", "MAX_K", "MAX_WIDTH",
-    "MAX_WINDOW", "METADATA_KEY", "METADATA_MAX_BYTES", "METADATA_MAX_DEPTH", "NAVIGATOR_MAX_BYTES",
-    "NavigatorLoadError", "NavigatorMetadata", "OBSERVATION_INPUTS", "OUTPUTS", "SCAN_INPUT", "SCAN_KEEP_PREFIX",
-    "SUPPORTED_VERSIONS", "VALUE_OUTPUT", "WALL_FREE_VERSION", "metadata_entries", "metadata_message", "seal",
+    "CHECKSUM_KEY",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MAX_DROPOUT_INPUTS",
+    "MAX_HUMANS",
+    "MAX_K",
+    "MAX_WIDTH",
+    "MAX_WINDOW",
+    "METADATA_KEY",
+    "METADATA_MAX_BYTES",
+    "METADATA_MAX_DEPTH",
+    "NAVIGATOR_MAX_BYTES",
+    "OBSERVATION_INPUTS",
+    "OUTPUTS",
+    "SCAN_INPUT",
+    "SCAN_KEEP_PREFIX",
+    "SUPPORTED_VERSIONS",
+    "VALUE_OUTPUT",
+    "WALL_FREE_VERSION",
+    "NavigatorLoadError",
+    "NavigatorMetadata",
+    "metadata_entries",
+    "metadata_message",
+    "seal",
     "verify",
 ]
 
@@ -269,9 +289,9 @@ class ActionRecord(_Record):
 
 
 class PolicyRecord(_Record):
-    algo: Optional[Name]
-    timesteps: Optional[int] = Field(ge=0, le=10**15)
-    seed: Optional[int] = Field(ge=-(2**63), lt=2**64)
+    algo: Name | None
+    timesteps: int | None = Field(ge=0, le=10**15)
+    seed: int | None = Field(ge=-(2**63), lt=2**64)
     odv: bool
     dropout_p: float = Field(ge=0, lt=1)
     lstm_hidden_size: int = Field(ge=1, le=MAX_WIDTH)
@@ -341,12 +361,12 @@ class NavigatorMetadata(_Record):
     outputs: list[Name] = Field(max_length=8)
     feature_range: FeatureRange
     safety: SafetyRecord
-    walls: Optional[list[Polygon]] = Field(None, min_length=1, max_length=MAX_TOTAL_VERTICES,
+    walls: list[Polygon] | None = Field(None, min_length=1, max_length=MAX_TOTAL_VERTICES,
                                            description="the world's walls, polygons in the map frame")
 
     @field_validator("walls")
     @classmethod
-    def _valid_walls(cls, value: Optional[list[list[list[float]]]]) -> Optional[list[list[list[float]]]]:
+    def _valid_walls(cls, value: list[list[list[float]]] | None) -> list[list[list[float]]] | None:
         if value is not None:
             validate_polygons(value, name="walls")  # a MapError (ValueError) names the polygon and the rule
         return value

@@ -41,8 +41,14 @@ from socnav.config import short_repr
 from socnav.runtime.format import MAX_K
 from socnav.runtime.network import DropoutStream, ExportedPolicy, MCBatch, Uniforms, keep_from_uniforms
 from socnav.safety.cautious import CautiousController
-from socnav.safety.rule import (RuleConditions, Thresholds, held_fallback, load_thresholds, nearest_human,
-                                rule_conditions)
+from socnav.safety.rule import (
+    RuleConditions,
+    Thresholds,
+    held_fallback,
+    load_thresholds,
+    nearest_human,
+    rule_conditions,
+)
 from socnav.sim.maps import validate_polygons
 from socnav.sim.observation import observe_robot, robot_command
 from socnav.sim.walls import POSE_KEY, SCAN_KEY

@@ -69,10 +69,11 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import NormalDist
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -80,8 +81,17 @@ import pandas as pd
 from socnav.config import ConfigLike, load_config
 from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, is_perturbed, perturbed_config
 from socnav.io import write_text_atomic
-from socnav.safety.rule import (PROXIMITY_VARIANTS, RULE_CONDITIONS, Conditions, Proximity, Thresholds,
-                                _check_proximity, proximity_score, rule_conditions, save_thresholds)
+from socnav.safety.rule import (
+    PROXIMITY_VARIANTS,
+    RULE_CONDITIONS,
+    Conditions,
+    Proximity,
+    Thresholds,
+    _check_proximity,
+    proximity_score,
+    rule_conditions,
+    save_thresholds,
+)
 
 __all__ = [
     "CALIBRATION_LEADS",
@@ -264,7 +274,7 @@ def evaluate_thresholds(records: pd.DataFrame, thresholds: Thresholds, lookback:
         "prevented_fraction": float(np.mean(fractions)) if fractions else float("nan"),
         "worst_type_fraction": float(np.min(fractions)) if fractions else float("nan"),
         "false_activation_rate": float(fire[unperturbed].mean()) if unperturbed.any() else float("nan"),
-        "n_collisions": int(len(collisions)),
+        "n_collisions": len(collisions),
         "n_unperturbed_steps": int(unperturbed.sum()),
     }
 

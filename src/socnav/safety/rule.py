@@ -55,9 +55,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Mapping, Union
+from typing import Any, Literal
 
 import numba
 import numpy as np
@@ -166,7 +167,7 @@ class Thresholds(StrictModel):
         return self.conditions != "uncertainty-only"
 
     @classmethod
-    def create(cls, data: Mapping[str, Any] | None = None, **fields: Any) -> "Thresholds":
+    def create(cls, data: Mapping[str, Any] | None = None, **fields: Any) -> Thresholds:
         """Validate ``data`` / keyword fields; raise :class:`ThresholdsError` naming the bad field."""
         merged = {**dict(data or {}), **fields}
         try:
@@ -176,7 +177,7 @@ class Thresholds(StrictModel):
 
     @classmethod
     def preset(cls, name: str, proximity: Proximity = "abs-relative-speed",
-               sensing: Sensing = "perceived") -> "Thresholds":
+               sensing: Sensing = "perceived") -> Thresholds:
         """The paper's thresholds for ``mc`` (MC-dropout) or ``ensemble``."""
         if name not in THRESHOLD_PRESETS:
             raise ThresholdsError(f"unknown thresholds preset {name!r}; allowed: {', '.join(THRESHOLD_PRESETS)}")
@@ -185,14 +186,14 @@ class Thresholds(StrictModel):
                           proximity=proximity, sensing=sensing)
 
     @classmethod
-    def never(cls) -> "Thresholds":
+    def never(cls) -> Thresholds:
         """Thresholds whose uncertainty conditions never hold: the rule never fires (a plain policy)."""
         return cls.create(lambda_ep=math.inf, lambda_feat=math.inf, lambda_prox=0.0, beta1=0.0)
 
 
 # ------------------------------------------------------------------------------------------------ files
 
-def load_thresholds(path_or_name: Union[str, Path, Mapping[str, Any], Thresholds]) -> Thresholds:
+def load_thresholds(path_or_name: str | Path | Mapping[str, Any] | Thresholds) -> Thresholds:
     """Thresholds from a preset name (``mc``, ``ensemble``), a YAML/JSON file, a mapping or a Thresholds.
 
     A file holds the fields at its top level or under a ``thresholds`` key. A name that is both a preset and an
@@ -221,7 +222,7 @@ def load_thresholds(path_or_name: Union[str, Path, Mapping[str, Any], Thresholds
         raise ThresholdsError(f"{exc} [file: {path}]") from None
 
 
-def save_thresholds(thresholds: Thresholds, path: Union[str, Path]) -> Path:
+def save_thresholds(thresholds: Thresholds, path: str | Path) -> Path:
     """Write thresholds atomically: JSON for a ``.json`` suffix, YAML otherwise. ``inf`` round-trips."""
     path = Path(path)
     data = thresholds.model_dump()

@@ -28,15 +28,23 @@ windows, the previous gap and a hold run on across episodes.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any, Mapping, Union
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from socnav.config import ConfigLike, load_config
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
-from socnav.safety.rule import (NearestHuman, RuleConditions, Thresholds, held_fallback, load_thresholds,
-                               nearest_human, rule_conditions)
+from socnav.safety.rule import (
+    NearestHuman,
+    RuleConditions,
+    Thresholds,
+    held_fallback,
+    load_thresholds,
+    nearest_human,
+    rule_conditions,
+)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -77,7 +85,7 @@ class SafePolicy:
         self,
         policy: Any,
         estimator: Any,
-        thresholds: Union[Thresholds, str, Mapping[str, Any]],
+        thresholds: Thresholds | str | Mapping[str, Any],
         config: ConfigLike = None,
         window: int = 4,
         n_envs: int | None = None,

@@ -13,8 +13,18 @@ from typing import Any
 
 import numpy as np
 
-from socnav.sim.scenarios import (MAX_TRIES, MIN_START_SEPARATION, InitialState, ScenarioSettings, _draw_humans_count,
-                                  _face_goal, _far_enough, _fill_traits, n_slots, register_scenario)
+from socnav.sim.scenarios import (
+    MAX_TRIES,
+    MIN_START_SEPARATION,
+    InitialState,
+    ScenarioSettings,
+    _draw_humans_count,
+    _face_goal,
+    _far_enough,
+    _fill_traits,
+    n_slots,
+    register_scenario,
+)
 
 #: metres between a wall and a start or goal (a body radius and a margin)
 WALL_CLEARANCE = 0.6

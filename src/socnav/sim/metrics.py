@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numba
 import numpy as np
@@ -36,8 +37,18 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = [
-    "ALL_METRICS", "DEFAULT_METRICS", "EpisodeMetrics", "METRICS", "METRIC_RECORD_COLUMNS", "Metric", "PV_PER",
-    "episode_values", "metric_table_rows", "select_metrics", "summarize_episodes", "summarize_groups",
+    "ALL_METRICS",
+    "DEFAULT_METRICS",
+    "METRICS",
+    "METRIC_RECORD_COLUMNS",
+    "PV_PER",
+    "EpisodeMetrics",
+    "Metric",
+    "episode_values",
+    "metric_table_rows",
+    "select_metrics",
+    "summarize_episodes",
+    "summarize_groups",
     "time_to_collision",
 ]
 

@@ -245,12 +245,12 @@ class ObstacleMap:
     tree_right: np.ndarray
 
     @classmethod
-    def from_polygons(cls, polygons: Sequence[np.ndarray]) -> "ObstacleMap":
+    def from_polygons(cls, polygons: Sequence[np.ndarray]) -> ObstacleMap:
         """`process_obstacles(polygons)`."""
         return process_obstacles(polygons)
 
     @classmethod
-    def empty(cls) -> "ObstacleMap":
+    def empty(cls) -> ObstacleMap:
         """The map without obstacles."""
         return process_obstacles([])
 
@@ -354,7 +354,7 @@ class ObstacleBatch:
     count: np.ndarray
 
     @classmethod
-    def from_maps(cls, maps: Sequence[ObstacleMap]) -> "ObstacleBatch":
+    def from_maps(cls, maps: Sequence[ObstacleMap]) -> ObstacleBatch:
         """One env per map, in order (the same `ObstacleMap` may appear many times)."""
         if isinstance(maps, ObstacleMap) or not isinstance(maps, Sequence):
             raise TypeError(f"maps: expected a sequence of ObstacleMap, one per env, got {type(maps).__name__}")
@@ -382,7 +382,7 @@ class ObstacleBatch:
         return batch
 
     @classmethod
-    def empty(cls, n_envs: int) -> "ObstacleBatch":
+    def empty(cls, n_envs: int) -> ObstacleBatch:
         """E envs without obstacles (Vmax = 0)."""
         return cls.from_maps([ObstacleMap.empty()] * n_envs)
 

@@ -34,7 +34,7 @@ class InitialState:
     script: list[Any] | None = None
 
     @classmethod
-    def empty(cls, n_envs: int, n_slots: int) -> "InitialState":
+    def empty(cls, n_envs: int, n_slots: int) -> InitialState:
         zeros = lambda *shape: np.zeros((n_envs, n_slots, *shape))  # noqa: E731
         return cls(
             positions=zeros(2),

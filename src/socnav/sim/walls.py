@@ -12,8 +12,15 @@ from typing import Any
 import numpy as np
 from shapely.geometry import Polygon
 
-from socnav.sim.geometry import (discs_clear, points_in_polygons, points_to_segments, polygon_segments, range_scan,
-                                 robot_line_of_sight, swept_segment_hit)
+from socnav.sim.geometry import (
+    discs_clear,
+    points_in_polygons,
+    points_to_segments,
+    polygon_segments,
+    range_scan,
+    robot_line_of_sight,
+    swept_segment_hit,
+)
 from socnav.sim.maps import clearance_violation, load_map, validate_polygons
 from socnav.sim.obstacles import ObstacleBatch, ObstacleMap
 

@@ -25,9 +25,16 @@ import numba
 import numpy as np
 
 from socnav.config import ConfigError, EnvConfig, RewardConfig
-from socnav.sim.noise import ATTENTION_STREAM, HEADING_STREAM, OBSERVATION_STREAM, SPEED_STREAM, standard_normal, uniform01
 from socnav.sim.humans import Crowd, MixedHumans, ScriptedHumans, make_human_model
 from socnav.sim.metrics import EpisodeMetrics
+from socnav.sim.noise import (
+    ATTENTION_STREAM,
+    HEADING_STREAM,
+    OBSERVATION_STREAM,
+    SPEED_STREAM,
+    standard_normal,
+    uniform01,
+)
 from socnav.sim.orca import default_social_arrays
 from socnav.sim.scenarios import InitialState, get_scenario, n_slots
 from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons

@@ -398,7 +398,7 @@ class EnsembleEstimator:
         # Weightless skeleton (meta device) in eval mode: no dropout.
         skeleton = copy.deepcopy(_ActionStats(self.policies[0])).to("meta").train(False)
 
-        def member(p: dict[str, th.Tensor], b: dict[str, th.Tensor], obs: dict[str, th.Tensor]):  # noqa: ANN202
+        def member(p: dict[str, th.Tensor], b: dict[str, th.Tensor], obs: dict[str, th.Tensor]):
             return functional_call(skeleton, (p, b), (obs,))
 
         # Weights batched over the members (dim 0), the observation shared (None).

@@ -8,7 +8,7 @@ trajectories, with the ``replay`` scenario); ``humans.mix`` mixes several per hu
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from socnav.sim.humans.base import Crowd, HumanModel, HumanSettings, ScriptedHumans
 from socnav.sim.humans.mix import MIX, MixedHumans

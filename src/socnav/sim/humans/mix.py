@@ -9,7 +9,8 @@ one batched call over all environments, seeing every other agent (whatever moves
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numba
 import numpy as np
@@ -59,7 +60,7 @@ class MixedHumans:
         self.arrival_distance = float(self.arrival_distances.max())
 
     @classmethod
-    def from_shares(cls, shares: Mapping[str, float], build: Callable[[str], HumanModel]) -> "MixedHumans":
+    def from_shares(cls, shares: Mapping[str, float], build: Callable[[str], HumanModel]) -> MixedHumans:
         """The mix of `shares` (model name -> share), each model built by `build(name)`; zero shares are dropped."""
         kept = [(name, share) for name, share in shares.items() if share > 0]
         return cls([build(name) for name, _ in kept], [share for _, share in kept])

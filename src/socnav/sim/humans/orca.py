@@ -55,7 +55,7 @@ class OrcaHumans:
         self.interaction_range = self.neighbor_dist  # the robot counts once it is an ORCA neighbour candidate
 
     @classmethod
-    def from_config(cls, config: HumanSettings) -> "OrcaHumans":
+    def from_config(cls, config: HumanSettings) -> OrcaHumans:
         orca = config.orca
         return cls(orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, config.time_step,
                    orca.time_horizon_obst)

@@ -246,7 +246,7 @@ class ReplayStart:
     """The scenario's plan of one replayed episode: where it starts in which file, the robot's path and the
     pedestrian in each agent slot at the start (-1: none; slot 0 is the robot)."""
 
-    scenes: "ReplayScenes"
+    scenes: ReplayScenes
     scene: int
     step: int  # the scene's step at the episode's start
     start: np.ndarray  # (2,) robot start
@@ -384,7 +384,7 @@ def _load(files: tuple[str, ...], sample_rate: float, frame_step: int | None, ti
 
 #: The scenes some model still uses, by key: `load_replay` hands out the same object while one does, whatever
 #: `_load`'s cache has dropped meanwhile (the model's arrays and the scenario's plans must index the same scenes).
-_LIVE: "weakref.WeakValueDictionary[tuple, ReplayScenes]" = weakref.WeakValueDictionary()
+_LIVE: weakref.WeakValueDictionary[tuple, ReplayScenes] = weakref.WeakValueDictionary()
 
 
 def load_replay(settings: Any, time_step: float) -> ReplayScenes:
@@ -527,7 +527,7 @@ class ReplayHumans:
         self.attach(0, 1)
 
     @classmethod
-    def from_config(cls, config: Any) -> "ReplayHumans":
+    def from_config(cls, config: Any) -> ReplayHumans:
         return cls(load_replay(config.humans.replay, config.time_step), config.time_step)
 
     def attach(self, n_envs: int, n_slots: int) -> None:

@@ -243,7 +243,7 @@ class SocialForceHumans:
                                 else self.parameters[name] for name in PARAMETERS)
 
     @classmethod
-    def from_config(cls, config: HumanSettings) -> "SocialForceHumans":
+    def from_config(cls, config: HumanSettings) -> SocialForceHumans:
         section = config.humans.social_force
         return cls(config.time_step, **{name: getattr(section, name) for name in PARAMETERS})
 
