@@ -173,3 +173,28 @@ def test_random_scenario_humans_redraw_goals():
     for _ in range(60):
         world.step(np.array([[-1.0, 0.0]]))
     assert not np.allclose(first_goals, world.goals[0, 1:4]), "humans should have drawn new goals"
+
+
+@pytest.mark.parametrize("humans", [{"model": "orca"}, {"model": "social_force"},
+                                    {"mix": {"orca": 0.5, "social_force": 0.5}}])
+@pytest.mark.parametrize("scenario", ["circle_crossing", "doorway"])
+def test_disturbance_skips_only_humans_blind_to_the_robot(humans, scenario):
+    """The disturbance term's robot-free velocities: recomputing only the near humans who see the robot gives, bit
+    for bit, what recomputing every near human gives (a human blind to the robot moves the same without it)."""
+    config = load_config({"scenario": scenario, "humans": humans, "inattentive_share": 0.5})
+    world = CrowdWorld(config, 16)
+    for env in range(16):
+        world.seed(env, 100 + env)
+    world.reset()
+    rng = np.random.default_rng(0)
+    checked_blind = checked_seeing = 0
+    for _ in range(40):
+        humans_now = world.human_velocities()
+        near = world._humans_near_robot(config.reward.social_radius)
+        every_near = world.human_velocities(without_robot=True, only=near)
+        skipped = world._unhindered_velocities(humans_now, near)
+        np.testing.assert_array_equal(skipped[near], every_near[near])
+        checked_blind += int((near & ~world.sees[:, :, 0]).sum())
+        checked_seeing += int((near & world.sees[:, :, 0]).sum())
+        world.step(rng.uniform(-1.0, 1.0, (16, 2)))
+    assert checked_blind > 0 and checked_seeing > 0  # both kinds of human were compared

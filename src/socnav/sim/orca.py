@@ -611,6 +611,15 @@ def _orca_kernel(
     n_fallbacks = 0
 
     for e in range(n_envs):
+        if obstacles is not None:
+            # The env's map, as views taken once per env (a view per agent cost as much as the rest of its query).
+            point, unit_dir, is_convex, next_vertex, prev_vertex, tree_vertex, tree_left, tree_right, count = (
+                obstacles
+            )
+            n_vertices = count[e]
+            env_point, env_unit_dir, env_is_convex = point[e], unit_dir[e], is_convex[e]
+            env_next, env_prev = next_vertex[e], prev_vertex[e]
+            env_tree_vertex, env_tree_left, env_tree_right = tree_vertex[e], tree_left[e], tree_right[e]
         for i in range(n_agents):
             vix, viy = velocities[e, i, 0], velocities[e, i, 1]
             if not (active[e, i] and compute[e, i]):
@@ -619,10 +628,7 @@ def _orca_kernel(
 
             n_obstacle_lines = 0
             if obstacles is not None:
-                point, unit_dir, is_convex, next_vertex, prev_vertex, tree_vertex, tree_left, tree_right, count = (
-                    obstacles
-                )
-                if count[e] > 0:
+                if n_vertices > 0:
                     # RVO2 computeNeighbors: the edges within the distance the agent covers in time_horizon_obst.
                     px, py = positions[e, i, 0], positions[e, i, 1]
                     obstacle_range = time_horizon_obst * max_speeds[e, i] + radii[e, i]
@@ -630,16 +636,15 @@ def _orca_kernel(
                     n_obstacles = 0
                     # The tree query returns only edges closer than the range: when a plain scan of the edges finds
                     # none, it would return nothing (most agents, most steps), so it is skipped.
-                    if _any_edge_within(px, py, range_sq, point[e], next_vertex[e], count[e]):
+                    if _any_edge_within(px, py, range_sq, env_point, env_next, n_vertices):
                         n_obstacles = obstacle_neighbors(
-                            px, py, range_sq, point[e], next_vertex[e], tree_vertex[e], tree_left[e], tree_right[e],
-                            count[e], tree_stack, obstacle_vertex, obstacle_dist_sq,
+                            px, py, range_sq, env_point, env_next, env_tree_vertex, env_tree_left, env_tree_right,
+                            n_vertices, tree_stack, obstacle_vertex, obstacle_dist_sq,
                         )  # fmt: skip
-                    if n_obstacles > 0:  # no neighbour, no line: the env's views are not even taken
+                    if n_obstacles > 0:
                         n_obstacle_lines = obstacle_orca_lines(
-                            px, py, vix, viy, radii[e, i], inv_time_horizon_obst, point[e], unit_dir[e],
-                            is_convex[e], next_vertex[e], prev_vertex[e], obstacle_vertex, n_obstacles, points,
-                            directions,
+                            px, py, vix, viy, radii[e, i], inv_time_horizon_obst, env_point, env_unit_dir,
+                            env_is_convex, env_next, env_prev, obstacle_vertex, n_obstacles, points, directions,
                         )  # fmt: skip
 
             n_agent_lines = nearest_neighbors(

@@ -619,6 +619,18 @@ class CrowdWorld:
         compute = self.active & self.humans_slots if only is None else only
         return self.human_model.velocities(self.crowd(without_robot), compute)
 
+    def _unhindered_velocities(self, humans: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """The velocities the `near` humans would take this step had the robot not been there (`v_i^0` of the
+        disturbance term); `humans` are this step's velocities with the robot.
+
+        Every human model gives a human who does not see the robot (``sees[e, i, 0]`` False) the same velocity with
+        or without it, bit for bit (the robot adds no neighbour, line or force), so only those who see it are
+        computed again."""
+        seeing = near & self.sees[:, :, 0]
+        if not seeing.any():
+            return humans
+        return np.where(seeing[:, :, None], self.human_velocities(without_robot=True, only=seeing), humans)
+
     def step(self, actions: np.ndarray) -> StepResult:
         """Advance every environment by one step with the robot actions `actions` in [-1, 1]^2, shape (E, 2)."""
         cfg, pert, rew = self.config, self.config.perturbation, self.config.reward
@@ -637,8 +649,7 @@ class CrowdWorld:
             self._update_robot_visibility()
         humans = self.human_velocities()
         near = self._humans_near_robot(rew.social_radius)
-        scored = rew.disturbance > 0.0 and near.any()
-        unhindered = self.human_velocities(without_robot=True, only=near) if scored else humans
+        unhindered = self._unhindered_velocities(humans, near) if rew.disturbance > 0.0 and near.any() else humans
         if self.metrics is not None:
             self.metrics.before_step(self)
         robot_before = self.positions[:, 0].copy() if self.walls is not None else None
