@@ -287,9 +287,9 @@ those seeds; `--seed` on the command line is always one seed (`socnav train --se
 **Budgets.** `socnav run --budget NAME` picks a named compute budget of the experiment (`budgets.<name>`); the
 false-activation rate of the safety calibration is `--false-activation-budget` / `safety.false_activation_budget`.
 
-Renamed names:
+Deprecated names (still accepted with a warning, or refused with a pointer to the new name):
 
-| old | new | the old name |
+| deprecated name | use instead | what happens |
 |---|---|---|
 | `socnav evaluate --policy orca` | `--controller orca` (non-learned baselines; `--model` takes trained policies) | hidden alias, prints a deprecation warning |
 | `socnav calibrate --budget 0.05` | `--false-activation-budget 0.05` | hidden alias, prints a deprecation warning |

@@ -1,10 +1,13 @@
 """The `socnav` command line, driven through typer's runner: results, files and clear errors."""
 
 import json
+
 import pandas as pd
+import pytest
 from typer.testing import CliRunner
 
 from socnav.cli import app
+from socnav.experiments.spec import MAX_EPISODES
 
 runner = CliRunner()
 
@@ -96,9 +99,9 @@ def test_uncertainty_commands_reject_bad_input_clearly(tmp_path):
     assert code == 2 and "wind" in output and "Traceback" not in output
 
 
-def test_renamed_options_keep_their_old_names_as_hidden_deprecated_aliases(tmp_path):
-    """`evaluate --policy` is now `--controller` (`--model` takes trained policies), `calibrate --budget` is now
-    `--false-activation-budget` (`socnav run --budget` names an experiment's compute budget)."""
+def test_deprecated_option_names_are_hidden_aliases_that_warn(tmp_path):
+    """`evaluate --policy` is the deprecated name of `--controller` (`--model` takes trained policies), `calibrate
+    --budget` that of `--false-activation-budget` (`socnav run --budget` names an experiment's compute budget)."""
     out = tmp_path / "records.csv"
     result = runner.invoke(app, ["evaluate", "--policy", "straight", "--scenario", "position_swap", "--episodes", "2",
                                  "--out", str(out)])
@@ -128,3 +131,29 @@ def _pillar_config(tmp_path):
     path.write_text("scenario: circle_crossing\nn_humans: 0\n"
                     "obstacles: [[[0.2, 0.2], [1.0, 0.2], [1.0, 1.0], [0.2, 1.0]]]\n")
     return path
+
+
+@pytest.mark.parametrize("command", ["evaluate", "calibrate", "demo"])
+def test_episode_counts_out_of_range_are_refused_alike_by_every_command(command, tmp_path):
+    bounds = {"0": "greater than or equal to 1", str(MAX_EPISODES + 1): f"less than or equal to {MAX_EPISODES}"}
+    for bad, bound in bounds.items():
+        result = runner.invoke(app, [command, "--episodes", bad, "--out", str(tmp_path / "never")])
+        output = " ".join(result.output.split())
+        assert result.exit_code == 2 and f"Invalid value for '--episodes': Input should be {bound}" in output, output
+    assert not (tmp_path / "never").exists()
+
+
+def test_options_shared_by_commands_are_declared_alike():
+    import typer.main
+
+    commands = typer.main.get_command(app).commands
+
+    def declared(command, name):
+        (param,) = [param for param in commands[command].params if param.name == name]
+        return tuple(param.opts), param.help, getattr(param, "min", None), getattr(param, "max", None)
+
+    for name, users in (("config", ("train", "evaluate", "animate", "calibrate", "tune")),
+                        ("members", ("evaluate", "animate", "calibrate")), ("perturb", ("evaluate", "animate")),
+                        ("sensing", ("evaluate", "animate")), ("eval_episodes", ("train", "tune")),
+                        ("n_humans", ("train", "evaluate", "tune")), ("k", ("animate", "calibrate"))):
+        assert len({declared(command, name) for command in users}) == 1, name

@@ -1,5 +1,6 @@
-"""`socnav evaluate --metrics`: the default keeps today's table and records; other choices print and record every
-metric of the registry; unknown names are a clear error with the allowed names and the closest one."""
+"""`socnav evaluate --metrics`: the default prints the paper's table and records the world's episode columns only;
+other choices print and record every metric of the registry; unknown names are a clear error with the allowed names
+and the closest one."""
 
 import pandas as pd
 from typer.testing import CliRunner
@@ -12,7 +13,7 @@ runner = CliRunner()
 COMMON = ["evaluate", "--controller", "orca", "--scenario", "position_swap", "--episodes", "4", "--seed", "2"]
 
 
-def test_default_metrics_keep_todays_columns_and_numbers(tmp_path):
+def test_default_metrics_record_the_episode_columns_only(tmp_path):
     default, explicit = tmp_path / "default.csv", tmp_path / "explicit.csv"
     result = runner.invoke(app, [*COMMON, "--out", str(default)])
     assert result.exit_code == 0, result.output
@@ -25,7 +26,7 @@ def test_default_metrics_keep_todays_columns_and_numbers(tmp_path):
     assert "spl" not in result.output
 
 
-def test_all_metrics_are_printed_and_recorded_with_todays_columns_unchanged(tmp_path):
+def test_all_metrics_are_printed_and_recorded_after_unchanged_episode_columns(tmp_path):
     default, extended = tmp_path / "default.csv", tmp_path / "all.parquet"
     assert runner.invoke(app, [*COMMON, "--out", str(default)]).exit_code == 0
     result = runner.invoke(app, [*COMMON, "--metrics", "all", "--out", str(extended)], terminal_width=200)

@@ -75,5 +75,9 @@ def test_the_doc_is_what_the_generator_writes_now(capsys):
         "docs/configuration.md is out of date: python docs/configuration_table.py > docs/configuration.md")
 
 
-def test_readme_links_the_table():
-    assert "docs/configuration.md" in (REPO / "README.md").read_text()
+def test_readme_and_the_site_link_the_table():
+    import yaml
+
+    assert "(docs/configuration.md)" in (REPO / "README.md").read_text()  # a Markdown link to the page
+    nav = yaml.safe_load((REPO / "mkdocs.yml").read_text())["nav"]
+    assert {"Configuration": "configuration.md"} in nav

@@ -323,7 +323,7 @@ def test_moving_a_run_aside_never_follows_its_lock(run_copy, tmp_path):
 
 
 def test_a_partial_training_unit_with_a_link_inside_is_redone_not_continued(run_copy, tmp_path):
-    from socnav.experiments.runner import _prepare_unit_dir
+    from socnav.experiments.runner import prepare_unit_dir as _prepare_unit_dir
 
     root = tmp_path / "sweep"
     unit = Unit("train/x", "train", {"n": 1})

@@ -58,10 +58,10 @@ def test_cli_module_does_not_import_torch_or_sb3():
     assert out.stdout.strip() == "[]"
 
 
-def test_gymnasium_make_without_importing_socnav_as_the_readme_says():
+def test_gymnasium_make_without_importing_socnav_as_the_docs_say():
     # Gymnasium >= 1.0 has no plugin entry points; `module:id` imports the module that registers the id.
     snippet = 'gymnasium.make("socnav:socnav/CircleCrossing-v0", n_humans=3)'
-    assert snippet in (REPO / "README.md").read_text()
+    assert snippet in (REPO / "docs" / "index.md").read_text()  # Getting started, "Python"
     code = f"import sys, gymnasium; env = {snippet}; env.reset(seed=0); print(env.unwrapped.config.n_humans)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -183,7 +183,8 @@ def test_install_hint_keeps_the_extra(monkeypatch):
     code, output = run("tune", "--algo", "ppo", "--scenario", "position_swap", "--trials", "1")
     assert code != 0
     assert '".[tune]"' in output or '"socnav[tune]"' in output
-    assert "[tune]" in (REPO / "README.md").read_text().split("socnav tune")[1][:400]  # the README's example says so
+    # the guide's example (Experiments and reproduction, "Running experiments") says so
+    assert "[tune]" in (REPO / "docs" / "reproduction.md").read_text().split("socnav tune")[1][:400]
 
 
 def test_tune_continued_study_explores_and_refuses_other_settings(tmp_path):

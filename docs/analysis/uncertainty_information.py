@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from socnav.experiments.labels import MEASURE_LABELS
 from socnav.experiments.uncertainty_information import (
-    MEASURE_LABELS, MEASURES, PROXIMITY_MODEL, PROXIMITY_SCORE, RULE_MEASURES, gate_diagnostics, information_table,
-    read_study_steps,
+    MEASURES, PROXIMITY_MODEL, PROXIMITY_SCORE, RULE_MEASURES, gate_diagnostics, information_table, read_study_steps,
 )
 from socnav.safety.rule import THRESHOLD_PRESETS
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import typer
 from rich.markup import escape
@@ -18,13 +18,38 @@ from rich.table import Table
 from socnav._console import console, fail
 from socnav.config import ConfigError, EnvConfig, describe_world, load_config
 from socnav.experiments.cli import register as add_experiment_commands
-from socnav.experiments.spec import MAX_EPISODES, MAX_TIMESTEPS
-from socnav.sim.scenarios import scenario_names
+from socnav.experiments.cli_options import (
+    ACTING_MODEL_HELP,
+    SCENARIOS,
+    SINGLE_AGENT_MAX_HUMANS_HELP,
+    SINGLE_AGENT_N_HUMANS_HELP,
+    SINGLE_AGENT_SCENARIO_HELP,
+    algo_option,
+    config_option,
+    episodes_option,
+    estimator_option,
+    eval_episodes_option,
+    eval_every_option,
+    max_humans_option,
+    mc_samples_option,
+    members_option,
+    model_option,
+    n_envs_option,
+    n_humans_option,
+    perturb_option,
+    safety_option,
+    scenario_option,
+    seed_option,
+    sensing_option,
+    timesteps_option,
+)
+from socnav.sim.metrics import PV_PER
 
 if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --help` stays fast
     import pandas as pd
 
-    from socnav.rl.training import TrainResult
+    from socnav.rl.training import RunInfo, TrainResult
+    from socnav.safety import SafePolicy
 
 # Plain click help: typer's rich help panels label every flag (and --help itself) with a `<bool>` type.
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__.splitlines()[0], rich_markup_mode=None)
@@ -118,10 +143,6 @@ def _progress_bar(label: str, total: int) -> Iterator[Callable[[int], None]]:
         yield lambda n: progress.advance(task, n)
 
 
-#: Episodes PV is scaled to (the paper's tables: intrusion events per 200 episodes, whatever was run).
-PV_PER = 200
-
-
 def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table:
     """The paper's metrics as a rich table: Goal %, Collision %, Time-out %, PV per 200 episodes, navigation time
     (mean time to the goal of the successful episodes, CrowdNav's "nav time"), Return mean ± std, and the share of
@@ -208,21 +229,19 @@ def _algo_overrides(algo: str, algo_config: Path | None, settings: list[str]) ->
 @app.command()
 def train(
     ctx: typer.Context,
-    scenario: str | None = typer.Option(None, help=f"training scenario, one of: {', '.join(scenario_names())}"),
-    algo: str = typer.Option("odv-ppo-drop", help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
-    seed: int = typer.Option(0, min=0, max=2**28 - 1,
-                             help="seed of the run (network init, dropout, training episodes)"),
-    timesteps: int = typer.Option(200_000, min=1, max=MAX_TIMESTEPS, help="total environment steps"),
-    n_envs: int = typer.Option(16, min=1, help="environments stepped together"),
-    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; at least the "
-                                                               "most humans per episode)"),
-    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    scenario: str | None = scenario_option(None, help=f"training scenario, one of: {SCENARIOS}"),
+    algo: str = algo_option("odv-ppo-drop"),
+    seed: int = seed_option("seed of the run (network init, dropout, training episodes)", most=2**28 - 1),
+    timesteps: int = timesteps_option(200_000, help="total environment steps"),
+    n_envs: int = n_envs_option(16),
+    n_humans: int | None = n_humans_option(),
+    max_humans: int | None = max_humans_option("observation rows (default 10; at least the most humans per "
+                                                "episode)"),
+    config: Path | None = config_option(),
     algo_config: Path | None = typer.Option(None, help="YAML of hyperparameter overrides for the preset"),
     settings: list[str] = typer.Option([], "--set", help="hyperparameter override key=value (repeatable)"),
-    eval_every: int | None = typer.Option(None, min=1, max=MAX_TIMESTEPS,
-                                             help="timesteps between evaluations/checkpoints"),
-    eval_episodes: int = typer.Option(50, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
+    eval_every: int | None = eval_every_option("timesteps between evaluations/checkpoints"),
+    eval_episodes: int = eval_episodes_option(50),
     out: Path | None = typer.Option(None, help="run directory (default runs/train/<scenario>_<algo>_seed<k>); "
                                                   "must be new or empty unless --force"),
     resume: Path | None = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
@@ -230,56 +249,18 @@ def train(
                                                       "OUT.old-<timestamp> (never deleted) and start afresh"),
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
-    from socnav.rl.training import (
-        CheckpointError,
-        RunDirectoryBusy,
-        TrainingInterrupted,
-        check_run_links,
-        finished_result,
-        move_run_aside,
-        read_run_info,
-        resume_step,
-    )
-    from socnav.rl.training import resume as resume_run
-    from socnav.rl.training import train as train_run
-
     if resume is not None:
         _refuse_options_resume_ignores(ctx)
-        if resume.exists() and not resume.is_dir():
-            fail(f"--resume {resume} is a file; name a run directory (the --out of an earlier socnav train)")
-        if not resume.is_dir():
-            fail(f"--resume {resume}: no such run directory")
-        try:
-            check_run_links(resume)
-            asked = read_run_info(resume)
-            env_config = load_config(asked.env_config)
-        except (ConfigError, OSError) as exc:
-            fail(f"--resume {resume}: {exc}")
-        algo, seed, timesteps, n_envs, overrides = asked.algo, asked.seed, asked.timesteps, asked.n_envs, asked.overrides
-        out = resume
-        finished = finished_result(resume)
-        if finished is not None:
-            _report_complete(resume, algo, timesteps, finished)
+        asked, env_config = _read_resumed_run(resume)
+        algo, seed, timesteps, n_envs = asked.algo, asked.seed, asked.timesteps, asked.n_envs
+        overrides, out = asked.overrides, resume
+        start = _resume_start(resume, algo, timesteps)
+        if start is None:  # the run is complete: reported, nothing to train
             return
-        try:
-            start = resume_step(resume)
-        except CheckpointError as exc:
-            fail(f"--resume {resume}: {exc}")
     else:
         env_config = _env_config(scenario, config, n_humans, max_humans)
         overrides = _algo_overrides(algo, algo_config, settings)
-        out = out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}"
-        if out.exists() and not out.is_dir():
-            fail(f"--out {out} is an existing file; name a run directory")
-        if out.is_dir() and any(out.iterdir()):
-            if not force:
-                fail(f"--out {out} already holds files (an earlier run?); continue it with --resume {out}, or pass "
-                     f"--force to move it aside to {out}.old-<timestamp> and start afresh")
-            try:
-                console.print(f"moved the existing {out} aside to {move_run_aside(out)}")
-            except (RunDirectoryBusy, OSError) as exc:
-                fail(f"--force: {exc}")
-        _check_out_writable("--out", out)
+        out = _new_run_directory(out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}", force)
         start = 0
     _check_n_envs(n_envs, env_config)
     if start:
@@ -289,12 +270,87 @@ def train(
         console.print(f"training {algo} on {env_config.scenario} (seed {seed}, {timesteps:,} steps) -> {out}",
                       highlight=False)
     _explain_rounding(timesteps, algo, overrides, n_envs)
+    if resume is not None:
+        result = _run_training(out, lambda: _resume_training(resume))
+    else:
+        result = _run_training(out, lambda: _start_training(env_config, algo, seed, timesteps, out, n_envs, overrides,
+                                                            eval_every, eval_episodes))
+    console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
+                                f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
+    console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
+
+
+def _read_resumed_run(resume: Path) -> tuple[RunInfo, EnvConfig]:
+    """What the run in `resume` was asked to do (its run.json) and its env config, or a clear error."""
+    from socnav.rl.training import check_run_links, read_run_info
+
+    if resume.exists() and not resume.is_dir():
+        fail(f"--resume {resume} is a file; name a run directory (the --out of an earlier socnav train)")
+    if not resume.is_dir():
+        fail(f"--resume {resume}: no such run directory")
     try:
-        if resume is not None:
-            result = resume_run(resume, progress=True)
-        else:
-            result = train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
-                               eval_every=eval_every, eval_episodes=eval_episodes, progress=True)
+        check_run_links(resume)
+        asked = read_run_info(resume)
+        env_config = load_config(asked.env_config)
+    except (ConfigError, OSError) as exc:
+        fail(f"--resume {resume}: {exc}")
+    return asked, env_config
+
+
+def _resume_start(resume: Path, algo: str, timesteps: int) -> int | None:
+    """The step the run in `resume` continues from; None (after showing its result) when it is already complete."""
+    from socnav.rl.training import CheckpointError, finished_result, resume_step
+
+    finished = finished_result(resume)
+    if finished is not None:
+        _report_complete(resume, algo, timesteps, finished)
+        return None
+    try:
+        return resume_step(resume)
+    except CheckpointError as exc:
+        fail(f"--resume {resume}: {exc}")
+
+
+def _new_run_directory(out: Path, force: bool) -> Path:
+    """`out`, checked as the directory of a new run: new or empty, else moved aside with --force; writable."""
+    from socnav.rl.training import RunDirectoryBusy, move_run_aside
+
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out} is an existing file; name a run directory")
+    if out.is_dir() and any(out.iterdir()):
+        if not force:
+            fail(f"--out {out} already holds files (an earlier run?); continue it with --resume {out}, or pass "
+                 f"--force to move it aside to {out}.old-<timestamp> and start afresh")
+        try:
+            console.print(f"moved the existing {out} aside to {move_run_aside(out)}")
+        except (RunDirectoryBusy, OSError) as exc:
+            fail(f"--force: {exc}")
+    _check_out_writable("--out", out)
+    return out
+
+
+def _start_training(env_config: EnvConfig, algo: str, seed: int, timesteps: int, out: Path, n_envs: int,
+                    overrides: dict[str, Any], eval_every: int | None, eval_episodes: int) -> TrainResult:
+    """A new training run in `out`, with a progress bar."""
+    from socnav.rl.training import train as train_run
+
+    return train_run(env_config, algo, seed, timesteps, out, n_envs=n_envs, overrides=overrides,
+                     eval_every=eval_every, eval_episodes=eval_episodes, progress=True)
+
+
+def _resume_training(resume: Path) -> TrainResult:
+    """The run in `resume` continued from its last checkpoint, with a progress bar."""
+    from socnav.rl.training import resume as resume_run
+
+    return resume_run(resume, progress=True)
+
+
+def _run_training(out: Path, run: Callable[[], TrainResult]) -> TrainResult:
+    """The result of `run()`, a training run in `out`; its failures (and Ctrl-C) as one clear line."""
+    from socnav.rl.training import CheckpointError, RunDirectoryBusy, TrainingInterrupted
+
+    try:
+        return run()
     except TrainingInterrupted as exc:
         fail(str(exc), code=1)
     except CheckpointError as exc:
@@ -303,9 +359,6 @@ def train(
         fail(str(exc))
     except KeyboardInterrupt:
         _report_interrupted(out)
-    console.print(metrics_table([(f"{algo} (validation)", result.final_eval)],
-                                f"{result.timesteps:,} steps in {result.wall_time_s:.0f} s"))
-    console.print(f"model: {result.model_path}   TensorBoard: tensorboard --logdir {out / 'tb'}")
 
 
 #: What `train --resume` takes from the run's own run.json: giving any of these with it would be ignored.
@@ -324,7 +377,7 @@ def _refuse_options_resume_ignores(ctx: typer.Context) -> None:
              "drop them (or start a new run with --out)")
 
 
-def _report_interrupted(out: Path) -> None:
+def _report_interrupted(out: Path) -> NoReturn:
     """Ctrl-C during `socnav train`: where the run stopped and how to continue it (exit code 130)."""
     from socnav.rl.training import CheckpointError, resume_step
 
@@ -478,29 +531,25 @@ def evaluate(
     policy: str | None = typer.Option(None, "--policy", hidden=True,
                                          callback=_deprecated_alias("--policy", "--controller"),
                                          help="deprecated name of --controller"),
-    model: str | None = typer.Option(None, help="trained policy file, or 'pretrained' for the shipped one"),
+    model: str | None = model_option("trained policy file, or 'pretrained' for the shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
-    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} (default: the "
-                                                     "model's training world with --model, else circle_crossing)"),
-    episodes: int = typer.Option(200, min=1, max=MAX_EPISODES, help="number of evaluation episodes"),
-    seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
-    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; a model needs "
-                                                               "the value it was trained with)"),
-    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. "
-                                                            "heading_noise=0.8"),
-    safety: str | None = typer.Option(None, help="wrap the model in the safety layer with these thresholds: "
-                                                    "mc | ensemble | FILE (from socnav calibrate)"),
-    estimator: str | None = typer.Option(None, help="uncertainty estimator of --safety: mc | ensemble "
-                                                       "(default: ensemble for --safety ensemble, else mc)"),
-    sensing: str | None = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
-                                                     "perceived (the noisy observation) | true (the simulator's "
-                                                     "state); default: the thresholds' own (perceived for mc, "
-                                                     "ensemble)"),
-    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
-    k: int = typer.Option(20, min=2, help="MC-dropout samples, for --estimator mc"),
-    n_envs: int = typer.Option(32, min=1, help="environments stepped together"),
+    scenario: str | None = scenario_option(None, help=f"one of: {SCENARIOS} (default: the model's training world "
+                                                       "with --model, else circle_crossing)"),
+    episodes: int = episodes_option(200, help="number of evaluation episodes"),
+    seed: int = seed_option("episode k uses seed + k"),
+    n_humans: int | None = n_humans_option(),
+    max_humans: int | None = max_humans_option("observation rows (default 10; a model needs the value it was "
+                                                "trained with)"),
+    config: Path | None = config_option(),
+    perturb: list[str] = perturb_option(),
+    safety: str | None = safety_option("wrap the model in the safety layer with these thresholds: mc | ensemble | "
+                                       "FILE (from socnav calibrate)"),
+    estimator: str | None = estimator_option(None, help="uncertainty estimator of --safety: mc | ensemble (default: "
+                                                        "ensemble for --safety ensemble, else mc)"),
+    sensing: str | None = sensing_option(),
+    members: str | None = members_option(),
+    k: int = mc_samples_option("MC-dropout samples, for --estimator mc"),
+    n_envs: int = n_envs_option(32),
     out: Path | None = typer.Option(None, help="per-episode records (.csv or .parquet; default a name unique "
                                                   "to the policy, world, seed and episodes under runs/evaluate)"),
     metrics: str = typer.Option("default", "--metrics", help="default (Goal %, Col. %, TO %, PV, nav time, "
@@ -511,16 +560,9 @@ def evaluate(
     """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return (--metrics: more); records to
     a file."""
     from socnav.controllers import CONTROLLERS, make_controller
-    from socnav.envs.rollout import EPISODE_COLUMNS, summarize
     from socnav.io import TABLE_FORMATS, write_table_atomic
-    from socnav.sim.metrics import DEFAULT_METRICS, metric_table_rows, select_metrics
-    from socnav.sim.walls import has_walls
 
-    try:
-        chosen = select_metrics(metrics)
-    except ValueError as exc:
-        fail(f"--metrics: {exc}")
-    extended = tuple(chosen) != DEFAULT_METRICS
+    chosen = _chosen_metrics(metrics)
     controller = policy if policy is not None else controller
     if model is None and controller not in CONTROLLERS:
         fail(f"--controller {controller!r} is not known; allowed: {', '.join(CONTROLLERS)}")
@@ -529,27 +571,14 @@ def evaluate(
     if safety is not None and model is None and members is None:
         fail("--safety needs a learned policy: --model PATH (or --model pretrained), or --estimator ensemble "
              "--members GLOB")
-    actor: Any = None
-    if model is not None:
-        actor = _load_learned_policy(model)
-    base, origin = config, f"--config {config}" if config is not None else "defaults"
-    if actor is not None and config is None:  # without --config, a model plays in the world it was trained in
-        from socnav.rl.persistence import training_world
-
-        base, origin = training_world(actor, scenario, n_humans, max_humans)
-    observes = None if actor is None else actor.observation_space["humans"].shape[0]
-    env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base,
-                                               observes=observes), perturb)
-    console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
+    actor: Any = None if model is None else _load_learned_policy(model)
+    env_config = _evaluation_world(actor, scenario, config, n_humans, max_humans, perturb)
     name = _model_label(model) if model is not None else controller
     observer = None
     if safety is not None:
-        from socnav.safety import FallbackCounter, SafePolicy, fallback_percent
+        from socnav.safety import FallbackCounter
 
-        thresholds = _load_thresholds_option(safety, sensing)
-        acting, uncertainty = _estimator(estimator or ("ensemble" if safety == "ensemble" else "mc"), model,
-                                         members, k, env_config)
-        actor = SafePolicy(acting, uncertainty, thresholds, env_config)
+        actor = _safe_policy_option(safety, sensing, estimator, model, members, k, env_config)
         observer = FallbackCounter(actor)
         name = (name if model is not None else "ensemble") + f" + safety ({safety})"
     elif actor is not None:
@@ -559,7 +588,7 @@ def evaluate(
     out = out or _default_records_path(name, env_config, seed, episodes,
                                        {"stochastic": stochastic, "k": k, "estimator": estimator,
                                         "members": members, "sensing": sensing,
-                                        **({"metrics": chosen} if extended else {})})
+                                        **({"metrics": chosen} if chosen is not None else {})})
     _check_out_file("--out", out)
     if stochastic:
         import torch
@@ -570,32 +599,83 @@ def evaluate(
     _check_n_envs(min(n_envs, episodes), env_config)  # a rollout never steps more environments than episodes
     records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
                         deterministic=not stochastic, observer=observer)
-    walls = has_walls(env_config)  # a world with walls also counts the episodes that ended against a wall
-    if not extended:  # today's records: the world's episode columns only
-        records = records[list(EPISODE_COLUMNS) + (["collision_obstacle"] if walls else [])].copy()
-    defaults = DEFAULT_METRICS + (("collision_obstacle_pct",) if walls else ())
-    summary = summarize(records, pv_per=PV_PER, metrics=chosen if extended else defaults)
-    if observer is not None:
-        records["fallback_steps"] = observer.per_episode(records["episode"])
-        summary["fallback_pct"] = fallback_percent(records)
+    records, summary = _evaluation_summary(records, env_config, chosen, observer)
     try:
         write_table_atomic(records, out)
     except OSError as exc:  # e.g. the disk filled up while the episodes ran
         fail(f"--out {out}: cannot write the records ({exc.strerror or exc})")
     title = f"{describe_world(env_config)}, seeds {seed}..{seed + episodes - 1}"
-    if extended:
-        table = Table(title=f"{escape(name)}: {title}", caption=f"{summary['episodes']} episodes; definitions, "
-                      "units and sources: docs/metrics.md")
-        for column in ("metric", "", "value", "unit", "better"):
-            table.add_column(column, justify="right" if column == "value" else "left", no_wrap=True)
-        for row in metric_table_rows(summary, chosen):
-            table.add_row(*row)
-        if "fallback_pct" in summary:
-            table.add_row("fallback_pct", "fallback % steps", f"{summary['fallback_pct']:.1f}", "%", "–")
-        console.print(table)
+    if chosen is not None:
+        console.print(_all_metrics_table(summary, chosen, f"{escape(name)}: {title}"))
     else:
         console.print(metrics_table([(name, summary)], title))
     console.print(f"per-episode records: {escape(str(out))}", highlight=False)
+
+
+def _chosen_metrics(metrics: str) -> list[str] | None:
+    """The metrics `evaluate --metrics` names, None for the default table's (then the records keep only the world's
+    episode columns)."""
+    from socnav.sim.metrics import DEFAULT_METRICS, select_metrics
+
+    try:
+        chosen = select_metrics(metrics)
+    except ValueError as exc:
+        fail(f"--metrics: {exc}")
+    return None if tuple(chosen) == DEFAULT_METRICS else chosen
+
+
+def _evaluation_world(actor: Any, scenario: str | None, config: Path | None, n_humans: int | None,
+                      max_humans: int | None, perturb: list[str]) -> EnvConfig:
+    """The world `evaluate` plays, printed: a learned `actor` without --config plays the world it was trained in
+    (the world options change it), anything else --config's or the defaults; then the --perturb settings."""
+    base: Path | dict[str, Any] | None = config
+    origin = f"--config {config}" if config is not None else "defaults"
+    if actor is not None and config is None:
+        from socnav.rl.persistence import training_world
+
+        base, origin = training_world(actor, scenario, n_humans, max_humans)
+    observes = None if actor is None else actor.observation_space["humans"].shape[0]
+    env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base,
+                                               observes=observes), perturb)
+    console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
+    return env_config
+
+
+def _evaluation_summary(records: pd.DataFrame, env_config: EnvConfig, chosen: list[str] | None,
+                        observer: Any) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The records `evaluate` writes and their summary: the `chosen` metrics (None: the default table's, and
+    only the world's episode columns kept), the wall collisions in a world with walls, and the share of steps the
+    safety fallback drove when an `observer` (`FallbackCounter`) counted them."""
+    from socnav.envs.rollout import EPISODE_COLUMNS, summarize
+    from socnav.sim.metrics import DEFAULT_METRICS
+    from socnav.sim.walls import has_walls
+
+    walls = has_walls(env_config)  # a world with walls also counts the episodes that ended against a wall
+    if chosen is None:
+        records = records[list(EPISODE_COLUMNS) + (["collision_obstacle"] if walls else [])].copy()
+    defaults = DEFAULT_METRICS + (("collision_obstacle_pct",) if walls else ())
+    summary = summarize(records, pv_per=PV_PER, metrics=chosen if chosen is not None else defaults)
+    if observer is not None:
+        from socnav.safety import fallback_percent
+
+        records["fallback_steps"] = observer.per_episode(records["episode"])
+        summary["fallback_pct"] = fallback_percent(records)
+    return records, summary
+
+
+def _all_metrics_table(summary: dict[str, Any], chosen: list[str], title: str) -> Table:
+    """`evaluate --metrics` other than default: one row per chosen metric, with its unit and which way is better."""
+    from socnav.sim.metrics import metric_table_rows
+
+    table = Table(title=title, caption=f"{summary['episodes']} episodes; definitions, units and sources: "
+                                       "docs/metrics.md")
+    for column in ("metric", "", "value", "unit", "better"):
+        table.add_column(column, justify="right" if column == "value" else "left", no_wrap=True)
+    for row in metric_table_rows(summary, chosen):
+        table.add_row(*row)
+    if "fallback_pct" in summary:
+        table.add_row("fallback_pct", "fallback % steps", f"{summary['fallback_pct']:.1f}", "%", "–")
+    return table
 
 
 def _load_thresholds_option(safety: str, sensing: str | None = None) -> Any:
@@ -629,6 +709,20 @@ def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
         raise
 
 
+def _safe_policy_option(safety: str, sensing: str | None, estimator: str | None, model: str | None,
+                        members: str | None, k: int, env_config: EnvConfig) -> SafePolicy:
+    """`evaluate --safety`: the model (or, without one, the ensemble's first member) in the safety layer with the
+    --safety thresholds, reading --estimator's uncertainty (by default the one the thresholds were made for)."""
+    from socnav.safety.assembly import assemble_safe_policy, default_estimator_kind
+
+    thresholds = _load_thresholds_option(safety, sensing)
+    kind = estimator or default_estimator_kind(safety)
+    policy, ensemble = _estimator_policies(kind, model, members, env_config)
+    if kind == "mc":
+        _has_mc_dropout(str(model), policy, required=True)
+    return assemble_safe_policy(policy, thresholds, env_config, estimator=kind, members=ensemble, k=k)
+
+
 def _estimator(kind: str, model: str | None, members: str | None, k: int,
                env_config: EnvConfig, required: bool = True) -> tuple[Any, Any]:
     """(policy that acts, uncertainty estimator) for `--estimator mc|ensemble`.
@@ -636,32 +730,32 @@ def _estimator(kind: str, model: str | None, members: str | None, k: int,
     :param required: whether the command needs the estimate (a safety layer, a calibration): then a model without
         dropout layers under ``mc`` is an error; else its estimator is None (nothing to estimate), with a note.
     """
+    from socnav.safety.assembly import make_safety_estimator
+
+    policy, ensemble = _estimator_policies(kind, model, members, env_config)
+    if kind == "mc" and not _has_mc_dropout(str(model), policy, required):
+        return policy, None
+    # MC dropout draws from a private, seeded mask stream (as the experiment units do): the same command gives the
+    # same thresholds and the same animation, instead of drawing from torch's unseeded global RNG.
+    return policy, make_safety_estimator(kind, policy, ensemble, k)
+
+
+def _estimator_policies(kind: str, model: str | None, members: str | None,
+                        env_config: EnvConfig) -> tuple[Any, list[Any]]:
+    """(policy that acts, the ensemble's members: none under mc) of `--estimator kind`, loaded and checked against
+    the world's observation size."""
     import glob
 
-    from socnav.uncertainty import ESTIMATOR_KINDS, make_estimator
+    from socnav.uncertainty import ESTIMATOR_KINDS
 
     if kind not in ESTIMATOR_KINDS:
         fail(f"--estimator {kind!r} is not known; allowed: {', '.join(ESTIMATOR_KINDS)}")
     if kind == "mc":
         if model is None:
             fail("--estimator mc needs --model PATH (or --model pretrained)")
-        from socnav.uncertainty import MC_SEED, MCDropoutEstimator
-
         policy = _load_learned_policy(model)
         _check_observation_size([policy], env_config)
-        trained_with = float(policy.socnav_metadata.get("algo_config", {}).get("p_train", 0.0))
-        if not policy.dropout_layers() or trained_with == 0.0:  # MC-dropout samples a network trained with it
-            algo = policy.socnav_metadata.get("algo", "?")
-            if required:
-                fail(f"--estimator mc needs a model trained with dropout (odv-ppo-drop, ppo-drop); {model} is "
-                     f"{algo}, trained without: use --estimator ensemble --members GLOB")
-            console.print(f"note: no uncertainty bars: {escape(model)} ({escape(algo)}) was trained without dropout, "
-                          "so MC-dropout has nothing to sample (--estimator ensemble --members GLOB estimates with "
-                          "an ensemble)", highlight=False)
-            return policy, None
-        # A private, seeded mask stream (as the experiment units use): the same command gives the same thresholds
-        # and the same animation, instead of drawing from torch's unseeded global RNG.
-        return policy, MCDropoutEstimator(policy, k=k, seed=MC_SEED)
+        return policy, []
     if members is None:
         fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
     paths = sorted(glob.glob(members))
@@ -670,7 +764,24 @@ def _estimator(kind: str, model: str | None, members: str | None, k: int,
     policies = [_load_learned_policy(path) for path in paths]
     policy = _load_learned_policy(model) if model is not None else policies[0]
     _check_observation_size([policy, *policies], env_config)
-    return policy, make_estimator("ensemble", policies)
+    return policy, policies
+
+
+def _has_mc_dropout(model: str, policy: Any, required: bool) -> bool:
+    """Whether MC dropout can sample `policy` (of --model `model`); if not, an error when the command needs the
+    estimate (`required`), else a note that there is no uncertainty to draw."""
+    from socnav.safety.assembly import has_mc_dropout
+
+    if has_mc_dropout(policy):
+        return True
+    algo = policy.socnav_metadata.get("algo", "?")
+    if required:
+        fail(f"--estimator mc needs a model trained with dropout (odv-ppo-drop, ppo-drop); {model} is "
+             f"{algo}, trained without: use --estimator ensemble --members GLOB")
+    console.print(f"note: no uncertainty bars: {escape(model)} ({escape(algo)}) was trained without dropout, "
+                  "so MC-dropout has nothing to sample (--estimator ensemble --members GLOB estimates with "
+                  "an ensemble)", highlight=False)
+    return False
 
 
 def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
@@ -685,22 +796,18 @@ def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
 
 @app.command()
 def animate(
-    model: str | None = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
-    estimator: str = typer.Option("mc", help="mc | ensemble"),
-    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
-    k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
-                                                     "(default: position_swap, or the --config file's)"),
-    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
-    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
-    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    perturb: list[str] = typer.Option([], "--perturb", help="perturbation key=value (repeatable), e.g. heading_noise=0.8"),
-    safety: str | None = typer.Option(None, help="thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
-    sensing: str | None = typer.Option(None, help="what the safety layer's proximity terms and fallback read: "
-                                                     "perceived (the noisy observation) | true (the simulator's "
-                                                     "state); default: the thresholds' own (perceived for mc, "
-                                                     "ensemble)"),
-    seed: int = typer.Option(0, min=0, help="episode seed"),
+    model: str | None = model_option(ACTING_MODEL_HELP),
+    estimator: str = estimator_option("mc"),
+    members: str | None = members_option(),
+    k: int = mc_samples_option(),
+    scenario: str | None = scenario_option(None, help=SINGLE_AGENT_SCENARIO_HELP),
+    n_humans: int | None = n_humans_option(SINGLE_AGENT_N_HUMANS_HELP),
+    max_humans: int | None = max_humans_option(SINGLE_AGENT_MAX_HUMANS_HELP),
+    config: Path | None = config_option(),
+    perturb: list[str] = perturb_option(),
+    safety: str | None = safety_option("thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
+    sensing: str | None = sensing_option(),
+    seed: int = seed_option("episode seed"),
     out: Path = typer.Option(Path("runs") / "animate" / "episode.gif", help="output .gif or .mp4"),
 ) -> None:
     """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
@@ -752,16 +859,15 @@ def calibration_table(thresholds: Any, report: dict[str, Any], title: str) -> Ta
 
 @app.command()
 def calibrate(
-    model: str | None = typer.Option(None, help="policy file or 'pretrained' (acts; MC-dropout estimates on it)"),
-    estimator: str = typer.Option("mc", help="mc | ensemble"),
-    members: str | None = typer.Option(None, help="ensemble policy files (glob), for --estimator ensemble"),
-    k: int = typer.Option(20, min=2, help="MC-dropout samples"),
-    scenario: str | None = typer.Option(None, help=f"one of: {', '.join(scenario_names())} "
-                                                     "(default: position_swap, or the --config file's)"),
-    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: 1, or the --config file's)"),
-    max_humans: int | None = typer.Option(None, min=1, help="observation rows (default 10; the model's value)"),
-    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
-    episodes: int = typer.Option(40, min=1, max=MAX_EPISODES, help="episodes per calibration configuration"),
+    model: str | None = model_option(ACTING_MODEL_HELP),
+    estimator: str = estimator_option("mc"),
+    members: str | None = members_option(),
+    k: int = mc_samples_option(),
+    scenario: str | None = scenario_option(None, help=SINGLE_AGENT_SCENARIO_HELP),
+    n_humans: int | None = n_humans_option(SINGLE_AGENT_N_HUMANS_HELP),
+    max_humans: int | None = max_humans_option(SINGLE_AGENT_MAX_HUMANS_HELP),
+    config: Path | None = config_option(),
+    episodes: int = episodes_option(40, help="episodes per calibration configuration"),
     false_activation_budget: float = typer.Option(
         0.05, min=0.0, max=1.0, help="allowed false-activation rate: the share of unperturbed steps on which the "
                                      "fallback may act (the experiment's safety.false_activation_budget)"),
@@ -769,8 +875,8 @@ def calibrate(
                                            callback=_deprecated_alias("--budget", "--false-activation-budget"),
                                            help="deprecated name of --false-activation-budget"),
     proximity: str = typer.Option("both", help="c_prox readings to search: both | abs-relative-speed | closing-speed"),
-    sensing: str = typer.Option("perceived", help="what the proximity terms and fallback read: perceived (the "
-                                                  "noisy observation) | true (the simulator's state)"),
+    sensing: str = sensing_option("perceived", help="what the proximity terms and fallback read: perceived (the "
+                                                    "noisy observation) | true (the simulator's state)"),
     confidence: float = typer.Option(0.95, min=0.5, max=0.999, help="the budget must hold at this one-sided "
                                                                      "confidence (0.5: the point estimate)"),
     out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
@@ -838,8 +944,8 @@ def convert(
 @app.command()
 def demo(
     out: Path = typer.Option(Path("runs") / "demo", help="output directory"),
-    episodes: int = typer.Option(100, min=1, max=MAX_EPISODES, help="episodes per scenario and controller"),
-    seed: int = typer.Option(0, min=0, help="first episode seed"),
+    episodes: int = episodes_option(100, help="episodes per scenario and controller"),
+    seed: int = seed_option("first episode seed"),
     train_steps: int = typer.Option(0, min=0, help="train a fresh ODV-PPO-Drop policy for this many steps "
                                                     "(0: use the pretrained one shipped with socnav)"),
 ) -> None:
@@ -860,10 +966,10 @@ def demo(
 
         console.print(f"training ODV-PPO-Drop on position swap with one human for {train_steps:,} steps")
         try:
-            result = steps.train_policy(out, seed, train_steps)
+            trained = steps.train_policy(out, seed, train_steps)
         except TrainingInterrupted as exc:
             fail(str(exc), code=1)
-        model_path, label = str(result.model_path), "odv-ppo-drop (trained now)"
+        model_path, label = str(trained.model_path), "odv-ppo-drop (trained now)"
     else:
         model_path, label = "pretrained", "odv-ppo-drop (pretrained)"
     policy = _load_learned_policy(model_path)

@@ -177,7 +177,7 @@ def _encode(layers: list[nn.LSTM], humans: th.Tensor, humans_mask: th.Tensor,
     each layer's input multiplied by its keep mask. The LSTM is causal, so padding rows after the last real one
     never change it."""
     x = humans
-    for lstm, mask in zip(layers, keep):
+    for lstm, mask in zip(layers, keep, strict=True):
         x = lstm(x * mask)[0]  # (N, L, H)
     # h = x[b, n_b - 1]: a one-hot selection (exact: the other rows are multiplied by 0), zero where n_b = 0.
     count = th.round(humans_mask.sum(dim=1))
@@ -205,9 +205,12 @@ def _encoder(layers: list[nn.LSTM]) -> type[th.autograd.Function]:
                               "batch-first and without projection")
 
     def weights(lstm: nn.LSTM) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        w, r = _onnx_gates(lstm.weight_ih_l0)[None], _onnx_gates(lstm.weight_hh_l0)[None]
+        def gates(name: str) -> th.Tensor:
+            return _onnx_gates(lstm.get_parameter(name))
+
+        w, r = gates("weight_ih_l0")[None], gates("weight_hh_l0")[None]
         if lstm.bias:  # ONNX's B: [input biases | recurrence biases]
-            b = th.cat([_onnx_gates(lstm.bias_ih_l0), _onnx_gates(lstm.bias_hh_l0)])[None]
+            b = th.cat([gates("bias_ih_l0"), gates("bias_hh_l0")])[None]
         else:
             b = th.zeros(1, 8 * lstm.hidden_size, dtype=w.dtype)
         return w, r, b
@@ -404,20 +407,43 @@ def export_onnx(
     :raises socnav.rl.persistence.PolicyLoadError: an unreadable policy file.
     :raises socnav.safety.ThresholdsError: invalid thresholds.
     """
-    import onnx
-
-    from socnav.config import load_config
-    from socnav.io import atomic_path
     from socnav.safety.rule import load_thresholds
 
     k, p_test, window = check_settings(k, p_test, window)  # before the policy loads: cheap checks first
     policy = _load(model)
     if p_test is None:
-        p_test = float(policy.p_test)
-        if not 0.0 < p_test < 1.0:
-            hint = f": {_P_TEST_ZERO}" if p_test == 0.0 else ""
-            raise ExportError(f"the policy's stored p_test is {p_test:g}, outside (0, 1){hint}; pass p_test "
-                              "(socnav export --p-test) in (0, 1)")
+        p_test = _stored_p_test(policy)
+    env_config = _policy_env_config(policy, env_config)
+    source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
+    thresholds = load_thresholds(thresholds)
+
+    graph = NavigatorGraph(policy, with_value=with_value)
+    for name, parameter in graph.named_parameters():  # a NaN weight would give NaN commands on the robot
+        if not bool(th.isfinite(parameter).all()):
+            raise ExportError(f"the policy's weights hold NaN or inf values (in {name}): it cannot be exported")
+    metadata = _metadata(policy, graph, env_config, thresholds, source, k, p_test, window)
+    try:  # the runtime's schema: what it would refuse at load is refused here, before anything is written
+        NavigatorMetadata.model_validate(metadata)
+    except ValidationError as exc:
+        raise ExportError(f"the navigator metadata would be invalid: {metadata_message(exc)}") from None
+    return _write_navigator(graph, metadata, Path(out), env_config.max_humans)
+
+
+def _stored_p_test(policy: Any) -> float:
+    """The MC-dropout p the policy file stores, refused outside (0, 1)."""
+    p_test = float(policy.p_test)
+    if not 0.0 < p_test < 1.0:
+        hint = f": {_P_TEST_ZERO}" if p_test == 0.0 else ""
+        raise ExportError(f"the policy's stored p_test is {p_test:g}, outside (0, 1){hint}; pass p_test "
+                          "(socnav export --p-test) in (0, 1)")
+    return p_test
+
+
+def _policy_env_config(policy: Any, env_config: Any) -> Any:
+    """`env_config` (None: the one stored in the policy file) as an `EnvConfig`, checked against what the policy
+    observes: its max_humans and its range scan."""
+    from socnav.config import load_config
+
     if env_config is None:
         stored = getattr(policy, "socnav_metadata", {}).get("env_config")
         if stored is None:
@@ -429,42 +455,40 @@ def export_onnx(
         raise ExportError(f"the policy observes max_humans={observed} but the env config has "
                           f"max_humans={env_config.max_humans}")
     _check_scan(policy, env_config)
-    source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
-    thresholds = load_thresholds(thresholds)
+    return env_config
 
-    graph = NavigatorGraph(policy, with_value=with_value)
-    for name, parameter in graph.named_parameters():  # a NaN weight would give NaN commands on the robot
-        if not bool(th.isfinite(parameter).all()):
-            raise ExportError(f"the policy's weights hold NaN or inf values (in {name}): it cannot be exported")
-    output_names = [*OUTPUTS, *([VALUE_OUTPUT] if with_value else [])]
+
+def _write_navigator(graph: NavigatorGraph, metadata: dict[str, Any], path: Path, max_humans: int) -> Path:
+    """Trace `graph` (in eval mode, restored after) to ONNX with dynamic rows and human rows, attach `metadata`,
+    seal the file with its checksum and write it to `path` atomically once `_check` accepts it."""
+    import onnx
+
+    from socnav.io import atomic_path
+
+    output_names = [*OUTPUTS, *([VALUE_OUTPUT] if graph.with_value else [])]
     scan_input = [] if graph.scan_encoder is None else [SCAN_INPUT]
     input_names = [*OBSERVATION_INPUTS, *scan_input, *(spec["name"] for spec in graph.dropout_inputs)]
     # Rows and human rows are dynamic: K samples run as one call and the runtime trims the padding rows.
     dynamic = {name: {0: "rows"} for name in input_names + output_names}
     for name in ("humans", "humans_mask", *(spec["name"] for spec in graph.dropout_inputs if spec["per_human"])):
         dynamic[name] = {0: "rows", 1: "human_rows"}
-    metadata = _metadata(policy, graph, env_config, thresholds, source, k, p_test, window)
-    try:  # the runtime's schema: what it would refuse at load is refused here, before anything is written
-        NavigatorMetadata.model_validate(metadata)
-    except ValidationError as exc:
-        raise ExportError(f"the navigator metadata would be invalid: {metadata_message(exc)}") from None
-
     modes = [(module, module.training) for module in graph.modules()]
     graph.train(False)
     try:
         with th.no_grad(), _quiet_exporter():
             buffer = io.BytesIO()
-            th.onnx.export(graph, _example_inputs(graph, 3, 2), buffer, input_names=input_names,
-                           output_names=output_names, dynamic_axes=dynamic, opset_version=OPSET, dynamo=False)
+            # torch annotates `f` as a path, but its TorchScript exporter (dynamo=False) writes file objects too
+            th.onnx.export(graph, _example_inputs(graph, 3, 2), buffer,  # type: ignore[arg-type]
+                           input_names=input_names, output_names=output_names, dynamic_axes=dynamic,
+                           opset_version=OPSET, dynamo=False)
             proto = onnx.load_from_string(buffer.getvalue())
             _drop_unused_outputs(proto)
             proto.metadata_props.add(key=METADATA_KEY, value=json.dumps(metadata))
             proto.metadata_props.add(key=CHECKSUM_KEY, value="0" * 64)  # filled in by `seal`
             data = seal(proto.SerializeToString())
-            path = Path(out)
             with atomic_path(path) as temporary:
                 temporary.write_bytes(data)
-                _check(graph, temporary, input_names, output_names, env_config.max_humans)
+                _check(graph, temporary, input_names, output_names, max_humans)
     finally:
         for module, mode in modes:
             module.training = mode
@@ -529,7 +553,7 @@ def _check(graph: NavigatorGraph, path: Path, input_names: list[str], output_nam
     for rows, steps in ((1, 1), (7, max_humans)):
         inputs = _example_inputs(graph, rows, steps, seed=rows)
         expected = [tensor.numpy() for tensor in graph(*inputs)]
-        got = session.run(None, {name: value.numpy() for name, value in zip(input_names, inputs)})
+        got = session.run(None, {name: value.numpy() for name, value in zip(input_names, inputs, strict=True)})
         error = _largest_difference(got, expected, output_names, f"rows={rows}, human rows={steps}")
         if error > EXPORT_TOLERANCE:
             raise ExportError(f"the exported graph differs from the torch policy by {error:.2e} "
@@ -545,7 +569,7 @@ def _largest_difference(got: Sequence[np.ndarray], expected: Sequence[np.ndarray
         raise ExportError(f"the exported graph gives {len(got)} outputs, the torch policy {len(expected)} "
                           f"({where})")
     largest = 0.0
-    for name, onnx_value, torch_value in zip(names, got, expected):
+    for name, onnx_value, torch_value in zip(names, got, expected, strict=True):
         onnx_value, torch_value = np.asarray(onnx_value), np.asarray(torch_value)
         if onnx_value.shape != torch_value.shape:
             raise ExportError(f"the exported graph's {name!r} has shape {onnx_value.shape}, the torch policy's "

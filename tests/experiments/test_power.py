@@ -1,5 +1,5 @@
 """The verdict rule keeps its error rate on Table 1's design (policies shared by 3 evaluation cells, binomial
-episodes) at 3 and 15 seeds, where the old rule (cells as independent strata, percentile bootstrap) does not; the
+episodes) at 3 and 15 seeds, where a rule taking cells as independent strata (percentile bootstrap) does not; the
 power functions agree with their normal theory; the design's parameters are recovered from per-seed records."""
 
 from __future__ import annotations
@@ -11,9 +11,18 @@ import pandas as pd
 import pytest
 
 from socnav.experiments.power import (
-    Design, analytic_min_detectable_difference, cellwise_bootstrap_verdicts, analytic_power, estimate_design, false_verdict_rate,
-    min_detectable_difference, min_detectable_standardised_difference, min_detectable_variance_ratio, power,
-    simulate_goal_rates, welch_verdicts,
+    Design,
+    analytic_min_detectable_difference,
+    analytic_power,
+    cellwise_bootstrap_verdicts,
+    estimate_design,
+    false_verdict_rate,
+    min_detectable_difference,
+    min_detectable_standardised_difference,
+    min_detectable_variance_ratio,
+    power,
+    simulate_goal_rates,
+    welch_verdicts,
 )
 from socnav.experiments.statistics import variance_ratio_test
 

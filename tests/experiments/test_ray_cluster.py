@@ -1,4 +1,4 @@
-"""The Ray backend as users run it (issue 13, item 10): `socnav run --backend ray --address ADDR` against a
+"""The Ray backend as users run it: `socnav run --backend ray --address ADDR` against a
 multi-node Ray cluster on this machine (every node on 127.0.0.1), one node killed while it runs a unit. The sweep
 finishes with every unit done exactly once and results identical to the local backend's."""
 

@@ -214,7 +214,7 @@ def test_sections_are_registered_per_experiment_kind(handmade_run, monkeypatch):
 
 
 def test_paper_table_holds_the_spec_excerpt(handmade_run):
-    from socnav.experiments.report import paper_table1
+    from socnav.experiments.paper_tables import paper_table1
 
     paper = paper_table1().set_index(["train_scenario", "algo", "eval_scenario"])
     assert len(paper) == 5 * 3 * 3

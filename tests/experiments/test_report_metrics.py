@@ -1,5 +1,6 @@
-"""Reports read the metrics registry: Table 1's and Table 3's numbers are unchanged to the last bit, and their CSVs
-gain every other metric the records hold, computed as an independent per-seed / per-group loop computes it."""
+"""Reports read the metrics registry: Table 1's and Table 3's numbers equal a direct pandas computation to the last
+bit, and their CSVs hold every other metric the records hold, computed as an independent per-seed / per-group loop
+computes it."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pandas as pd
 import pytest
 
 from socnav.experiments.report import EXTRA_METRICS, TABLE1_COLUMNS, table1_frame, table1_seed_frame
-from socnav.experiments.uncertainty_report import _rates, safety_metrics_frame
+from socnav.experiments.uncertainty_table3 import episode_rates, safety_metrics_frame
 from socnav.sim.metrics import METRIC_RECORD_COLUMNS
 
 ID = ["train_scenario", "algo", "eval_scenario"]
@@ -43,8 +44,8 @@ def _records(rng: np.random.Generator, metrics: bool) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True)
 
 
-def _old_table1_seed_frame(records, pv_per=200):
-    """`table1_seed_frame` before the registry, verbatim: the oracle of today's Table 1."""
+def _direct_table1_seed_frame(records, pv_per=200):
+    """Table 1's per-seed metrics by a direct pandas aggregation, without the metrics registry: the oracle."""
     columns = ID + ["train_seed", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
     outcome = records["outcome"]
     per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
@@ -58,11 +59,11 @@ def _old_table1_seed_frame(records, pv_per=200):
 
 
 @pytest.mark.parametrize("seed", range(5))
-def test_table1_is_unchanged_to_the_last_bit(seed):
+def test_table1_matches_the_direct_computation_to_the_last_bit(seed):
     records = _records(np.random.default_rng(seed), metrics=bool(seed % 2))
-    old = _old_table1_seed_frame(records)
+    direct = _direct_table1_seed_frame(records)
     new = table1_seed_frame(records)
-    pd.testing.assert_frame_equal(new[list(old.columns)], old, check_exact=True)
+    pd.testing.assert_frame_equal(new[list(direct.columns)], direct, check_exact=True)
     table = table1_frame(records)
     assert list(table.columns[:len(TABLE1_COLUMNS)]) == TABLE1_COLUMNS
 
@@ -86,14 +87,14 @@ def test_table1_csv_holds_every_other_metric_as_the_mean_over_seeds():
             assert row[name] == pytest.approx(np.nanmean(values), rel=1e-12), name
 
 
-def test_records_without_the_metric_columns_give_todays_table_only():
+def test_records_without_the_metric_columns_give_table1_columns_only():
     records = _records(np.random.default_rng(3), metrics=False).drop(columns=["path_length", "min_gap",
                                                                              "disturbance", "time_to_goal"])
     assert list(table1_frame(records).columns) == TABLE1_COLUMNS
 
 
-def _old_rates(frame, layer):
-    """`uncertainty_report._rates` before the registry, verbatim."""
+def _direct_rates(frame, layer):
+    """Table 3's rates computed directly from the outcome and step columns, without the metrics registry."""
     n = len(frame)
     goal = frame["outcome"] == "goal"
     time = frame["time_to_goal"] if "time_to_goal" in frame else frame.get("duration")
@@ -107,7 +108,7 @@ def _old_rates(frame, layer):
 
 
 @pytest.mark.parametrize("seed", range(10))
-def test_table3_rates_are_unchanged_to_the_last_bit(seed):
+def test_table3_rates_match_the_direct_computation_to_the_last_bit(seed):
     rng = np.random.default_rng(seed)
     n = int(rng.integers(0, 300))
     outcome = rng.choice(["goal", "collision", "timeout"], n)
@@ -117,10 +118,10 @@ def test_table3_rates_are_unchanged_to_the_last_bit(seed):
     variants = [frame, frame.drop(columns="time_to_goal"), frame.drop(columns=["time_to_goal", "duration"])]
     for variant in variants:
         for layer in (True, False):
-            old, new = _old_rates(variant, layer), _rates(variant, layer)
-            assert list(old) == list(new)
-            for key in old:
-                assert old[key] == new[key] or (math.isnan(old[key]) and math.isnan(new[key])), key
+            direct, new = _direct_rates(variant, layer), episode_rates(variant, layer)
+            assert list(direct) == list(new)
+            for key in direct:
+                assert direct[key] == new[key] or (math.isnan(direct[key]) and math.isnan(new[key])), key
 
 
 def test_table3_metrics_per_approach_and_perturbed_episodes():
@@ -140,7 +141,7 @@ def test_table3_metrics_per_approach_and_perturbed_episodes():
 def test_table2_metrics_per_estimator_perturbation_and_strength(tmp_path):
     from types import SimpleNamespace
 
-    from socnav.experiments.uncertainty_report import study_metrics_frame
+    from socnav.experiments.uncertainty_table2 import study_metrics_frame
     from socnav.io import write_table_atomic
 
     episodes = pd.DataFrame({"strength": [0.0, 0.0, 0.5, 0.5], "episode": [0, 1, 0, 1],

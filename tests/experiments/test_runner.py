@@ -20,11 +20,11 @@ from _extras import require
 from typer.testing import CliRunner
 
 from socnav.cli import app
-from socnav.experiments.report import build_report
 from socnav.experiments.registry import EXECUTORS, ExecutorResult, unit_dir
-from socnav.experiments.runner import Reporter, RunnerError, _file_lock, _unit_lock_path, read_plan, run_experiment, unit_states
+from socnav.experiments.report import build_report
+from socnav.experiments.runner import Reporter, RunnerError, read_plan, run_experiment, unit_lock_path, unit_states
 from socnav.experiments.spec import PLANNERS, Unit, load_experiment, plan_units
-from socnav.io import read_table
+from socnav.io import file_lock, read_table
 
 SMOKE = Path(__file__).resolve().parents[2] / "configs" / "experiments" / "smoke.yaml"
 runner = CliRunner()
@@ -145,7 +145,7 @@ def test_killed_sweep_resumes_with_each_result_exactly_once(tmp_path):
     unit = next(u for u in plan_units(experiment) if u.id == "train/circle_crossing/odv-ppo-drop/seed0")
 
     def worker_gone() -> bool:
-        with _file_lock(_unit_lock_path(root.resolve(), unit), blocking=False) as free:
+        with file_lock(unit_lock_path(root.resolve(), unit), blocking=False) as free:
             return free
 
     _wait_for(worker_gone, 10, "the orphaned worker to exit")
@@ -201,20 +201,20 @@ def test_corrupt_and_half_written_units_are_redone(local_run, tmp_path):
 
 
 def test_partial_training_resumes_only_from_a_consistent_checkpoint(local_run, tmp_path):
-    from socnav.experiments.runner import _prepare_unit_dir
+    from socnav.experiments.runner import prepare_unit_dir
 
     root = tmp_path / "run"
     shutil.copytree(local_run, root)
     unit = next(u for u in plan_units(load_experiment(SMOKE, "quick")) if u.id == "train/circle_crossing/ppo/seed0")
     directory = unit_dir(root, unit)
     (directory / "done.json").unlink()  # killed after its last checkpoint, before its marker
-    _prepare_unit_dir(root, unit, "partial")
+    prepare_unit_dir(root, unit, "partial")
     state_file = directory / "checkpoints" / "state.json"
     state = json.loads(state_file.read_text())
     assert (directory / "checkpoints" / state["checkpoint"]).is_file()  # kept: train(resume=True) continues from it
 
     state_file.write_text(json.dumps({**state, "num_timesteps": state["num_timesteps"] - 256}))
-    _prepare_unit_dir(root, unit, "partial")  # killed between the model and its state: start afresh
+    prepare_unit_dir(root, unit, "partial")  # killed between the model and its state: start afresh
     assert not (directory / "checkpoints").exists() and (directory / "unit.json").is_file()
 
     summary = run_experiment(load_experiment(SMOKE, "quick"), root, workers=0)
@@ -267,7 +267,7 @@ def test_busy_or_foreign_run_directory_is_refused(tmp_path):
     experiment = load_experiment(SMOKE, "quick")
     root = tmp_path / "run"
     root.mkdir()
-    with _file_lock(root / ".lock"):
+    with file_lock(root / ".lock"):
         with pytest.raises(RunnerError, match="another socnav run is working"):
             run_experiment(experiment, root, workers=0)
     (root / "resolved.json").write_text(json.dumps({"experiment": {"name": "smoke", "budget": None}}))

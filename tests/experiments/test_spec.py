@@ -189,7 +189,7 @@ def test_cli_rejects_bad_experiment_before_any_work(tmp_path):
     assert result.exit_code == 2 and "local, ray" in result.output and not out.exists()
 
 
-# ---- non-finite, absurd and non-integer values (issue 13, items 4 and 7) ----
+# ---- non-finite, absurd and non-integer values ----
 
 def _with(path: str, value: object) -> dict:
     data = _minimal()

@@ -9,9 +9,23 @@ import pytest
 import scipy.stats
 
 from socnav.experiments.statistics import (
-    CANNOT_TELL, DOES_NOT_HOLD, HOLDS, Interval, WelchTest, adjust_family, bonferroni_confidence, compare,
-    compare_family, holm_adjust, interquartile_mean, iqm_interval, mean_interval, probability_of_improvement,
-    variance_ratio_test, verdict, welch_test,
+    CANNOT_TELL,
+    DOES_NOT_HOLD,
+    HOLDS,
+    Interval,
+    WelchTest,
+    adjust_family,
+    bonferroni_confidence,
+    compare,
+    compare_family,
+    holm_adjust,
+    interquartile_mean,
+    iqm_interval,
+    mean_interval,
+    probability_of_improvement,
+    variance_ratio_test,
+    verdict,
+    welch_test,
 )
 
 

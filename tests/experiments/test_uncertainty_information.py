@@ -12,14 +12,28 @@ import scipy.stats
 
 from socnav.experiments.statistics import CANNOT_TELL, DOES_NOT_HOLD, HOLDS
 from socnav.experiments.uncertainty_information import (
-    auroc, average_precision, bonferroni_confidence, cluster_counts, collision_soon, cross_fitted_scores,
-    fit_logistic, gate_diagnostics, information_table, percentile_interval, prepare_steps, ranking_draws,
+    auroc,
+    average_precision,
+    bonferroni_confidence,
+    cluster_counts,
+    collision_soon,
+    cross_fitted_scores,
+    fit_logistic,
+    gate_diagnostics,
+    information_table,
+    percentile_interval,
+    prepare_steps,
+    ranking_draws,
 )
-from socnav.experiments.uncertainty_report import (
-    CLAIM_HEADING_RISES, CLAIM_MC_STRONGER, CLAIM_MORE_HUMANS, claims_summary, heading_vs_speed_frame,
-    mc_vs_ensemble_frame, more_humans_frame,
+from socnav.experiments.uncertainty_table2_claims import (
+    CLAIM_HEADING_RISES,
+    CLAIM_MC_STRONGER,
+    CLAIM_MORE_HUMANS,
+    claims_summary,
+    heading_vs_speed_frame,
+    mc_vs_ensemble_frame,
+    more_humans_frame,
 )
-
 
 # ------------------------------------------------------------------------------------------------ ranking metrics
 

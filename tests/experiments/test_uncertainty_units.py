@@ -80,7 +80,7 @@ def test_sensing_choices_are_validated():
             parse_experiment({**TINY, "safety": {**TINY["safety"], "sensing": bad}})
     single = parse_experiment({**TINY, "safety": {**TINY["safety"], "sensing": "true"}})
     assert single.safety.sensing == ["true"]
-    assert parse_experiment(TINY).safety.sensing == ["perceived"]  # the default: as before the choice existed
+    assert parse_experiment(TINY).safety.sensing == ["perceived"]  # the default: the layer reads the observation
 
 
 ABLATION = {**TINY, "name": "tiny-ablation", "grid": {**TINY["grid"], "seeds": 1}, "study": None,
@@ -136,7 +136,7 @@ def test_without_ablation_the_plan_is_what_it_was():
     plain = {unit.id: unit for unit in plan_units(parse_experiment(TINY))}
     assert "ablation" not in plain["safety/mc/heading_noise"].params
     assert not any(uid.startswith(("safety/none", "calibrate-true/proximity")) for uid in plain)
-    # the digests of the plan before the ablation existed (units that kept their parameters are not redone)
+    # without the ablation, the paper's rule alone: these spec hashes keep such runs' finished units done
     assert plain["calibrate/mc"].spec_hash == "63376c4570c8a55762d1b23310d53a0b123fd8e69ed0a1a9d40f17b07bf575ed"
 
 
@@ -217,7 +217,8 @@ def test_proximity_only_calibration_unit_writes_every_budget_without_an_estimato
     from socnav.experiments.registry import EXECUTORS, unit_dir
     from socnav.safety import load_thresholds
 
-    monkeypatch.setattr(units_module, "_estimator", lambda *a, **k: pytest.fail("proximity-only built an estimator"))
+    monkeypatch.setattr(units_module, "build_estimator",
+                        lambda *a, **k: pytest.fail("proximity-only built an estimator"))
     units = {unit.id: unit for unit in plan_units(parse_experiment(ABLATION))}
     _planted_policy = tmp_path / "train" / "position_swap" / "odv-ppo-drop" / "seed0" / "model.zip"
     _planted_policy.parent.mkdir(parents=True)
@@ -238,30 +239,31 @@ def test_proximity_only_calibration_unit_writes_every_budget_without_an_estimato
 
 
 def test_with_the_ablation_only_one_unit_plays_the_unperturbed_world():
-    from socnav.experiments.uncertainty_units import _play
+    from socnav.experiments.uncertainty_units import play_safety_episodes
     from socnav.rl.persistence import load_policy
 
     policy = load_policy("pretrained")
     p = {"env": {"scenario": "position_swap", "n_humans": 1}, "perturbation": "faster_humans",
          "strengths": [1.0, 4.0], "repeats": 1, "episodes": 2, "seed": 0, "n_envs": 2, "window": 4}
-    first = _play(p, policy, [], lambda _: None, {"estimator": "mc"}, ablation=True, unperturbed=True)
-    other = _play(p, policy, [], lambda _: None, {"estimator": "mc"}, ablation=True, unperturbed=False)
+    first = play_safety_episodes(p, policy, [], lambda _: None, {"estimator": "mc"}, ablation=True, unperturbed=True)
+    other = play_safety_episodes(p, policy, [], lambda _: None, {"estimator": "mc"}, ablation=True, unperturbed=False)
     assert set(first["strength"]) == {1.0, 4.0} and set(other["strength"]) == {4.0}
     pd.testing.assert_frame_equal(first[first["strength"] == 4.0].reset_index(drop=True), other)
     assert set(first["rule"]) == {""} and first["budget"].isna().all()  # the plain policy's ablation tags
 
 
 def test_a_trade_off_budget_plays_only_its_first_repeats():
-    from socnav.experiments.uncertainty_units import _play, _Variant
+    from socnav.experiments.uncertainty_units import SafetyVariant, play_safety_episodes
     from socnav.rl.persistence import load_policy
     from socnav.safety import Thresholds
 
     gate = {"lambda_ep": 0.0, "lambda_feat": 0.0, "lambda_prox": 1.0, "beta1": 0.0, "conditions": "proximity-only"}
-    variants = [_Variant("calibrated", Thresholds.create(gate), "proximity-only", 0.05),
-                _Variant("calibrated", Thresholds.create(gate, lambda_prox=0.5), "proximity-only", 0.1, repeats=1)]
+    variants = [SafetyVariant("calibrated", Thresholds.create(gate), "proximity-only", 0.05),
+                SafetyVariant("calibrated", Thresholds.create(gate, lambda_prox=0.5), "proximity-only", 0.1, repeats=1)]
     p = {"env": {"scenario": "position_swap", "n_humans": 1}, "perturbation": "faster_humans", "strengths": [4.0],
          "repeats": 2, "episodes": 2, "seed": 0, "n_envs": 2, "window": 4}
-    records = _play(p, load_policy("pretrained"), variants, lambda _: None, {"estimator": "none"}, ablation=True)
+    records = play_safety_episodes(p, load_policy("pretrained"), variants, lambda _: None, {"estimator": "none"},
+                                   ablation=True)
     repeats = records.groupby("budget", dropna=False)["repeat"].apply(set).to_dict()
     assert repeats[0.05] == {0, 1} and repeats[0.1] == {0}  # the trade-off budget: the first repeat only
 

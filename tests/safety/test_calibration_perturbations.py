@@ -27,7 +27,7 @@ def test_collect_records_flags_every_registered_perturbation_as_perturbed(name):
 
 
 def test_the_calibration_never_plays_the_behaviour_shift(monkeypatch):
-    import socnav.safety.calibration as calibration
+    from socnav.safety.calibration import calibrate_budgets, workflow
 
     played = []
 
@@ -36,8 +36,8 @@ def test_the_calibration_never_plays_the_behaviour_shift(monkeypatch):
         progress(n)
         return pd.DataFrame({"episode": [episode_offset], "perturbed": [bool(perturbed)], "collided": [False]})
 
-    monkeypatch.setattr(calibration, "collect_records", fake_collect)
-    budgets = calibration.calibrate_budgets(None, None, WORLD, 2, [0.05])
+    monkeypatch.setattr(workflow, "collect_records", fake_collect)
+    budgets = calibrate_budgets(None, None, WORLD, 2, [0.05])
     _, report = budgets[0.05]
     assert "no collision" in report["note"] and "behaviour_shift" not in report["calibration_set"]
     assert len(played) == 1 + sum(len(strengths) for strengths in CALIBRATION_SET.values())

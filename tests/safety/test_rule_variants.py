@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
+from test_safety import FakeEstimator, typed_records  # a sibling module: pytest puts tests/safety on sys.path
 
 from socnav.config import load_config
 from socnav.controllers import StraightController
@@ -17,17 +18,15 @@ from socnav.safety import (
     SafePolicy,
     Thresholds,
     ThresholdsError,
-    calibrate,
     calibrate_budgets,
     calibrate_thresholds,
     collision_probability,
-    evaluate_thresholds,
     load_thresholds,
+    proxy_scores,
     save_thresholds,
+    select_by_proxy,
 )
 from socnav.safety.calibration import NEUTRAL_VALUES, eager_neighbours
-
-from test_safety import FakeEstimator, typed_records  # noqa: E402  (tests/safety is on sys.path)
 
 BASE = {"lambda_ep": 0.5, "lambda_feat": 0.5, "lambda_prox": 1.0, "beta1": 0.0}
 
@@ -52,7 +51,7 @@ def _staged(conditions: str):
 ])
 def test_each_rule_variant_fires_exactly_where_its_conditions_hold(conditions, fires):
     combos, p_col, found = _staged(conditions)
-    for combo, fired in zip(map(tuple, combos.tolist()), p_col):
+    for combo, fired in zip(map(tuple, combos.tolist()), p_col, strict=True):
         assert bool(fired) == (combo in fires), (conditions, combo)
     # the individual conditions are evaluated whichever the rule combines
     np.testing.assert_array_equal(found.c_prox, combos[:, 1])
@@ -62,7 +61,7 @@ def test_each_rule_variant_fires_exactly_where_its_conditions_hold(conditions, f
 
 def test_vetoed_marks_the_hand_overs_the_uncertainty_condition_holds_back():
     combos, _, found = _staged("paper")
-    vetoed = {tuple(c) for c, v in zip(combos.tolist(), found.vetoed) if v}
+    vetoed = {tuple(c) for c, v in zip(combos.tolist(), found.vetoed, strict=True) if v}
     assert vetoed == {(False, True, True)}  # close and approaching, but certain: eq. (10) keeps the policy
     for conditions in ("proximity-only", "uncertainty-only"):  # nothing to veto: no combination of both
         assert not _staged(conditions)[2].vetoed.any()
@@ -76,13 +75,13 @@ def test_no_human_uncertainty_only_rule_reads_c_ap_as_documented():
     assert not collision_probability(0.6, 0.0, np.inf, 0.0, np.nan, Thresholds.create(BASE, conditions="paper"))
 
 
-def test_conditions_field_is_validated_and_the_default_dumps_as_before(tmp_path):
+def test_conditions_field_is_validated_and_the_default_is_left_out_of_dumps(tmp_path):
     with pytest.raises(ThresholdsError, match="conditions: Input should be 'paper', 'proximity-only' or "
                                               "'uncertainty-only'"):
         Thresholds.create(BASE, conditions="proximity")
     paper = Thresholds.create(BASE)
     assert paper.conditions == "paper" and "conditions" not in paper.model_dump()
-    # a file written with the paper's rule is byte for byte what it was before the field existed
+    # a file written with the paper's rule has no `conditions` line
     path = save_thresholds(paper, tmp_path / "paper.yaml")
     assert path.read_text() == ("lambda_ep: 0.5\nlambda_feat: 0.5\nlambda_prox: 1.0\nbeta1: 0.0\n"
                                 "proximity: abs-relative-speed\nsensing: perceived\nhold_steps: 0\n")
@@ -107,7 +106,7 @@ def test_proximity_only_hands_over_however_certain_the_policy_is():
     paper = SafePolicy(policy, certain, Thresholds.create(thresholds), cfg)
     proximity = SafePolicy(policy, None, Thresholds.create(thresholds, conditions="proximity-only"), cfg)
     counters = [FallbackCounter(paper), FallbackCounter(proximity)]
-    for safe, counter in zip((paper, proximity), counters):
+    for safe, counter in zip((paper, proximity), counters, strict=True):
         rollout_episodes(safe, cfg, 4, seed=5, n_envs=2, observer=counter)
     paper_cols, proximity_cols = (c.columns(range(4)) for c in counters)
     assert sum(paper_cols["fallback_steps"]) == 0  # certain: eq. (10) never hands over ...
@@ -115,12 +114,13 @@ def test_proximity_only_hands_over_however_certain_the_policy_is():
     assert paper_cols["vetoed_steps"] == paper_cols["proximity_steps"] and sum(paper_cols["proximity_steps"]) > 0
     assert sum(proximity_cols["fallback_steps"]) > 0 and sum(proximity_cols["vetoed_steps"]) == 0
     # other hand-over decisions show as other digests of the same episodes
-    assert any(a != b for a, b in zip(paper_cols["fallback_digest"], proximity_cols["fallback_digest"]))
+    assert any(a != b for a, b in zip(paper_cols["fallback_digest"], proximity_cols["fallback_digest"],
+                                      strict=True))
 
 
 def test_safe_policy_without_estimator_only_for_a_rule_that_reads_no_uncertainty():
     cfg = load_config(RISKY)
-    with pytest.raises(ValueError, match="only a rule that reads no uncertainty .* conditions='paper'"):
+    with pytest.raises(ValueError, match=r"only a rule that reads no uncertainty .* conditions='paper'"):
         SafePolicy(StraightController(cfg), None, Thresholds.create(BASE), cfg)
     with pytest.raises(ValueError, match="conditions='uncertainty-only'"):
         SafePolicy(StraightController(cfg), None, Thresholds.create(BASE, conditions="uncertainty-only"), cfg)
@@ -148,7 +148,7 @@ def test_fallback_counter_digest_identifies_the_fallback_steps():
 def test_proximity_only_calibration_searches_only_the_proximity_gate():
     records = typed_records()
     budget = 1 / 800
-    result = calibrate(records, false_activation_budget=budget, conditions="proximity-only")
+    result = select_by_proxy(records, false_activation_budget=budget, conditions="proximity-only")
     t = result.thresholds
     assert t.conditions == "proximity-only"
     assert (t.lambda_ep, t.lambda_feat) == (NEUTRAL_VALUES["lambda_ep"], NEUTRAL_VALUES["lambda_feat"])
@@ -156,19 +156,19 @@ def test_proximity_only_calibration_searches_only_the_proximity_gate():
     # separates collisions from the 20 unperturbed episodes: within 1 of 800 unperturbed steps, the gate may open
     # on none of their rows, and nothing is flagged -- the best is the gate that (almost) never opens
     assert result.false_activation_rate <= budget and result.prevented_fraction == 0.0
-    assert evaluate_thresholds(records, t)["false_activation_rate"] <= budget
+    assert proxy_scores(records, t)["false_activation_rate"] <= budget
     # with a budget for the last step of every episode, the gate at the contact flags every collision
-    loose = calibrate(records, false_activation_budget=20 / 800, conditions="proximity-only")
+    loose = select_by_proxy(records, false_activation_budget=20 / 800, conditions="proximity-only")
     assert loose.prevented_fraction == 1.0 and loose.false_activation_rate == pytest.approx(20 / 800)
     with pytest.raises(ValueError, match=r"grid keys \['lambda_ep'\] are not searched for "
                                          r"conditions='proximity-only'.*allowed: lambda_prox, beta1"):
-        calibrate(records, grid={"lambda_ep": [0.1]}, conditions="proximity-only")
+        select_by_proxy(records, grid={"lambda_ep": [0.1]}, conditions="proximity-only")
 
 
 def test_uncertainty_only_calibration_searches_only_the_uncertainty_thresholds():
     records = typed_records()
     budget = 1 / 800
-    result = calibrate(records, false_activation_budget=budget, conditions="uncertainty-only")
+    result = select_by_proxy(records, false_activation_budget=budget, conditions="uncertainty-only")
     t = result.thresholds
     assert t.conditions == "uncertainty-only"
     assert (t.lambda_prox, t.beta1) == (NEUTRAL_VALUES["lambda_prox"], NEUTRAL_VALUES["beta1"])
@@ -176,13 +176,13 @@ def test_uncertainty_only_calibration_searches_only_the_uncertainty_thresholds()
     # flags 4 of 8 collisions of type a and both of type b; without c_prox each high-u_feat step of the unperturbed
     # episode 1 costs, so a budget of 1 / 800 affords none of them and the rule must not fire there
     assert result.prevented_fraction == 0.0 and result.false_activation_rate == 0.0
-    wide = calibrate(records, false_activation_budget=4 / 800, conditions="uncertainty-only")
+    wide = select_by_proxy(records, false_activation_budget=4 / 800, conditions="uncertainty-only")
     assert math.isinf(wide.thresholds.lambda_ep) and wide.thresholds.lambda_feat < 0.6
     assert wide.worst_type_fraction == 0.5 and wide.prevented_fraction == 0.75
     with pytest.raises(ValueError, match="not searched for conditions='uncertainty-only'"):
-        calibrate(records, grid={"beta1": [0.5]}, conditions="uncertainty-only")
+        select_by_proxy(records, grid={"beta1": [0.5]}, conditions="uncertainty-only")
     with pytest.raises(ValueError, match="unknown rule conditions 'both'; allowed: paper, proximity-only"):
-        calibrate(records, conditions="both")
+        select_by_proxy(records, conditions="both")
 
 
 def test_eager_neighbours_move_only_what_the_rule_reads():
@@ -199,7 +199,7 @@ def test_eager_neighbours_move_only_what_the_rule_reads():
 
 def _fake_calibration(monkeypatch, records):
     """calibrate_thresholds' rollouts replaced: records from `records`, replays that count what they play."""
-    import socnav.safety.calibration as calibration
+    from socnav.safety.calibration import rollout_selection, workflow
 
     replayed: list = []
 
@@ -218,8 +218,9 @@ def _fake_calibration(monkeypatch, records):
         return {"collisions": {g: 5 - eager for g in groups}, "false_activation_rate": 0.01 * eager,
                 "false_activation_se": 0.0, "false_activation_steps": 10 * eager, "unperturbed_steps": 10 ** 5}
 
-    monkeypatch.setattr(calibration, "collect_records", fake_collect)
-    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    monkeypatch.setattr(workflow, "collect_records", fake_collect)
+    for module in (workflow, rollout_selection):  # the plain replay, the candidates' replays
+        monkeypatch.setattr(module, "rollout_scores", fake_scores)
     return replayed
 
 

@@ -22,14 +22,14 @@ from socnav.safety import (
     SafePolicy,
     Thresholds,
     ThresholdsError,
-    calibrate,
     collect_records,
     collision_probability,
-    evaluate_thresholds,
     held_fallback,
     load_thresholds,
     nearest_human,
+    proxy_scores,
     save_thresholds,
+    select_by_proxy,
     select_by_rollouts,
 )
 from socnav.sim.scenarios import InitialState
@@ -67,7 +67,7 @@ def test_truth_table_of_all_16_combinations():
     previous = np.where(combos[:, 3], gap + 0.1, gap - 0.1)
     p_col, conditions = collision_probability(u_ep, u_feat, gap, np.zeros(16), previous, thresholds,
                                               return_conditions=True)
-    for name, column in zip(("c_ep", "c_feat", "c_prox", "c_ap"), combos.T):
+    for name, column in zip(("c_ep", "c_feat", "c_prox", "c_ap"), combos.T, strict=True):
         np.testing.assert_array_equal(getattr(conditions, name), column)
     expected = (combos[:, 0] | combos[:, 1]) & combos[:, 2] & combos[:, 3]
     np.testing.assert_array_equal(p_col, expected)
@@ -277,7 +277,7 @@ def test_safe_policy_holds_the_fallback_for_hold_steps_after_the_rule_last_fired
     # the fallback drives at step t iff the rule fired at one of the steps t - hold ... t
     expected = [any(fired[max(0, t - hold): t + 1]) for t in range(len(fired))]
     assert drove == expected
-    assert any(d and not f for d, f in zip(drove, fired))  # some steps were held, not fired
+    assert any(d and not f for d, f in zip(drove, fired, strict=True))  # some steps were held, not fired
     assert safe.episode_fallbacks[0] == sum(drove)
     # a new episode ends the hold: the rule cannot fire without a human (gap inf), so nothing drives
     safe.reset()
@@ -338,7 +338,7 @@ def synthetic_records(spoilers=0):
 
 def test_calibration_finds_the_known_optimum():
     records = synthetic_records()
-    result = calibrate(records, false_activation_budget=0.05)
+    result = select_by_proxy(records, false_activation_budget=0.05)
     t = result.thresholds
     assert result.prevented_fraction == 1.0 and result.n_collisions == 10
     assert result.false_activation_rate <= 0.05
@@ -350,27 +350,27 @@ def test_calibration_finds_the_known_optimum():
     assert result.false_activation_rate == 0.0
     assert ep_upper - 0.01 < t.lambda_ep < ep_upper and feat_upper - 0.02 < t.lambda_feat < feat_upper
     assert ep_upper > 0.05 and feat_upper > 0.2
-    score = evaluate_thresholds(records, t)  # the vectorised search agrees with the rule itself
+    score = proxy_scores(records, t)  # the vectorised search agrees with the rule itself
     assert score["prevented_fraction"] == result.prevented_fraction
     assert score["false_activation_rate"] == pytest.approx(result.false_activation_rate)
-    assert calibrate(records).thresholds == t  # deterministic
+    assert select_by_proxy(records).thresholds == t  # deterministic
     assert not result.frontier.empty
 
 
 def test_calibration_respects_the_false_activation_budget():
     records = synthetic_records(spoilers=4)  # 4 of 800 unperturbed steps
-    tight = calibrate(records, false_activation_budget=0.0)
+    tight = select_by_proxy(records, false_activation_budget=0.0)
     assert tight.false_activation_rate == 0.0 and tight.prevented_fraction == 0.5
-    assert evaluate_thresholds(records, tight.thresholds)["false_activation_rate"] == 0.0
-    loose = calibrate(records, false_activation_budget=0.01)
+    assert proxy_scores(records, tight.thresholds)["false_activation_rate"] == 0.0
+    loose = select_by_proxy(records, false_activation_budget=0.01)
     assert loose.prevented_fraction == 1.0 and 0 < loose.false_activation_rate <= 0.01
-    explicit = calibrate(records, grid={"lambda_ep": [0.03, math.inf], "lambda_feat": [0.15], "lambda_prox": [3.0],
-                                        "beta1": [0.5]}, false_activation_budget=0.01)
+    explicit = select_by_proxy(records, grid={"lambda_ep": [0.03, math.inf], "lambda_feat": [0.15],
+                                              "lambda_prox": [3.0], "beta1": [0.5]}, false_activation_budget=0.01)
     assert explicit.thresholds.lambda_ep == 0.03 and explicit.thresholds.lambda_prox == 3.0
     with pytest.raises(ValueError, match="unknown grid keys"):
-        calibrate(records, grid={"lambda": [1.0]})
+        select_by_proxy(records, grid={"lambda": [1.0]})
     with pytest.raises(ValueError, match="no collisions"):
-        calibrate(records[~records["collided"]])
+        select_by_proxy(records[~records["collided"]])
 
 
 def test_lead_demands_that_the_rule_fire_before_the_last_steps():
@@ -381,13 +381,13 @@ def test_lead_demands_that_the_rule_fire_before_the_last_steps():
     records.loc[early & (records["episode"] < 200), "u_ep_heading"] = 0.0
     records.loc[last & (records["episode"] < 200), "u_ep_heading"] = 0.09
     rule = Thresholds.create(lambda_ep=0.05, lambda_feat=math.inf, lambda_prox=100.0, beta1=0.0)
-    assert evaluate_thresholds(records, rule, lead=0)["prevented_fraction"] == 0.5   # 5 of 10 at the contact step
-    assert evaluate_thresholds(records, rule, lead=1)["prevented_fraction"] == 0.0   # too late with a lead of 1
+    assert proxy_scores(records, rule, lead=0)["prevented_fraction"] == 0.5   # 5 of 10 at the contact step
+    assert proxy_scores(records, rule, lead=1)["prevented_fraction"] == 0.0   # too late with a lead of 1
     # with no false activation allowed, only the u_feat collisions (flagged earlier) can be caught
-    assert calibrate(records, false_activation_budget=0.0, lead=1).prevented_fraction == 0.5
-    assert calibrate(records, false_activation_budget=0.0, lead=0).prevented_fraction == 1.0
+    assert select_by_proxy(records, false_activation_budget=0.0, lead=1).prevented_fraction == 0.5
+    assert select_by_proxy(records, false_activation_budget=0.0, lead=0).prevented_fraction == 1.0
     with pytest.raises(ValueError, match=r"lead must be in \[0, lookback - 1\] = \[0, 3\]"):
-        calibrate(records, lead=4)
+        select_by_proxy(records, lead=4)
 
 
 def typed_records():
@@ -424,21 +424,21 @@ def typed_records():
 def test_calibration_maximises_the_worst_perturbation_type():
     records = typed_records()
     budget = 1 / 800
-    result = calibrate(records, false_activation_budget=budget)
+    result = select_by_proxy(records, false_activation_budget=budget)
     # u_feat: type a 4/8, type b 2/2 (worst 0.5, mean 0.75); u_ep: 8/8 and 0/2 (worst 0) -- u_feat wins
     assert math.isinf(result.thresholds.lambda_ep) and result.thresholds.lambda_feat < 0.6
     assert result.worst_type_fraction == 0.5 and result.prevented_fraction == 0.75
-    score = evaluate_thresholds(records, result.thresholds)
+    score = proxy_scores(records, result.thresholds)
     assert score["worst_type_fraction"] == 0.5 and score["prevented_fraction"] == 0.75
     assert score["false_activation_rate"] <= budget
     # the same records without types: pooled counts prefer u_ep (8 of 10 collisions against 6 of 10)
-    pooled = calibrate(records.drop(columns="group"), false_activation_budget=budget)
+    pooled = select_by_proxy(records.drop(columns="group"), false_activation_budget=budget)
     assert math.isinf(pooled.thresholds.lambda_feat) and pooled.thresholds.lambda_ep < 0.3
     assert pooled.prevented_fraction == 0.8 and pooled.worst_type_fraction == 0.8
 
 
 def test_select_by_rollouts_ranks_the_worst_type_first(monkeypatch):
-    import socnav.safety.calibration as calibration
+    from socnav.safety.calibration import rollout_selection
 
     # measured collisions per candidate (None = the plain policy): candidate 0 has the higher mean, 1 the
     # higher worst type, 2 the same worst type as 1 with a lower mean
@@ -451,7 +451,7 @@ def test_select_by_rollouts_ranks_the_worst_type_first(monkeypatch):
         return {"collisions": measured[key], "false_activation_rate": 0.01, "false_activation_se": 0.0,
                 "false_activation_steps": 10, "unperturbed_steps": 100_000}
 
-    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    monkeypatch.setattr(rollout_selection, "rollout_scores", fake_scores)
     runs = [CalibrationRun(None, True, 1, 0, "a"), CalibrationRun(None, True, 1, 1, "b"),
             CalibrationRun(None, False, 1, 2)]
     chosen, table = select_by_rollouts(candidates, None, None, runs, false_activation_budget=0.05)
@@ -494,14 +494,14 @@ def test_select_by_rollouts_maximises_measured_prevention_within_the_budget():
 
 
 def test_false_activation_standard_error_is_the_ratio_estimators():
-    from socnav.safety.calibration import _ratio_and_standard_error
+    from socnav.safety.calibration import ratio_and_standard_error
 
     counts, lengths = np.array([2.0, 0.0, 5.0, 1.0]), np.array([20.0, 10.0, 30.0, 20.0])
-    rate, se = _ratio_and_standard_error(counts, lengths)
+    rate, se = ratio_and_standard_error(counts, lengths)
     assert rate == pytest.approx(8 / 80)
     # hand: residuals c - 0.1 n = 0, -1, 2, -1; sum of squares 6; SE = sqrt(6 / (4 * 3)) / 20
     assert se == pytest.approx(math.sqrt(6 / 12) / 20)
-    assert _ratio_and_standard_error(np.array([3.0]), np.array([10.0])) == (0.3, math.inf)
+    assert ratio_and_standard_error(np.array([3.0]), np.array([10.0])) == (0.3, math.inf)
     # the bound matters: a rate just under the budget, but uncertain, is not accepted at 95 %
     risky = load_config({"scenario": "circle_crossing", "n_humans": 3, "robot_visible": False})
     runs = [CalibrationRun(risky, True, 3, 11), CalibrationRun(risky, False, 4, 40)]
@@ -523,7 +523,7 @@ def test_fallback_counter_counts_the_fallback_steps_of_each_episode():
     counter = FallbackCounter(safe)
     records = rollout_episodes(safe, cfg, 4, seed=3, n_envs=2, observer=counter)
     counts = counter.per_episode(records["episode"])
-    assert all(0 < c <= n for c, n in zip(counts, records["length"]))
+    assert all(0 < c <= n for c, n in zip(counts, records["length"], strict=True))
     assert counter.per_episode([99]) == [0]
 
 
@@ -573,11 +573,11 @@ def test_bad_thresholds_are_rejected_with_a_clear_message(tmp_path):
         Thresholds.create({**good, "beta1": -1})
     with pytest.raises(ThresholdsError, match="lambda_ep"):
         Thresholds.create({**good, "lambda_ep": float("nan")})
-    with pytest.raises(ThresholdsError, match="proximity.*abs-relative-speed"):
+    with pytest.raises(ThresholdsError, match=r"proximity.*abs-relative-speed"):
         Thresholds.create({**good, "proximity": "speed"})
     with pytest.raises(ThresholdsError, match="missing"):
         Thresholds.create({"lambda_ep": 0.1})
-    with pytest.raises(ThresholdsError, match="preset.*mc, ensemble"):
+    with pytest.raises(ThresholdsError, match=r"preset.*mc, ensemble"):
         load_thresholds("mcdropout")
     bad = tmp_path / "bad.yaml"
     bad.write_text("lambda_ep: 0.1\nlambda_feat: 0.1\nlambda_prox: 1.0\nbeta: 0.5\n")
@@ -627,7 +627,7 @@ def test_eager_neighbours_fire_in_more_situations_one_parameter_at_a_time():
 
 
 def test_refinement_climbs_while_measured_rollouts_improve(monkeypatch):
-    import socnav.safety.calibration as calibration
+    from socnav.safety.calibration import refine_by_rollouts, rollout_selection
 
     start = Thresholds.create(lambda_ep=math.inf, lambda_feat=0.4, lambda_prox=0.5, beta1=0.0)
     wider = start.model_copy(update={"lambda_prox": 0.75})
@@ -637,30 +637,31 @@ def test_refinement_climbs_while_measured_rollouts_improve(monkeypatch):
     rates = {widest: 0.2}
 
     def fake_scores(thresholds, *args, **kwargs):
-        return {"collisions": {"b": collisions.get(thresholds, 6)}, "false_activation_rate": rates.get(thresholds, 0.01),
-                "false_activation_se": 0.0, "false_activation_steps": 10, "unperturbed_steps": 100_000}
+        return {"collisions": {"b": collisions.get(thresholds, 6)},
+                "false_activation_rate": rates.get(thresholds, 0.01), "false_activation_se": 0.0,
+                "false_activation_steps": 10, "unperturbed_steps": 100_000}
 
-    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    monkeypatch.setattr(rollout_selection, "rollout_scores", fake_scores)
     runs = [CalibrationRun(None, True, 1, 0, "b"), CalibrationRun(None, False, 1, 1)]
     table = pd.DataFrame([{**start.model_dump(), "chosen": True, "candidate": 0}]).assign(stage="proxy")
-    chosen, refined = calibration._refine(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
-                                          lambda n: None)
+    chosen, refined = refine_by_rollouts(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
+                                         lambda n: None)
     assert chosen == wider                                        # 70 % prevented; the widest is over budget
     assert refined["chosen"].sum() == 1 and refined.loc[refined["chosen"], "lambda_prox"].item() == 0.75
     assert set(refined["stage"]) == {"proxy", "refine-1", "refine-2"}
     assert refined["candidate"].is_unique
-    assert calibration._refine(Thresholds.never(), table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
-                               lambda n: None)[0] == Thresholds.never()
+    assert refine_by_rollouts(Thresholds.never(), table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
+                              lambda n: None)[0] == Thresholds.never()
     # a neighbour that only ties (same prevention, lower false activation) does not replace the current rule
     collisions.update({wider: 5})
     rates.update({wider: 0.001})
-    chosen, refined = calibration._refine(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
-                                          lambda n: None)
+    chosen, refined = refine_by_rollouts(start, table, {"b": 10}, None, None, runs, 0.05, 4, 4, 0.95,
+                                         lambda n: None)
     assert chosen == start and refined.loc[refined["chosen"], "stage"].tolist() == ["proxy"]
 
 
 def test_calibrate_thresholds_replays_the_plain_policy_once_and_fills_the_bar(monkeypatch):
-    import socnav.safety.calibration as calibration
+    from socnav.safety.calibration import calibrate_thresholds, rollout_selection, workflow
 
     records = typed_records()
     plain_passes = []
@@ -678,11 +679,12 @@ def test_calibrate_thresholds_replays_the_plain_policy_once_and_fills_the_bar(mo
         return {"collisions": {g: 5 if thresholds is None else 2 for g in groups}, "false_activation_rate": 0.0,
                 "false_activation_se": 0.0, "false_activation_steps": 0, "unperturbed_steps": 10 ** 6}
 
-    monkeypatch.setattr(calibration, "collect_records", fake_collect)
-    monkeypatch.setattr(calibration, "rollout_scores", fake_scores)
+    monkeypatch.setattr(workflow, "collect_records", fake_collect)
+    for module in (workflow, rollout_selection):  # the plain replay, the candidates' replays
+        monkeypatch.setattr(module, "rollout_scores", fake_scores)
     seen = []
-    _, report = calibration.calibrate_thresholds(None, None, {"scenario": "position_swap"}, 2,
-                                                 progress=lambda done, total: seen.append((done, total)))
+    _, report = calibrate_thresholds(None, None, {"scenario": "position_swap"}, 2,
+                                     progress=lambda done, total: seen.append((done, total)))
     assert sum(plain_passes) == 1 and len(plain_passes) > 1      # stages 2 and 3 share one plain replay
     assert all(done <= total for done, total in seen) and seen[-1][0] == seen[-1][1]
     frame = pd.DataFrame(report["candidates"])

@@ -1,6 +1,7 @@
-"""What the safety layer senses (SPEC section 5): with ``sensing: true`` the proximity terms and the cautious
-controller read the simulator's noise-free state while the policy and the estimator see the noisy observation;
-with ``perceived`` (the default) everything reads the observation, as before the choice existed."""
+"""What the safety layer senses (paper IV-C; `socnav.safety.rule`, ``Thresholds.sensing``): with ``sensing: true``
+the proximity terms and the cautious controller read the simulator's noise-free state while the policy and the
+estimator see the noisy observation; with ``perceived`` (the default, the paper's formulation) everything reads
+the observation."""
 
 from __future__ import annotations
 
@@ -14,7 +15,13 @@ from socnav.config import load_config
 from socnav.controllers import StraightController
 from socnav.envs.rollout import rollout_episodes
 from socnav.safety import (
-    CautiousController, SafePolicy, Thresholds, ThresholdsError, collect_records, load_thresholds, nearest_human,
+    CautiousController,
+    SafePolicy,
+    Thresholds,
+    ThresholdsError,
+    collect_records,
+    load_thresholds,
+    nearest_human,
     save_thresholds,
 )
 from socnav.sim.world import CrowdWorld
@@ -82,7 +89,7 @@ def test_true_sensing_reads_the_state_while_policy_and_estimator_see_the_noise()
     expected, _ = CautiousController(world.config).predict(truth)
     np.testing.assert_allclose(actions, expected, atol=1e-6)
 
-    # perceived (the default): the proximity terms and the fallback read the noisy observation, as before;
+    # perceived (the default): the proximity terms and the fallback read the noisy observation;
     # a true observation handed in is ignored
     perceived = SafePolicy(Recorder(), Recorder(), Thresholds.create(FIRING), world.config)
     actions, _ = perceived.predict(noisy, true_observation=truth)
@@ -95,7 +102,7 @@ def test_true_sensing_needs_the_true_observation_and_uses_it_once():
     world = _scene()
     safe = SafePolicy(Recorder(), Recorder(), Thresholds.create(FIRING, sensing="true"), world.config)
     assert safe.needs_true_observation
-    with pytest.raises(ValueError, match="sensing='true'.*noise-free"):
+    with pytest.raises(ValueError, match=r"sensing='true'.*noise-free"):
         safe.predict(world.observe())
     safe.sense(world.observe(noisy=False))
     safe.predict(world.observe())

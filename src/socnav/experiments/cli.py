@@ -7,18 +7,33 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from socnav._console import console, fail
-from socnav.experiments.spec import MAX_EPISODES, MAX_TIMESTEPS
+from socnav.experiments.cli_options import (
+    algo_option,
+    config_option,
+    eval_episodes_option,
+    eval_every_option,
+    n_envs_option,
+    n_humans_option,
+    scenario_option,
+    seed_option,
+    timesteps_option,
+)
 from socnav.extras import install_hint
 
 __all__ = ["register"]
 
+if TYPE_CHECKING:
+    from socnav.experiments.runner import Reporter
+else:  # the runner (pandas, pyarrow) loads inside `socnav run`: the progress display is a Reporter by its methods
+    Reporter = object
 
-class _ProgressReporter:
+
+class _ProgressReporter(Reporter):
     """Rich progress: one bar for the sweep (units done / running / failed) and a bar per running unit, fed by the
     unit's own progress file (a spinner until its first report, e.g. while a model loads)."""
 
@@ -85,7 +100,8 @@ def run(
     workers: int | None = typer.Option(None, min=0, help="units at a time (local default: CPU count; "
                                                             "0 runs in this process; ray default: cluster CPUs)"),
     retries: int = typer.Option(1, min=0, help="retries of a unit whose worker died (Ray: max_retries)"),
-    out: Path | None = typer.Option(None, help="run directory (default runs/<name>-<budget>, or runs/<name> without --budget)"),
+    out: Path | None = typer.Option(None, help="run directory (default runs/<name>-<budget>, or runs/<name> "
+                                                  "without --budget)"),
     dry_run: bool = typer.Option(False, "--dry-run", help="validate and list the units and their state; run nothing"),
 ) -> None:
     """Run an experiment: train and evaluate every unit not yet done; resumable, failures reported per unit."""
@@ -122,8 +138,9 @@ def run(
     reporter = _ProgressReporter()
     started = time.perf_counter()
     try:
-        summary = run_experiment(resolved, root, backend=backend, workers=workers, address=address,  # type: ignore[arg-type]
-                                 retries=retries, source=experiment, reporter=reporter)
+        summary = run_experiment(resolved, root, backend="ray" if backend == "ray" else "local",  # checked above
+                                 workers=workers, address=address, retries=retries, source=experiment,
+                                 reporter=reporter)
     except RunnerError as exc:
         reporter.stop()
         fail(str(exc))
@@ -131,7 +148,7 @@ def run(
     except KeyboardInterrupt:
         reporter.stop()
         console.print("[yellow]interrupted[/]: finished units are kept; run the same command again to continue")
-        raise typer.Exit(code=130)
+        raise typer.Exit(code=130) from None
     reporter.stop()
     elapsed = time.perf_counter() - started
     console.print(f"{summary.count('done')} done, {summary.count('skipped')} already done, "
@@ -169,21 +186,21 @@ def report(
 
 
 def tune(
-    algo: str = typer.Option(..., help="ppo | ppo-drop | odv-ppo-noloss | odv-ppo | odv-ppo-drop"),
-    scenario: str = typer.Option(..., help="training scenario"),
+    algo: str = algo_option(...),
+    scenario: str = scenario_option(..., help="training scenario"),
     trials: int = typer.Option(..., min=1, max=100_000, help="trials to run (added to the study if it exists)"),
     storage: str = typer.Option("sqlite:///runs/tune.db", help="Optuna storage URL (any Optuna RDB URL)"),
-    timesteps: int = typer.Option(100_000, min=1, max=MAX_TIMESTEPS, help="training timesteps per trial"),
+    timesteps: int = timesteps_option(100_000, help="training timesteps per trial"),
     study_name: str | None = typer.Option(None, help="study name (default <algo>_<scenario>)"),
-    n_envs: int = typer.Option(16, min=1, help="training environments per trial"),
-    eval_every: int | None = typer.Option(None, min=1, max=MAX_TIMESTEPS,
-                                             help="timesteps between validations reported to the pruner "
-                                                  "(default a fifth of the trial)"),
-    eval_episodes: int = typer.Option(20, min=1, max=MAX_EPISODES, help="validation episodes per evaluation"),
+    n_envs: int = n_envs_option(16, help="training environments per trial"),
+    eval_every: int | None = eval_every_option("timesteps between validations reported to the pruner (default a "
+                                               "fifth of the trial)"),
+    eval_episodes: int = eval_episodes_option(20),
     metric: str = typer.Option("return_mean", help="objective: return_mean | goal_pct | collision_pct"),
-    seed: int = typer.Option(0, help="training seed of every trial (and the sampler's seed)"),
-    n_humans: int | None = typer.Option(None, min=0, help="humans per episode (default: the scenario's)"),
-    config: Path | None = typer.Option(None, "--config", help="YAML env config; options above override it"),
+    # A seed as Optuna's sampler takes it, unbounded below.
+    seed: int = seed_option("training seed of every trial (and the sampler's seed)", least=None),
+    n_humans: int | None = n_humans_option(),
+    config: Path | None = config_option(),
     out: Path | None = typer.Option(None, help="trial run directories (default runs/tune/<study>)"),
     timeout: float | None = typer.Option(None, min=1, help="stop starting trials after this many seconds"),
     write_preset: Path | None = typer.Option(None, "--write-preset", help="write the best values as a "

@@ -15,10 +15,10 @@ screening episodes disjoint from the demo's: the strength among `STRENGTHS` at w
 from __future__ import annotations
 
 from collections.abc import Callable
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ContextManager
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
@@ -33,7 +33,7 @@ __all__ = ["BASELINES", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "Progress
            "write_safety_records"]
 
 #: ``progress(label, total)``: a context manager showing one progress bar, yielding its ``advance(n)`` callback.
-ProgressBar = Callable[[str, int], ContextManager[Callable[[int], None]]]
+ProgressBar = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 #: A metrics-table row: (run name, `socnav.envs.rollout.summarize` of its records).
 Row = tuple[str, dict[str, Any]]
 

@@ -4,7 +4,8 @@ they are given: the unit directories of a run, the report context, strict JSON.
 An executor registers with ``@register_executor("kind")``, a section with ``@register_section("kind", "name")``.
 socnav's own: `socnav.experiments.runner` holds the table1 kind's executors and imports
 `socnav.experiments.uncertainty_units` (the uncertainty kind's), so every process running units knows them all;
-`socnav.experiments.report` holds the table1 kind's sections and imports `socnav.experiments.uncertainty_report`.
+`socnav.experiments.report` holds the table1 kind's sections and imports `socnav.experiments.uncertainty_report`,
+which registers the uncertainty kind's sections in page order.
 This module imports none of them: the providers import it, never the other way round.
 """
 
@@ -14,7 +15,7 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,8 @@ from socnav.io import json_safe, read_json, read_table, write_text_atomic
 
 __all__ = [
     "EXECUTORS", "PROGRESS_FILE", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section",
-    "UnitProgress", "file_digest", "json_safe", "read_progress", "register_executor", "register_section", "single_threaded_torch", "unit_dir",
+    "UnitProgress", "file_digest", "json_safe", "read_progress", "register_executor", "register_section",
+    "single_threaded_torch", "unit_dir",
 ]
 
 
@@ -137,7 +139,7 @@ class ReportContext:
     out_dir: Path
     experiment: dict[str, Any]
     units: list[Unit]
-    states: dict[str, str]
+    states: Mapping[str, str]
     _cache: dict[str, Any] = field(default_factory=dict)
 
     def done(self, kind: str | None = None) -> list[Unit]:
@@ -145,6 +147,12 @@ class ReportContext:
 
     def missing(self, kind: str | None = None) -> list[Unit]:
         return [u for u in self.units if self.states[u.id] != "done" and (kind is None or u.kind == kind)]
+
+    def cached(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()``, run once per report: sections that read the same records share them under `key`."""
+        if key not in self._cache:
+            self._cache[key] = compute()
+        return self._cache[key]
 
     def episode_records(self) -> pd.DataFrame:
         """All finished evaluation units' per-episode records (with train_scenario, algo, train_seed, eval_scenario)."""

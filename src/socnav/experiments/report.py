@@ -33,7 +33,6 @@ part (:func:`claims_frame`); ``training_runs.csv``: the per-run training-curve s
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,10 +42,12 @@ import pandas as pd
 
 # The sections of the `uncertainty` kind register on import.
 from socnav.experiments import uncertainty_report  # noqa: F401
+from socnav.experiments.labels import algo_label, preferred_then_seen, scenario_label
+from socnav.experiments.paper_tables import PAPER_BUDGET, paper_table1
 from socnav.experiments.registry import SECTIONS, ReportContext, register_section
 from socnav.experiments.runner import read_plan, unit_states
 from socnav.io import save_figure, write_table_atomic, write_text_atomic
-from socnav.sim.metrics import ALL_METRICS, summarize_groups
+from socnav.sim.metrics import ALL_METRICS, PV_PER, summarize_groups
 
 if TYPE_CHECKING:
     from socnav.experiments.statistics import VarianceRatioTest, WelchTest
@@ -57,27 +58,14 @@ __all__ = [
     "table1_markdown", "table1_seed_frame", "training_curve_frame", "training_run_frame",
 ]
 
-ALGO_LABELS = {"ppo": "PPO", "ppo-drop": "PPO-Drop", "odv-ppo-noloss": "ODV-PPO no Loss", "odv-ppo": "ODV-PPO",
-               "odv-ppo-drop": "ODV-PPO-Drop"}
-SCENARIO_LABELS = {"circle_interaction": "Circle Interaction", "circle_crossing": "Circle Crossing",
-                   "random": "Random", "position_swap": "Position Swap"}
 ID_COLUMNS = ["train_scenario", "algo", "eval_scenario"]
-TABLE1_COLUMNS = ID_COLUMNS + ["n_seeds", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
-                               "return_mean", "return_std", "return_seed_std"]
-PV_PER = 200
+TABLE1_COLUMNS = [*ID_COLUMNS, "n_seeds", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv",
+                  "return_mean", "return_std", "return_seed_std"]
 #: Table 1's per-seed metrics (registry names, `socnav.sim.metrics.METRICS`), in their column order.
 TABLE1_SEED_METRICS = ["goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
 #: Every other metric of the registry, appended to table1.csv (Table 1's return spread is over all episodes, so a
 #: per-seed return_std is not one of them).
 EXTRA_METRICS = [name for name in ALL_METRICS if name not in TABLE1_SEED_METRICS and name != "return_std"]
-
-
-def algo_label(name: str) -> str:
-    return ALGO_LABELS.get(name, name)
-
-
-def scenario_label(name: str) -> str:
-    return SCENARIO_LABELS.get(name, name.replace("_", " ").title())
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -126,10 +114,10 @@ def table1_seed_frame(records: pd.DataFrame, pv_per: int = PV_PER) -> pd.DataFra
     train_seed) with episodes, goal_pct, collision_pct, timeout_pct, pv and return_mean of that seed's episodes,
     then every other registry metric whose record column the records hold (:data:`EXTRA_METRICS`; computed by
     `socnav.sim.metrics.summarize_groups`)."""
-    columns = ID_COLUMNS + ["train_seed", "episodes", *TABLE1_SEED_METRICS]
+    columns = [*ID_COLUMNS, "train_seed", "episodes", *TABLE1_SEED_METRICS]
     if records.empty:
         return pd.DataFrame(columns=columns)
-    per_seed = summarize_groups(records, ID_COLUMNS + ["train_seed"], TABLE1_SEED_METRICS + EXTRA_METRICS, pv_per)
+    per_seed = summarize_groups(records, [*ID_COLUMNS, "train_seed"], TABLE1_SEED_METRICS + EXTRA_METRICS, pv_per)
     return per_seed[columns + [name for name in EXTRA_METRICS if name in per_seed]]
 
 
@@ -160,18 +148,13 @@ TABLE1_METRICS = {
 }
 
 
-def _ordered(values: Iterable[str], preferred: list[str]) -> list[str]:
-    """`preferred` (all of it: planned rows without results show as missing), then any other values seen."""
-    return list(dict.fromkeys([*preferred, *values]))
-
-
 def table1_markdown(table: pd.DataFrame, algorithms: list[str] | None = None,
                     train_scenarios: list[str] | None = None, eval_scenarios: list[str] | None = None) -> str:
     """The paper's Table I layout: rows training scenario x algorithm, a column group per evaluation scenario;
     the best value of each column within each training scenario in bold (ties all bold)."""
-    algorithms = _ordered(table["algo"], algorithms or [])
-    train_scenarios = _ordered(table["train_scenario"], train_scenarios or [])
-    eval_scenarios = _ordered(table["eval_scenario"], eval_scenarios or [])
+    algorithms = preferred_then_seen(table["algo"], algorithms or [])
+    train_scenarios = preferred_then_seen(table["train_scenario"], train_scenarios or [])
+    eval_scenarios = preferred_then_seen(table["eval_scenario"], eval_scenarios or [])
     header = ["Training scenario", "Approach"]
     for scenario in eval_scenarios:
         header += [f"{scenario_label(scenario)}: {title}" for title, _, _ in TABLE1_METRICS.values()]
@@ -213,6 +196,7 @@ def _number(value: float, decimals: int) -> str:
 
 @register_section("table1", "table1")
 def table1_section(context: ReportContext) -> str:
+    """Table 1's section: table1.md/csv."""
     experiment = context.experiment
     table = table1_frame(context.episode_records())
     write_table_atomic(table, context.out_dir / "table1.csv")
@@ -250,7 +234,7 @@ AGGREGATE_SCORE = "goal_pct"
 REFERENCE_ALGO = "odv-ppo-drop"
 #: Family-wise confidence of every table of verdicts (comparisons, claims): 1 - the family-wise error rate.
 FAMILY_CONFIDENCE = 0.95
-CI_COLUMNS = ID_COLUMNS + ["metric", "n_seeds", "mean", "ci_low", "ci_high"]
+CI_COLUMNS = [*ID_COLUMNS, "metric", "n_seeds", "mean", "ci_low", "ci_high"]
 COMPARISON_COLUMNS = ["algo", "baseline", "n_tasks", "n_policies", "n_policies_baseline", "difference",
                       "difference_low", "difference_high", "confidence", "df", "p_value", "p_holm", "improvement",
                       "improvement_low", "improvement_high", "verdict"]
@@ -266,7 +250,7 @@ def table1_ci_frame(per_seed: pd.DataFrame, confidence: float = 0.95) -> pd.Data
     for key, group in per_seed.groupby(ID_COLUMNS, sort=False):
         for metric in TABLE1_METRICS:
             interval = mean_interval(group[metric].to_numpy(float), confidence)
-            rows.append({**dict(zip(ID_COLUMNS, key)), "metric": metric, "n_seeds": len(group),
+            rows.append({**dict(zip(ID_COLUMNS, key, strict=True)), "metric": metric, "n_seeds": len(group),
                          "mean": interval.estimate, "ci_low": interval.low, "ci_high": interval.high})
     return pd.DataFrame(rows, columns=CI_COLUMNS)
 
@@ -275,15 +259,15 @@ def table1_ci_markdown(ci: pd.DataFrame, algorithms: list[str] | None = None,
                        train_scenarios: list[str] | None = None, eval_scenarios: list[str] | None = None) -> str:
     """Table 1's layout with ``mean [low, high]`` cells for :data:`CI_MARKDOWN_METRICS` (nothing bold: which
     algorithm is best is the question the claims answer)."""
-    algorithms = _ordered(ci["algo"], algorithms or [])
-    train_scenarios = _ordered(ci["train_scenario"], train_scenarios or [])
-    eval_scenarios = _ordered(ci["eval_scenario"], eval_scenarios or [])
+    algorithms = preferred_then_seen(ci["algo"], algorithms or [])
+    train_scenarios = preferred_then_seen(ci["train_scenario"], train_scenarios or [])
+    eval_scenarios = preferred_then_seen(ci["eval_scenario"], eval_scenarios or [])
     header = ["Training scenario", "Approach"]
     for scenario in eval_scenarios:
         header += [f"{scenario_label(scenario)}: {TABLE1_METRICS[m][0].replace(' (μ ± σ)', '')}"
                    for m in CI_MARKDOWN_METRICS]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * (len(header) - 2)) + "|"]
-    indexed = ci.set_index(ID_COLUMNS + ["metric"])
+    indexed = ci.set_index([*ID_COLUMNS, "metric"])
     for train_scenario in train_scenarios:
         for index, algo in enumerate(algorithms):
             row = [scenario_label(train_scenario) if index == 0 else "", algo_label(algo)]
@@ -353,7 +337,7 @@ def aggregate_frame(per_seed: pd.DataFrame, algorithms: list[str] | None = None,
     from socnav.experiments.statistics import iqm_interval
 
     rows = []
-    for algo in _ordered(per_seed["algo"], algorithms or []):
+    for algo in preferred_then_seen(per_seed["algo"], algorithms or []):
         cells = _cells(per_seed, algo)
         strata = list(policy_strata(per_seed, algo, cells, score).values())
         if not strata:
@@ -377,7 +361,7 @@ def comparison_frame(per_seed: pd.DataFrame, reference: str = REFERENCE_ALGO, al
 
     if reference not in set(per_seed["algo"]):
         return pd.DataFrame(columns=COMPARISON_COLUMNS)
-    others = [a for a in _ordered(per_seed["algo"], ["ppo", *(algorithms or [])]) if a != reference]
+    others = [a for a in preferred_then_seen(per_seed["algo"], ["ppo", *(algorithms or [])]) if a != reference]
     pairs, rows = [], []
     for baseline in others:
         cells = _cells(per_seed, reference, baseline)
@@ -387,7 +371,7 @@ def comparison_frame(per_seed: pd.DataFrame, reference: str = REFERENCE_ALGO, al
         pairs.append((strata_x, strata_y))
         rows.append({"algo": reference, "baseline": baseline, "n_tasks": sum(s.shape[1] for s in strata_x),
                      "n_policies": sum(map(len, strata_x)), "n_policies_baseline": sum(map(len, strata_y))})
-    for row, result in zip(rows, compare_family(pairs, confidence, seed=seed)):
+    for row, result in zip(rows, compare_family(pairs, confidence, seed=seed), strict=True):
         row.update({"difference": result.difference.estimate, "difference_low": result.difference.low,
                     "difference_high": result.difference.high, "confidence": result.confidence, "df": result.df,
                     "p_value": result.p_value, "p_holm": result.p_adjusted,
@@ -443,6 +427,8 @@ def _p_text(p_value: float) -> str:
 
 @register_section("table1", "table1_ci")
 def table1_ci_section(context: ReportContext) -> str:
+    """Table 1 with intervals over seeds, the aggregate scores and ODV-PPO-Drop's comparisons: their files and
+    section."""
     experiment = context.experiment
     algorithms = experiment["grid"]["algorithms"]
     per_seed = table1_seed_frame(context.episode_records())
@@ -549,11 +535,11 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
 
-    scenarios = _ordered(frame["train_scenario"], scenarios or []) or ["(no finished training)"]
-    algorithms = _ordered(frame["algo"], algorithms or [])
+    scenarios = preferred_then_seen(frame["train_scenario"], scenarios or []) or ["(no finished training)"]
+    algorithms = preferred_then_seen(frame["algo"], algorithms or [])
     colors = {algo: plt.get_cmap("tab10")(index % 10) for index, algo in enumerate(algorithms)}
     figure, axes = plt.subplots(1, len(scenarios), figsize=(4.6 * len(scenarios), 3.6), squeeze=False)
-    for axis, scenario in zip(axes[0], scenarios):
+    for axis, scenario in zip(axes[0], scenarios, strict=True):
         for algo in algorithms:
             data = frame[(frame["train_scenario"] == scenario) & (frame["algo"] == algo)]
             if data.empty:
@@ -569,7 +555,7 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
     handles, labels = axes[0][0].get_legend_handles_labels()
     for axis in axes[0][1:]:
         more = axis.get_legend_handles_labels()
-        for handle, label in zip(*more):
+        for handle, label in zip(*more, strict=True):
             if label not in labels:
                 handles.append(handle)
                 labels.append(label)
@@ -587,6 +573,7 @@ def _steps_label(value: float, _position: Any = None) -> str:
 
 @register_section("table1", "training_curves")
 def training_curves_section(context: ReportContext) -> str:
+    """The training curves' section: training_curves.png/svg/csv."""
     experiment = context.experiment
     frame = training_curve_frame(context.training_curves())
     write_table_atomic(frame, context.out_dir / "training_curves.csv")
@@ -730,7 +717,7 @@ def claims_frame(per_seed: pd.DataFrame, runs: pd.DataFrame, confidence: float =
     for other in ["circle_crossing", "random"]:
         slow = _run_groups(in_thousands, other, "steps_to_converge", algorithms)
         # strata: the algorithms with runs in both scenarios (each algorithm is compared with itself)
-        both = [(s, f) for s, f in zip(slow, fast) if len(s) and len(f)]
+        both = [(s, f) for s, f in zip(slow, fast, strict=True) if len(s) and len(f)]
         test = welch_test([s for s, _ in both], [f for _, f in both]) if both else _untestable()
         parts.append(_Part("Circle-interaction training converges fastest", f"faster than {scenario_label(other)}",
                            f"steps to {100 * CONVERGENCE_FRACTION:.0f} % of the final training reward (thousands): "
@@ -746,12 +733,13 @@ def claims_frame(per_seed: pd.DataFrame, runs: pd.DataFrame, confidence: float =
                            sum(map(len, fast))))
 
     adjusted = adjust_family([part.test for part in parts], confidence)
-    rows = [{"claim": part.claim, "part": part.part, "statistic": part.statistic, "test": part.test.method,
-             "n_x": part.n_x, "n_y": part.n_y, "estimate": part.test.estimate, "ci_low": result.interval.low,
-             "ci_high": result.interval.high, "confidence": result.confidence, "p_value": result.p_value,
-             "p_holm": result.p_adjusted, "verdict": result.verdict}
-            for part, result in zip(parts, adjusted)]
-    overall = {}
+    rows: list[dict[str, Any]] = [
+        {"claim": part.claim, "part": part.part, "statistic": part.statistic, "test": part.test.method,
+         "n_x": part.n_x, "n_y": part.n_y, "estimate": part.test.estimate, "ci_low": result.interval.low,
+         "ci_high": result.interval.high, "confidence": result.confidence, "p_value": result.p_value,
+         "p_holm": result.p_adjusted, "verdict": result.verdict}
+        for part, result in zip(parts, adjusted, strict=True)]
+    overall: dict[str, set[str]] = {}
     for row in rows:
         overall.setdefault(row["claim"], set()).add(row["verdict"])
     for row in rows:
@@ -788,7 +776,8 @@ def _power_note(per_seed: pd.DataFrame, n_claims: int) -> list[str]:
         f"**Power at this budget** ({design.seeds} seeds, {design.episodes} episodes; measured in this run: "
         f"between-seed SD {design.seed_sd_pct:.1f} points beyond the binomial noise, correlation "
         f"{design.cell_correlation:.2f} between a policy's cells, mean goal rate {design.base_goal_pct:.0f} %): in a "
-        f"family of {n_claims} claim(s), the rule says *holds* with 80 % power from {sizes[3]} over all cells, {sizes[2]} over "
+        f"family of {n_claims} claim(s), the rule says *holds* with 80 % power from {sizes[3]} over all cells, "
+        f"{sizes[2]} over "
         f"the generalization cells and {sizes[1]} in one cell (simulated); smaller differences are mostly *cannot "
         f"tell*. The convergence parts need about {standardised:.1f} between-seed SDs, the variance parts a ratio "
         f"of about {ratio:.1f} (normal theory; `docs/analysis/power_table.py`).",
@@ -798,6 +787,7 @@ def _power_note(per_seed: pd.DataFrame, n_claims: int) -> list[str]:
 
 @register_section("table1", "claims")
 def claims_section(context: ReportContext) -> str:
+    """Table 1's claims, each tested: claims.md/csv, training_runs.csv."""
     per_seed = table1_seed_frame(context.episode_records())
     runs = training_run_frame(context.training_curves())
     claims = claims_frame(per_seed, runs)
@@ -826,7 +816,8 @@ def claims_section(context: ReportContext) -> str:
         "Welch t-test (strata: training scenarios), estimate = difference of the mean goal rates in points. "
         f"Convergence: per training run, the first step at which its training reward ({CURVE_VALUE}) reaches "
         f"{100 * CONVERGENCE_FRACTION:.0f} % of the way from its first to its final value (mean of the last "
-        f"{100 * FINAL_SHARE:.0f} % of its points), in thousands of steps; stratified Welch test with the algorithms as "
+        f"{100 * FINAL_SHARE:.0f} % of its points), in thousands of steps; stratified Welch test with the algorithms "
+        "as "
         "strata (positive: circle interaction is faster). Variance across seeds: the final training reward's "
         "variance over seeds, pooled within algorithms, as a ratio (above 1: circle interaction spreads less); "
         "F-test, which assumes normal per-seed values (one diverging seed can decide it). "
@@ -852,29 +843,6 @@ def claims_section(context: ReportContext) -> str:
 # Comparison with the paper
 # --------------------------------------------------------------------------------------------------------------
 
-_PAPER_ROWS = """
-circle_interaction ppo            99.80 0.20 0.00 7 4.50 0.46 | 93.30 4.37 2.33 169 3.66 2.09 | 76.80 4.70 18.50 43 2.63 3.63
-circle_interaction ppo-drop       99.90 0.10 0.00 8 4.66 0.42 | 94.40 3.83 1.77 200 3.92 2.01 | 78.70 5.40 15.90 57 2.93 3.65
-circle_interaction odv-ppo-noloss 99.47 0.53 0.00 18 4.25 0.65 | 88.57 8.73 2.70 195 2.94 2.64 | 79.27 7.37 13.37 69 2.22 3.59
-circle_interaction odv-ppo        99.23 0.77 0.00 17 4.29 0.78 | 89.93 7.80 2.57 225 3.12 2.55 | 77.77 7.50 14.73 80 2.15 3.79
-circle_interaction odv-ppo-drop   99.90 0.10 0.00 1 4.52 0.36 | 96.87 2.47 0.67 101 4.04 1.45 | 82.00 4.50 13.50 40 3.02 3.39
-circle_crossing ppo               49.57 12.20 38.23 101 -1.25 5.16 | 86.10 7.07 6.83 52 2.17 3.49 | 58.90 7.83 33.27 90 -0.57 5.39
-circle_crossing ppo-drop          87.80 1.13 11.07 53 3.15 2.78 | 98.13 1.57 0.30 64 3.91 1.24 | 82.33 4.07 13.60 53 2.71 3.61
-circle_crossing odv-ppo-noloss    41.57 9.43 49.00 147 -2.28 4.98 | 71.47 2.03 26.50 63 0.83 4.45 | 40.80 8.63 50.57 95 -2.74 5.30
-circle_crossing odv-ppo           38.37 6.67 54.97 76 -2.24 5.42 | 58.90 8.70 32.40 87 0.18 4.84 | 39.60 7.17 53.23 66 -2.51 5.87
-circle_crossing odv-ppo-drop      92.90 0.67 6.43 21 3.78 2.35 | 99.10 0.83 0.07 35 4.22 0.88 | 88.07 2.10 9.83 49 3.46 3.14
-random ppo                        68.03 5.60 26.37 159 1.36 4.39 | 68.40 8.60 23.00 179 1.15 4.12 | 80.40 2.37 17.23 66 2.44 3.80
-random ppo-drop                   91.67 2.43 5.90 67 3.40 2.59 | 86.70 8.13 5.17 219 2.76 3.12 | 90.20 3.30 6.50 64 3.28 2.86
-random odv-ppo-noloss             0.00 0.37 99.63 11 -6.53 0.37 | 0.00 0.10 99.90 11 -6.54 0.71 | 0.00 0.10 99.90 6 -6.39 0.80
-random odv-ppo                    58.50 2.20 39.30 73 0.19 4.81 | 53.53 3.30 43.17 112 -0.26 4.62 | 59.53 1.17 39.30 47 0.36 4.80
-random odv-ppo-drop               99.53 0.30 0.17 8 4.33 0.74 | 97.53 2.43 0.03 77 4.04 1.33 | 99.43 0.47 0.10 14 4.39 0.83
-"""
-
-
-#: The budget of the paper's Table I (configs/experiments/table1.yaml, budget `paper`).
-PAPER_BUDGET = {"timesteps": 1_000_000, "seeds": 15, "episodes": 200}
-
-
 def budget_note(experiment: dict[str, Any]) -> str:
     """A sentence saying how this run's budget differs from the paper's Table I ('' when it is the same)."""
     seeds = experiment["grid"]["seeds"]
@@ -887,22 +855,6 @@ def budget_note(experiment: dict[str, Any]) -> str:
             f"seed(s) and tested {ours['episodes']} episodes per cell; the paper's Table I: "
             f"{PAPER_BUDGET['timesteps']:,} steps, {PAPER_BUDGET['seeds']} seeds, {PAPER_BUDGET['episodes']} episodes. "
             "Rates from another budget are not expected to match the paper's: compare orderings at most.")
-
-
-def paper_table1() -> pd.DataFrame:
-    """The paper's Table I (15 seeds x 200 episodes), in the long form of `table1_frame` (returns are the paper's
-    reward instantiation: compare orderings, not absolute values)."""
-    rows = []
-    evals = ["circle_interaction", "circle_crossing", "random"]
-    for line in _PAPER_ROWS.strip().splitlines():
-        head, *groups = line.split("|")
-        train_scenario, algo, *first = head.split()
-        for eval_scenario, values in zip(evals, [first] + [g.split() for g in groups]):
-            goal, collision, timeout, pv, ret, std = map(float, values)
-            rows.append({"train_scenario": train_scenario, "algo": algo, "eval_scenario": eval_scenario,
-                         "goal_pct": goal, "collision_pct": collision, "timeout_pct": timeout, "pv": pv,
-                         "return_mean": ret, "return_std": std})
-    return pd.DataFrame(rows)
 
 
 def _leaders(values: pd.Series) -> str:
@@ -918,22 +870,22 @@ def paper_comparison_section(context: ReportContext) -> str:
     ours = table1_frame(context.episode_records())
     paper = paper_table1()
     merged = ours.merge(paper, on=ID_COLUMNS, how="inner", suffixes=("", "_paper"))
-    write_table_atomic(merged[ID_COLUMNS + ["goal_pct", "goal_pct_paper", "collision_pct", "collision_pct_paper",
-                                            "timeout_pct", "timeout_pct_paper", "pv", "pv_paper"]],
+    write_table_atomic(merged[[*ID_COLUMNS, "goal_pct", "goal_pct_paper", "collision_pct", "collision_pct_paper",
+                               "timeout_pct", "timeout_pct_paper", "pv", "pv_paper"]],
                        context.out_dir / "table1_vs_paper.csv")
     lines = ["## Comparison with the paper (Table I)", ""]
     note = budget_note(context.experiment)
     if note:
         lines += [note, ""]
     if merged.empty:
-        return "\n".join(lines + ["No finished cell of this experiment is in the paper's Table I."])
+        return "\n".join([*lines, "No finished cell of this experiment is in the paper's Table I."])
     lines += ["Goal and collision rates (%) of ours / the paper's; *best* = the algorithm with the highest goal rate "
               "per training and evaluation scenario (ours / the paper's, among the algorithms run here). Returns are "
               "not compared (our reward instantiation is our own).", "",
               "| Training scenario | Evaluation scenario | " + " | ".join(
-                  algo_label(a) for a in _ordered(merged["algo"], context.experiment["grid"]["algorithms"])
+                  algo_label(a) for a in preferred_then_seen(merged["algo"], context.experiment["grid"]["algorithms"])
               ) + " | Best (ours / paper) |"]
-    algorithms = _ordered(merged["algo"], context.experiment["grid"]["algorithms"])
+    algorithms = preferred_then_seen(merged["algo"], context.experiment["grid"]["algorithms"])
     lines.append("|" + "|".join([":--", ":--"] + ["--:"] * len(algorithms) + [":--"]) + "|")
     for (train_scenario, eval_scenario), group in merged.groupby(["train_scenario", "eval_scenario"], sort=False):
         by_algo = group.set_index("algo")

@@ -58,6 +58,7 @@ from socnav.experiments.spec import Experiment, Unit, plan_units
 from socnav.extras import install_hint
 from socnav.io import (
     UntrustedInputError,
+    file_lock,
     first_link,
     read_bounded,
     read_json,
@@ -67,11 +68,10 @@ from socnav.io import (
     remove_stale_temporaries,
     write_text_atomic,
 )
-from socnav.io import file_lock as _file_lock
 
 __all__ = [
-    "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir", "read_plan",
-    "run_experiment", "unit_state", "unit_states",
+    "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir", "prepare_unit_dir",
+    "read_plan", "run_experiment", "unit_lock_path", "unit_state", "unit_states",
 ]
 
 DONE_FILE = "done.json"
@@ -237,7 +237,8 @@ def _execute_eval(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
 # One unit, in whatever process runs it
 # --------------------------------------------------------------------------------------------------------------
 
-def _unit_lock_path(root: Path, unit: Unit) -> Path:
+def unit_lock_path(root: Path, unit: Unit) -> Path:
+    """The lock file a unit's worker holds while it works on the unit (``.locks/<unit id>.lock``)."""
     return Path(root) / ".locks" / (unit.id.replace("/", "__") + ".lock")
 
 
@@ -254,7 +255,7 @@ def execute_unit(unit_json: dict[str, Any], root: str) -> dict[str, Any]:
     started = time.perf_counter()
     try:
         real_directory(run_root, run_root / ".locks")  # never a lock file made through a planted link
-        with _file_lock(_unit_lock_path(run_root, unit)):
+        with file_lock(unit_lock_path(run_root, unit)):
             return _execute_locked(unit, run_root, started)
     except OSError as exc:  # a planted link or file where the unit's lock goes: the unit fails, the sweep goes on
         return {"id": unit.id, "status": "failed", "wall_time_s": time.perf_counter() - started,
@@ -274,7 +275,7 @@ def _execute_locked(unit: Unit, run_root: Path, started: float) -> dict[str, Any
             return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
         if unit.kind not in EXECUTORS:
             raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}")
-        _prepare_unit_dir(run_root, unit, state)
+        prepare_unit_dir(run_root, unit, state)
         result = EXECUTORS[unit.kind](run_root, unit, directory)
         elapsed = time.perf_counter() - started
         (directory / PROGRESS_FILE).unlink(missing_ok=True)
@@ -290,7 +291,7 @@ def _execute_locked(unit: Unit, run_root: Path, started: float) -> dict[str, Any
                 "error": f"{type(exc).__name__}: {exc}".strip()}
 
 
-def _prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
+def prepare_unit_dir(root: Path, unit: Unit, state: UnitState) -> None:
     """Wipe what cannot be continued; keep a partial unit of the same spec whose kind can resume."""
     directory = unit_dir(root, unit)
     keep = False
@@ -570,6 +571,8 @@ class _RayBackend:
 
 @dataclass
 class UnitOutcome:
+    """How one unit of a sweep ended: done, skipped (already done), failed or blocked, its time and error."""
+
     id: str
     status: Literal["done", "skipped", "failed", "blocked"]
     wall_time_s: float = 0.0
@@ -578,6 +581,8 @@ class UnitOutcome:
 
 @dataclass
 class RunSummary:
+    """The outcome of every unit of a run directory's sweep, in plan order."""
+
     root: Path
     outcomes: dict[str, UnitOutcome]
 
@@ -629,7 +634,7 @@ def run_experiment(
     if (root / ".lock").is_symlink():  # file_lock would refuse it too, as an OSError
         raise RunnerError(f"{root / '.lock'} is a symbolic link; socnav never follows a link inside a run directory "
                           "(remove it)")
-    with _file_lock(root / ".lock", blocking=False) as locked:
+    with file_lock(root / ".lock", blocking=False) as locked:
         if not locked:
             raise RunnerError(f"another socnav run is working in {root} (its .lock is held)")
         remove_stale_temporaries(root, recursive=False)  # the units' own are removed under their unit locks
@@ -650,16 +655,7 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
     if not todo:
         return RunSummary(root, outcomes)
 
-    if workers is None:
-        workers = (os.cpu_count() or 1) if backend_name == "local" else 0
-    backend: Any
-    if backend_name == "local":
-        backend = _LocalBackend(workers)
-    elif backend_name == "ray":
-        backend = _RayBackend(address, workers, retries)
-    else:
-        raise RunnerError(f"unknown backend {backend_name!r}; allowed: local, ray")
-
+    backend = _open_backend(backend_name, workers, address, retries)
     by_id = {unit.id: unit for unit in units}
     waiting = list(todo)
     running: dict[Any, Unit] = {}
@@ -667,13 +663,7 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
     cancelled = True
     try:
         while waiting or running:
-            for unit in list(waiting):  # units whose dependencies failed can never run
-                bad = [dep for dep in unit.deps if dep in outcomes and outcomes[dep].status in ("failed", "blocked")]
-                if bad:
-                    waiting.remove(unit)
-                    outcome = UnitOutcome(unit.id, "blocked", error=f"dependency {bad[0]} failed")
-                    outcomes[unit.id] = outcome
-                    reporter.unit_finished(unit, outcome)
+            _block_unrunnable(waiting, outcomes, reporter)
             ready = [u for u in waiting if all(dep in outcomes and outcomes[dep].status in ("done", "skipped")
                                                for dep in u.deps)]
             for unit in ready[: max(0, backend.capacity - len(running))]:
@@ -693,21 +683,14 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
                 if handle not in running:  # put back after its pool broke (below)
                     continue
                 unit = running.pop(handle)
-                try:
-                    result = backend.result(handle)
-                    outcome = UnitOutcome(unit.id, result["status"], result.get("wall_time_s", 0.0),
-                                          result.get("error"))
-                except WorkerLost as exc:
-                    attempts[unit.id] = attempts.get(unit.id, 0) + 1
-                    if backend_name == "local" and attempts[unit.id] <= retries:
-                        waiting.insert(0, unit)
-                        for other_handle, other in list(running.items()):  # the whole pool went down with it
-                            running.pop(other_handle)
-                            waiting.insert(0, other)
-                        continue
-                    outcome = UnitOutcome(unit.id, "failed", error=str(exc))
-                    with contextlib.suppress(OSError):
-                        write_text_atomic(unit_dir(root, unit) / ERROR_FILE, f"{exc}\n")
+                local_retries = retries if backend_name == "local" else 0
+                outcome = _unit_outcome(backend, handle, unit, root, local_retries, attempts)
+                if outcome is None:  # its local worker died and it may be retried: the whole pool went down with it
+                    waiting.insert(0, unit)
+                    for other_handle, other in list(running.items()):
+                        running.pop(other_handle)
+                        waiting.insert(0, other)
+                    continue
                 outcomes[unit.id] = outcome
                 reporter.unit_finished(unit, outcome)
         cancelled = False
@@ -715,3 +698,41 @@ def _sweep(units: list[Unit], root: Path, backend_name: str, workers: int | None
         backend.close(cancel=cancelled)
     ordered = {unit.id: outcomes[unit.id] for unit in by_id.values() if unit.id in outcomes}
     return RunSummary(root, ordered)
+
+
+def _open_backend(name: str, workers: int | None, address: str | None, retries: int) -> Any:
+    """The local process pool or the Ray cluster; `workers` None: every local CPU, or the cluster's."""
+    if workers is None:
+        workers = (os.cpu_count() or 1) if name == "local" else 0
+    if name == "local":
+        return _LocalBackend(workers)
+    if name == "ray":
+        return _RayBackend(address, workers, retries)
+    raise RunnerError(f"unknown backend {name!r}; allowed: local, ray")
+
+
+def _block_unrunnable(waiting: list[Unit], outcomes: dict[str, UnitOutcome], reporter: Reporter) -> None:
+    """Take the units whose dependencies failed (they can never run) off `waiting`, as ``blocked``."""
+    for unit in list(waiting):
+        bad = [dep for dep in unit.deps if dep in outcomes and outcomes[dep].status in ("failed", "blocked")]
+        if bad:
+            waiting.remove(unit)
+            outcome = UnitOutcome(unit.id, "blocked", error=f"dependency {bad[0]} failed")
+            outcomes[unit.id] = outcome
+            reporter.unit_finished(unit, outcome)
+
+
+def _unit_outcome(backend: Any, handle: Any, unit: Unit, root: Path, retries: int,
+                  attempts: dict[str, int]) -> UnitOutcome | None:
+    """The outcome of a finished unit; None when its worker died and it may be retried (`retries` times, counted
+    in `attempts`; 0 with Ray, which retries its tasks itself), ``failed`` (with ``error.txt``) when it may not."""
+    try:
+        result = backend.result(handle)
+        return UnitOutcome(unit.id, result["status"], result.get("wall_time_s", 0.0), result.get("error"))
+    except WorkerLost as exc:
+        attempts[unit.id] = attempts.get(unit.id, 0) + 1
+        if attempts[unit.id] <= retries:
+            return None
+        with contextlib.suppress(OSError):
+            write_text_atomic(unit_dir(root, unit) / ERROR_FILE, f"{exc}\n")
+        return UnitOutcome(unit.id, "failed", error=str(exc))

@@ -38,7 +38,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, Literal, cast
 
 from pydantic import Field, StrictInt, ValidationError, field_validator, model_validator
 
@@ -88,7 +88,7 @@ MAX_STRENGTHS = 1_000  # strengths of one perturbation
 MAX_UNITS = 1_000_000
 #: Experiment and budget names become directory names under runs/: one safe pattern for both.
 SAFE_NAME = r"[A-Za-z0-9_.-]+"
-Seeds = Union[StrictInt, list[StrictInt]]
+Seeds = StrictInt | list[StrictInt]
 
 
 def _algorithms() -> tuple[str, ...]:
@@ -214,6 +214,10 @@ PERTURBATIONS_DESCRIPTION = ("perturbation -> strengths, sigma(0) first; behavio
                              "1 = social_force, 2 = orca")
 
 Estimator = Literal["mc", "ensemble"]
+Sensing = Literal["perceived", "true"]
+#: The defaults of the study and the safety layer: both estimators, the layer reading the observation.
+BOTH_ESTIMATORS: tuple[Estimator, ...] = ("mc", "ensemble")
+PERCEIVED_ONLY: tuple[Sensing, ...] = ("perceived",)
 
 
 class Study(StrictModel):
@@ -221,7 +225,7 @@ class Study(StrictModel):
     uncertainty estimated at every step. All policies of `grid` form the ensemble; seed `mc_seed` acts (for both
     estimators, so they see identical episodes) and is the MC-dropout policy."""
 
-    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
+    estimators: list[Estimator] = Field(default_factory=lambda: list(BOTH_ESTIMATORS),
                                         description="uncertainty estimators studied")
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
                                                   description=PERTURBATIONS_DESCRIPTION)
@@ -254,7 +258,7 @@ class Safety(StrictModel):
     played at each of those false-activation budgets (the trade-off curve) -- with `tradeoff_search` and
     `tradeoff_repeats` more cheaply than at `false_activation_budget`, for every rule alike."""
 
-    estimators: list[Estimator] = Field(default_factory=lambda: ["mc", "ensemble"],
+    estimators: list[Estimator] = Field(default_factory=lambda: list(BOTH_ESTIMATORS),
                                         description="uncertainty estimators driving the safety layer")
     perturbations: dict[str, list[float]] = Field(default_factory=_paper_grids,
                                                   description=PERTURBATIONS_DESCRIPTION)
@@ -271,8 +275,8 @@ class Safety(StrictModel):
         "abs-relative-speed", description="c_prox reading for the paper's threshold sets")
     calibration_proximity: Literal["both", "abs-relative-speed", "closing-speed"] = Field(
         "both", description="c_prox readings the calibration searches")
-    sensing: list[Literal["perceived", "true"]] = Field(
-        default_factory=lambda: ["perceived"],
+    sensing: list[Sensing] = Field(
+        default_factory=lambda: list(PERCEIVED_ONLY),
         description="what c_prox, c_ap and the fallback read: perceived (the noisy observation) and/or true (the "
                     "simulator's state); each one is calibrated and evaluated (a single value is a list of one)")
     k: StrictInt = Field(20, ge=2, le=MAX_SAMPLES, description="MC-dropout samples")
@@ -282,7 +286,7 @@ class Safety(StrictModel):
     ablation: list[Ablated] = Field(default_factory=list,
                                     description="rule variants calibrated and evaluated next to the paper's rule "
                                                 "(eq. (10)): proximity-only and/or uncertainty-only")
-    ablation_sensing: Literal["perceived", "true"] | None = Field(
+    ablation_sensing: Sensing | None = Field(
         None, description="the sensing the ablation and the trade-off curve are run with (one of `sensing`; null: "
                           "true if listed, else the first)")
     tradeoff_budgets: list[float] = Field(default_factory=list,
@@ -541,7 +545,8 @@ def _check_consistency(experiment: Experiment, source: str) -> None:
                     raise ExperimentError(f"invalid experiment ({source}): {name}.perturbations.{kind}: strength "
                                           f"{strength} gives an invalid env:\n{detail}") from None
     for name, block in (("study", experiment.study), ("safety", experiment.safety)):
-        if block is not None and experiment.kind == "uncertainty" and block.mc_seed not in experiment.grid.seeds:
+        seeds = cast(list[int], experiment.grid.seeds)  # validated into a list
+        if block is not None and experiment.kind == "uncertainty" and block.mc_seed not in seeds:
             raise ExperimentError(f"invalid experiment ({source}): {name}.mc_seed {block.mc_seed} is not among "
                                   f"grid.seeds {experiment.grid.seeds}: the acting policy must be one of those trained")
     if len(set(max_humans.values())) > 1:
@@ -649,9 +654,10 @@ NO_ESTIMATOR = "none"
 
 
 def calibration_unit_id(estimator: str, sensing: str, conditions: str = "paper") -> str:
-    """The calibration unit of an estimator, sensing and rule variant (``perceived`` and the paper's rule keep the
-    id they had before those choices): ``calibrate[-<sensing>]/<estimator>``, ``.../<estimator>-uncertainty-only``
-    and, for the one rule that reads no uncertainty, ``.../proximity-only`` (whatever `estimator`)."""
+    """The calibration unit of an estimator, sensing and rule variant (``perceived`` and the paper's rule add
+    nothing to the id, so a run planned without those choices finds its units): ``calibrate[-<sensing>]/<estimator>``,
+    ``.../<estimator>-uncertainty-only`` and, for the one rule that reads no uncertainty, ``.../proximity-only``
+    (whatever `estimator`)."""
     name = {"paper": estimator, "uncertainty-only": f"{estimator}-uncertainty-only",
             "proximity-only": "proximity-only"}[conditions]
     return f"calibrate/{name}" if sensing == "perceived" else f"calibrate-{sensing}/{name}"
@@ -744,7 +750,8 @@ def plan_uncertainty(experiment: Experiment) -> list[Unit]:
 def _plan_safety(experiment: Experiment, safety: Safety, common: dict[str, Any],
                  policies: Callable[[str, int], tuple[str, ...]]) -> list[Unit]:
     """The calibration and safety units of `plan_uncertainty` (its docstring). Without `ablation` and
-    `tradeoff_budgets` the units and their parameters are those planned before the ablation existed."""
+    `tradeoff_budgets` the units and their parameters are those of the paper's rule alone (same ids and spec
+    hashes, so such runs keep their finished units)."""
     units: list[Unit] = []
     ablation_sensing = safety.ablation_sensing_resolved
     extra_budgets = [b for b in safety.tradeoff_budgets if b != safety.false_activation_budget]
@@ -808,7 +815,7 @@ def _plan_safety(experiment: Experiment, safety: Safety, common: dict[str, Any],
                 "window": safety.window, "sensing": ablation_sensing,
                 "budgets": [safety.false_activation_budget, *extra_budgets], "unperturbed": perturbation == first,
                 "tradeoff_repeats": safety.tradeoff_repeats,
-            }, deps=acting + (proximity_calibration.id,)))
+            }, deps=(*acting, proximity_calibration.id)))
     if not ablated:
         return units + evaluations  # the configured order
     return sorted(units, key=_relative_cost, reverse=True) + sorted(evaluations, key=_relative_cost, reverse=True)

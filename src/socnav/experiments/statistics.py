@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.stats
+from numpy.typing import ArrayLike
 
 __all__ = [
     "CANNOT_TELL", "DOES_NOT_HOLD", "HOLDS", "AdjustedTest", "Comparison", "Interval", "VarianceRatioTest",
@@ -124,7 +125,7 @@ def _paired_strata(scores_x: Scores, scores_y: Scores) -> tuple[list[np.ndarray]
         raise ValueError(f"scores_x and scores_y need the same, non-zero number of tasks; got {len(scores_x)} "
                          f"and {len(scores_y)}")
     strata_x, strata_y = _strata(scores_x), _strata(scores_y)
-    for x, y in zip(strata_x, strata_y):
+    for x, y in zip(strata_x, strata_y, strict=True):
         if x.shape[1] != y.shape[1]:
             raise ValueError(f"X and Y must be scored on the same cells of a stratum; got {x.shape[1]} and "
                              f"{y.shape[1]} cells")
@@ -225,7 +226,7 @@ def welch_test(scores_x: Scores, scores_y: Scores) -> WelchTest:
 # Spread across seeds: the F-test of a variance ratio
 # --------------------------------------------------------------------------------------------------------------
 
-def _pooled_variance(groups: Sequence[Sequence[float]]) -> tuple[float, int]:
+def _pooled_variance(groups: Sequence[ArrayLike]) -> tuple[float, int]:
     """Sum of squared deviations from each group's mean / sum of (n_g - 1), and that sum (the df)."""
     arrays = [np.asarray(g, dtype=np.float64).reshape(-1) for g in groups]
     if any(np.isnan(a).any() for a in arrays):
@@ -257,7 +258,7 @@ class VarianceRatioTest:
         return Interval(self.estimate, float(self.estimate / upper_quantile), float(self.estimate / lower_quantile))
 
 
-def variance_ratio_test(groups_x: Sequence[Sequence[float]], groups_y: Sequence[Sequence[float]]
+def variance_ratio_test(groups_x: Sequence[ArrayLike], groups_y: Sequence[ArrayLike]
                         ) -> VarianceRatioTest:
     """F-test of the spread of X's scores against Y's. ``groups_x``: X's scores in groups (e.g. one per algorithm)
     whose means may differ; the spread is the pooled within-group variance (see the module docstring)."""
@@ -276,7 +277,7 @@ def variance_ratio_test(groups_x: Sequence[Sequence[float]], groups_y: Sequence[
 # Several claims: Holm's verdicts, Bonferroni's intervals
 # --------------------------------------------------------------------------------------------------------------
 
-def holm_adjust(p_values: Sequence[float]) -> np.ndarray:
+def holm_adjust(p_values: ArrayLike) -> np.ndarray:
     """Holm's step-down adjusted p-values: sorted ascending, the j-th (from 0) becomes
     ``max_{i <= j} min(1, (K - i) p_(i))``; a test is rejected at family-wise level a iff its adjusted p <= a.
     NaN p-values (untestable claims) stay NaN and do not count in K."""
@@ -336,7 +337,7 @@ def adjust_family(tests: Sequence[WelchTest | VarianceRatioTest], confidence: fl
     level = bonferroni_confidence(confidence, int(np.sum(~np.isnan(p_values))))
     return [AdjustedTest(test.interval(level), level, float(test.p_value), float(p_adjusted),
                          _verdict_from_test(test.estimate, p_adjusted, test.null, alpha))
-            for test, p_adjusted in zip(tests, adjusted)]
+            for test, p_adjusted in zip(tests, adjusted, strict=True)]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -444,4 +445,4 @@ def compare_family(pairs: Sequence[tuple[Scores, Scores]], confidence: float = D
     adjusted = adjust_family(tests, confidence)
     return [Comparison(result.interval, probability_of_improvement(x, y, confidence, n_resamples, seed),
                        result.verdict, result.p_value, result.p_adjusted, test.df, result.confidence)
-            for (x, y), test, result in zip(pairs, tests, adjusted)]
+            for (x, y), test, result in zip(pairs, tests, adjusted, strict=True)]

@@ -30,7 +30,7 @@ within the next second:
   models' refitting). Intervals are per test (95 %), not adjusted for the many measures shown.
 
 The same bootstrap of episodes (:func:`cluster_counts`, :func:`percentile_interval`) gives the Table 2 claims'
-intervals (`socnav.experiments.uncertainty_report`).
+intervals (`socnav.experiments.uncertainty_table2_claims`).
 """
 
 from __future__ import annotations
@@ -46,9 +46,16 @@ import pandas as pd
 import scipy.special
 import scipy.stats
 
-from socnav.envs.perturbations import PERTURBATION_FIELDS
-from socnav.experiments.registry import ReportContext, register_section, unit_dir
+from socnav.experiments.labels import (
+    ESTIMATOR_LABELS,
+    ESTIMATOR_ORDER,
+    MEASURE_LABELS,
+    PERTURBATION_ORDER,
+    UNCERTAINTY_LABELS,
+)
+from socnav.experiments.registry import ReportContext
 from socnav.experiments.statistics import Interval
+from socnav.experiments.uncertainty_records import read_record_columns, record_files
 from socnav.io import save_figure, write_table_atomic, write_text_atomic
 from socnav.safety.rule import THRESHOLD_PRESETS
 
@@ -66,11 +73,8 @@ DEFAULT_RESAMPLES = 1000
 DEFAULT_CONFIDENCE = 0.95
 N_FOLDS = 5
 
-RAW_LABELS = {"u_ep_heading": "epistemic heading", "u_ep_speed": "epistemic speed",
-              "u_al_heading": "aleatoric heading", "u_al_speed": "aleatoric speed", "u_feat": "feature"}
 #: Uncertainty columns measured: raw and windowed (the mean of the last w steps, "w_" prefix).
-MEASURES = list(RAW_LABELS) + [f"w_{name}" for name in RAW_LABELS]
-MEASURE_LABELS = {**RAW_LABELS, **{f"w_{name}": f"windowed {label}" for name, label in RAW_LABELS.items()}}
+MEASURES = list(UNCERTAINTY_LABELS) + [f"w_{name}" for name in UNCERTAINTY_LABELS]
 PROXIMITY_SCORE = "proximity score"  # -(d + beta1 |dv|): closer and slower ranks higher, as c_prox reads it
 PROXIMITY_MODEL = "proximity model"  # the cross-fitted logistic model of the proximity state
 STEP_COLUMNS = ["estimator", "perturbation", "strength", "episode", "step", *MEASURES, "nearest_gap",
@@ -301,7 +305,7 @@ def cross_fitted_scores(features: np.ndarray, labels: Any, clusters: Any, n_fold
     mean and std). A training set without a positive scores its fold 0."""
     labels, clusters = np.asarray(labels, dtype=bool), np.asarray(clusters)
     unique = np.unique(clusters)
-    fold_of = dict(zip(unique, np.random.default_rng(seed).permutation(len(unique)) % n_folds))
+    fold_of = dict(zip(unique, np.random.default_rng(seed).permutation(len(unique)) % n_folds, strict=True))
     fold = np.array([fold_of[c] for c in clusters])
     scores = np.zeros(len(labels))
     for k in range(n_folds):
@@ -350,7 +354,7 @@ def _cell_rows(frame: pd.DataFrame, measures: Sequence[str], n_resamples: int, s
     candidates[PROXIMITY_SCORE] = -frame["score"].to_numpy(float)
     if model_scores is not None:
         candidates[PROXIMITY_MODEL] = model_scores
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name, scores in candidates.items():
         alone, draws = ranking_intervals(scores, labels, clusters, counts, confidence)
         within, _ = ranking_intervals(scores[near], labels[near], clusters[near], counts, confidence)
@@ -370,11 +374,10 @@ def _cell_rows(frame: pd.DataFrame, measures: Sequence[str], n_resamples: int, s
     model = next((r for r in rows if r["measure"] == PROXIMITY_MODEL), None)
     for row in rows:
         row["model_auroc"] = model["auroc"] if model is not None else math.nan
-        combined_draws = row.pop("_combined", None)
-        if combined_draws is not None and model_draws is not None:
+        row_draws = row.pop("_combined", None)
+        if row_draws is not None and model is not None and model_draws is not None:
             # the same resamples for both scores: the difference's draws are paired
-            delta = percentile_interval(row["combined_auroc"] - model["auroc"], combined_draws - model_draws,
-                                        confidence)
+            delta = percentile_interval(row["combined_auroc"] - model["auroc"], row_draws - model_draws, confidence)
             row.update(_interval_columns("delta_auroc", delta))
     return rows
 
@@ -476,37 +479,23 @@ def _spearman(x: np.ndarray, y: np.ndarray) -> float:
 # Report section
 # --------------------------------------------------------------------------------------------------------------
 
-ESTIMATOR_LABELS = {"mc": "MC-dropout", "ensemble": "Ensemble"}
-ESTIMATOR_ORDER = ["mc", "ensemble"]
 RULE_MEASURES = ["w_u_ep_heading", "w_u_feat"]  # what the rule's gate reads
 
 
 def study_step_files(context: ReportContext) -> list[Path]:
     """The study's ``steps.parquet`` files, without those inside a planned unit that is not (yet) done."""
-    unfinished = [unit_dir(context.results_dir, unit).resolve() for unit in context.missing()]
-    return [path for path in sorted(context.results_dir.glob("study/*/*/steps.parquet"))
-            if not any(directory in path.resolve().parents for directory in unfinished)]
+    return record_files(context, "study/*/*/steps.parquet")
 
 
 def read_study_steps(paths: Iterable[Path], columns: Sequence[str] = STEP_COLUMNS) -> pd.DataFrame:
     """The wanted columns of study step files (``study/<estimator>/<perturbation>/steps.parquet``)."""
-    import pyarrow.parquet as pq
-
-    frames = []
-    for path in paths:
-        names = set(pq.read_schema(path).names)
-        frame = pd.read_parquet(path, columns=[c for c in columns if c in names])
-        if "estimator" not in frame:
-            frame.insert(0, "estimator", path.parent.parent.name)
-        if "perturbation" not in frame:
-            frame.insert(1, "perturbation", path.parent.name)
-        frames.append(frame)
+    frames = [read_record_columns(path, columns) for path in paths]
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=list(columns))
 
 
 def _in_report_order(steps: pd.DataFrame) -> pd.DataFrame:
     """The records ordered MC-dropout first, then the ensemble, perturbation types in their usual order."""
-    rank = {name: i for i, name in enumerate(ESTIMATOR_ORDER + list(PERTURBATION_FIELDS))}
+    rank = {name: i for i, name in enumerate([*ESTIMATOR_ORDER, *PERTURBATION_ORDER])}
     keys = steps[["estimator", "perturbation"]].apply(lambda column: column.map(rank).fillna(len(rank)))
     order = np.lexsort((keys["perturbation"].to_numpy(), keys["estimator"].to_numpy()))
     return steps.iloc[order].reset_index(drop=True)
@@ -527,8 +516,8 @@ def information_markdown(table: pd.DataFrame) -> str:
               "AUROC given proximity (steps, positives)", "AUPRC given proximity (base rate)",
               "ΔAUROC over proximity model"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":--"] * 3 + ["--:"] * 5) + "|"]
-    chosen = table[(table["scope"] == "all") & table["measure"].isin(RULE_MEASURES + [PROXIMITY_SCORE,
-                                                                                      PROXIMITY_MODEL])]
+    chosen = table[(table["scope"] == "all")
+                   & table["measure"].isin([*RULE_MEASURES, PROXIMITY_SCORE, PROXIMITY_MODEL])]
     for row in chosen.to_dict("records"):
         delta = _ci(row, "delta_auroc", 3) if math.isfinite(row["delta_auroc"]) else "–"
         lines.append("| " + " | ".join([
@@ -560,6 +549,7 @@ def _incremental_summary(table: pd.DataFrame) -> str:
 
 
 def diagnostics_markdown(diagnostics: pd.DataFrame) -> str:
+    """The gate diagnostics (:func:`gate_diagnostics`) as a Markdown table, one row per estimator and perturbation."""
     header = ["Estimator", "Perturbation", "Proximity-firing steps", "Gate open there % (c_ep / c_feat)",
               "Gate open, all steps %", "w_u_ep_heading p5 / median there (λ_ep)",
               "w_u_feat p5 / median there (λ_f)", "Spearman with gap (ep / feat)",
@@ -602,7 +592,7 @@ def plot_information(table: pd.DataFrame, out_base: Path) -> list[Path]:
               ("w_u_feat", "proximity_auroc", "w_u_feat, proximity firing", "tab:red", "^")]
     figure, axes = plt.subplots(1, len(estimators), figsize=(1.6 + 1.4 * len(perturbations) * len(estimators), 4.6),
                                 squeeze=False)
-    for axis, estimator in zip(axes[0], estimators):
+    for axis, estimator in zip(axes[0], estimators, strict=True):
         rows = pooled[pooled["estimator"] == estimator].set_index(["perturbation", "measure"])
         for offset, (measure, column, label, colour, marker) in enumerate(series):
             x, y, low, high = [], [], [], []
@@ -630,8 +620,8 @@ def plot_information(table: pd.DataFrame, out_base: Path) -> list[Path]:
     return save_figure(figure, out_base)
 
 
-@register_section("uncertainty", "uncertainty_information")
 def uncertainty_information_section(context: ReportContext) -> str:
+    """The section: uncertainty_information.md/csv/png/svg and the gate diagnostics (empty without step records)."""
     steps = read_study_steps(study_step_files(context))
     if steps.empty or not {"nearest_gap", "nearest_relative_speed", "outcome"} <= set(steps.columns):
         return ""

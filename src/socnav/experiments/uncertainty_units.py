@@ -35,11 +35,13 @@ def _policies(root: Path, unit: Unit) -> tuple[list[Any], dict[str, dict[str, An
 
     trains = [dep for dep in unit.deps if dep.startswith("train/")]
     paths = [unit_dir(root, dep) / "model.zip" for dep in trains]
-    inputs = {f"{dep}/model.zip": file_digest(path) for dep, path in zip(trains, paths)}
+    inputs = {f"{dep}/model.zip": file_digest(path) for dep, path in zip(trains, paths, strict=True)}
     return [load_policy(path) for path in paths], inputs
 
 
-def _estimator(kind: str, policies: list[Any], k: int, p_test: float | None = None) -> Any:
+def build_estimator(kind: str, policies: list[Any], k: int, p_test: float | None = None) -> Any:
+    """The uncertainty estimator of a unit: MC-dropout on the acting policy (`k` samples, seeded with `MC_SEED`,
+    dropout `p_test` when given) or the ensemble of every policy."""
     from socnav.uncertainty import EnsembleEstimator, MCDropoutEstimator
 
     if kind == "mc":
@@ -65,7 +67,7 @@ def _execute_study(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     for strength in p["strengths"]:
         config = perturbed_config(p["env"], p["perturbation"], strength)
         # a fresh, seeded estimator per strength: the dropout masks do not depend on which strengths ran before
-        estimator = _estimator(p["estimator"], policies, p["k"], p["p_test"])
+        estimator = build_estimator(p["estimator"], policies, p["k"], p["p_test"])
         steps, episodes = record_uncertainty(policies[0], estimator, config, p["episodes"], seed=p["seed"],
                                              n_envs=p["n_envs"], window=p["window"], progress=bar.advance)
         tags = {"estimator": p["estimator"], "perturbation": p["perturbation"], "strength": float(strength)}
@@ -92,7 +94,7 @@ def _execute_calibrate(root: Path, unit: Unit, directory: Path) -> ExecutorResul
     single_threaded_torch()
     policies, inputs = _policies(root, unit)
     conditions = p.get("conditions", "paper")
-    estimator = None if conditions == "proximity-only" else _estimator(p["estimator"], policies, p["k"])
+    estimator = None if conditions == "proximity-only" else build_estimator(p["estimator"], policies, p["k"])
     budgets = [p["budget"], *p.get("tradeoff_budgets", [])]
     light = p.get("tradeoff_budgets", []) if p.get("tradeoff_search") == "light" else []
     results = calibrate_budgets(policies[0], estimator, p["env"], p["episodes"], budgets, p["proximity"],
@@ -115,7 +117,7 @@ ABLATION_COLUMNS = ("proximity_steps", "vetoed_steps", "fallback_digest")
 
 
 @dataclass(frozen=True)
-class _Variant:
+class SafetyVariant:
     """One safe variant of a safety unit: the record tags and the thresholds it plays."""
 
     name: str  # none / paper (the paper's thresholds) / calibrated
@@ -125,7 +127,8 @@ class _Variant:
     repeats: int | None = None  # played in the first this many repeats only (a trade-off budget); None: all
 
 
-def _calibrated(root: Path, unit: Unit, inputs: dict[str, str], calibration: str, file: str, sensing: str) -> Any:
+def _calibrated(root: Path, unit: Unit, inputs: dict[str, dict[str, Any]], calibration: str, file: str,
+                sensing: str) -> Any:
     """Thresholds a calibration dependency wrote to `file`, with `sensing` (its digest recorded in `inputs`)."""
     from socnav.safety import Thresholds, load_thresholds
 
@@ -134,9 +137,9 @@ def _calibrated(root: Path, unit: Unit, inputs: dict[str, str], calibration: str
     return Thresholds.create(load_thresholds(path).model_dump(), sensing=sensing)
 
 
-def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimator: Callable[[Any], Any],
-          tags: dict[str, Any], ablation: bool, unperturbed: bool = True,
-          progress: UnitProgress | None = None) -> pd.DataFrame:
+def play_safety_episodes(p: dict[str, Any], policy: Any, variants: list[SafetyVariant],
+                         make_estimator: Callable[[Any], Any], tags: dict[str, Any], ablation: bool,
+                         unperturbed: bool = True, progress: UnitProgress | None = None) -> pd.DataFrame:
     """The plain policy and every variant on the same episodes, at every strength and repeat (the records of
     `_execute_safety`); with `ablation` also the ``rule`` and ``budget`` tags and :data:`ABLATION_COLUMNS`, and the
     unperturbed strength only if ``unperturbed`` is true (the same world and episodes in every safety unit);
@@ -186,7 +189,7 @@ def _play(p: dict[str, Any], policy: Any, variants: list[_Variant], make_estimat
 
 
 def _settings(p: dict[str, Any], unperturbed: bool = True) -> int:
-    """The (strength, repeat) settings `_play` plays for the unit parameters `p`."""
+    """The (strength, repeat) settings `play_safety_episodes` plays for the unit parameters `p`."""
     kind = p["perturbation"]
     skipped = (not unperturbed and kind in PERTURBATIONS
                and any(math.isclose(strength, strength_zero(kind)) for strength in p["strengths"]))
@@ -211,28 +214,29 @@ def _execute_safety(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     main_budget = ablation["budget"] if ablation else math.nan
     # The paper's threshold sets take the experiment's proximity reading; calibrated ones keep the variant chosen.
     paper = Thresholds.create(load_thresholds(p["thresholds"]).model_dump(), proximity=p["proximity"])
-    variants: list[_Variant] = []
+    variants: list[SafetyVariant] = []
     for sensing in p["sensing"]:
-        variants.append(_Variant("paper", Thresholds.create(paper.model_dump(), sensing=sensing)))
+        variants.append(SafetyVariant("paper", Thresholds.create(paper.model_dump(), sensing=sensing)))
         calibration = calibration_unit_id(p["estimator"], sensing)
         if calibration in unit.deps:
-            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs, calibration, "thresholds.yaml",
-                                                               sensing), budget=main_budget))
+            thresholds = _calibrated(root, unit, inputs, calibration, "thresholds.yaml", sensing)
+            variants.append(SafetyVariant("calibrated", thresholds, budget=main_budget))
     if ablation:
         sensing = ablation["sensing"]
         for budget in ablation["tradeoff_budgets"]:
-            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs,
-                                                               calibration_unit_id(p["estimator"], sensing),
-                                                               tradeoff_thresholds_file(budget), sensing),
-                                     budget=budget, repeats=ablation.get("tradeoff_repeats")))
+            thresholds = _calibrated(root, unit, inputs, calibration_unit_id(p["estimator"], sensing),
+                                     tradeoff_thresholds_file(budget), sensing)
+            variants.append(SafetyVariant("calibrated", thresholds, budget=budget,
+                                          repeats=ablation.get("tradeoff_repeats")))
         for rule in ablation["rules"]:
             calibration = calibration_unit_id(p["estimator"], sensing, rule)
-            variants.append(_Variant("calibrated", _calibrated(root, unit, inputs, calibration, "thresholds.yaml",
-                                                               sensing), rule=rule, budget=main_budget))
+            thresholds = _calibrated(root, unit, inputs, calibration, "thresholds.yaml", sensing)
+            variants.append(SafetyVariant("calibrated", thresholds, rule=rule, budget=main_budget))
     unperturbed = ablation.get("unperturbed", True) if ablation else True
-    records = _play(p, policies[0], variants, lambda _: _estimator(p["estimator"], policies, p["k"]),
-                    {"estimator": p["estimator"]}, ablation=bool(ablation),
-                    unperturbed=unperturbed, progress=UnitProgress(directory, _settings(p, unperturbed), "settings"))
+    records = play_safety_episodes(p, policies[0], variants,
+                                   lambda _: build_estimator(p["estimator"], policies, p["k"]),
+                                   {"estimator": p["estimator"]}, ablation=bool(ablation), unperturbed=unperturbed,
+                                   progress=UnitProgress(directory, _settings(p, unperturbed), "settings"))
     write_table_atomic(records, directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)
 
@@ -247,17 +251,19 @@ def _execute_safety_proximity(root: Path, unit: Unit, directory: Path) -> Execut
     single_threaded_torch()
     policies, inputs = _policies(root, unit)
     calibration = calibration_unit_id(NO_ESTIMATOR, p["sensing"], "proximity-only")
-    variants = [_Variant("calibrated", _calibrated(root, unit, inputs, calibration,
-                                                   "thresholds.yaml" if index == 0 else tradeoff_thresholds_file(b),
-                                                   p["sensing"]), rule="proximity-only", budget=b,
-                         repeats=None if index == 0 else p.get("tradeoff_repeats"))
+    variants = [SafetyVariant("calibrated",
+                              _calibrated(root, unit, inputs, calibration,
+                                          "thresholds.yaml" if index == 0 else tradeoff_thresholds_file(b),
+                                          p["sensing"]),
+                              rule="proximity-only", budget=b,
+                              repeats=None if index == 0 else p.get("tradeoff_repeats"))
                 for index, b in enumerate(p["budgets"])]
     from socnav.safety import no_uncertainty
 
     # nothing estimated; a calibration that found no rule within its budget wrote thresholds that never fire (an
     # uncertainty rule with infinite thresholds), which read the zero uncertainty
-    records = _play(p, policies[0], variants, lambda t: no_uncertainty if t.uses_uncertainty else None,
-                    {"estimator": NO_ESTIMATOR}, ablation=True, unperturbed=p["unperturbed"],
-                    progress=UnitProgress(directory, _settings(p, p["unperturbed"]), "settings"))
+    records = play_safety_episodes(p, policies[0], variants, lambda t: no_uncertainty if t.uses_uncertainty else None,
+                                   {"estimator": NO_ESTIMATOR}, ablation=True, unperturbed=p["unperturbed"],
+                                   progress=UnitProgress(directory, _settings(p, p["unperturbed"]), "settings"))
     write_table_atomic(records, directory / "episodes.parquet")
     return ExecutorResult(["episodes.parquet"], inputs=inputs)

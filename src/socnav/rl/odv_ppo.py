@@ -1,7 +1,8 @@
 """ODV-PPO: Stable-Baselines3 PPO plus the paper's variance loss, a NaN/Inf guard and feature-range tracking.
-Paper section IV-A, eq. (4); SPEC section 3 ("Loss").
+Paper section IV-A, eq. (4).
 
-Total loss minimised per minibatch (SPEC section 3)::
+Total loss minimised per minibatch: the paper's policy loss ``L_CLIP + L_sigma`` (section IV-A) with PPO's value and
+entropy terms (Schulman et al. 2017, eq. 9, as in SB3)::
 
     L = L_CLIP + L_sigma + c_v * L_value - c_ent * H
 
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 import torch as th
@@ -32,7 +33,7 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import HumanOutputFormat, Logger
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutBufferSamples
 from stable_baselines3.common.utils import explained_variance
 from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
@@ -99,9 +100,8 @@ class ODVPPO(PPO):
         **kwargs: Any,
     ) -> None:
         self.variance_coef = float(variance_coef)
-        self.variance_target: float | list[float] = (
-            float(variance_target) if np.isscalar(variance_target) else [float(v) for v in variance_target]  # type: ignore[union-attr]
-        )
+        target = np.asarray(variance_target, dtype=np.float64)
+        self.variance_target: float | list[float] = float(target) if target.ndim == 0 else [float(v) for v in target]
         super().__init__(policy, env, **kwargs)  # type: ignore[arg-type]
 
     # ---- schedule ----------------------------------------------------------------------------------------
@@ -156,7 +156,8 @@ class ODVPPO(PPO):
         the timesteps already done, so resuming with the *remaining* steps keeps the original ``T``.
         """
         try:
-            return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+            return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps,
+                                 progress_bar)
         finally:
             self.policy.set_training_mode(False)
 
@@ -169,6 +170,9 @@ class ODVPPO(PPO):
             raise err.at_timestep(self.num_timesteps) from None
 
     def _train_epochs(self) -> None:
+        """SB3's ``PPO.train`` loop (same steps, same order) with ``L_sigma`` in each minibatch's loss: ``n_epochs``
+        passes over the rollout buffer in minibatches, stopped early when the approximate KL exceeds
+        ``1.5 * target_kl``."""
         policy = self.policy
         policy.set_training_mode(True)  # dropout ON (p_train) for the gradient steps
         self._update_learning_rate(policy.optimizer)
@@ -184,88 +188,127 @@ class ODVPPO(PPO):
         loss = th.zeros(())
         continue_training = True
         for epoch in range(self.n_epochs):
-            approx_kl_divs = []
+            approx_kl_divs = []  # the logged approx_kl is the last epoch's
             for batch in self.rollout_buffer.get(self.batch_size):
-                values, log_prob, entropy, log_std = policy.evaluate_actions_and_log_std(
-                    batch.observations, batch.actions
-                )
-                values = values.flatten()
-
-                advantages = batch.advantages
-                if self.normalize_advantage and len(advantages) > 1:
-                    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-
-                # L_CLIP = -E[min(r A, clip(r, 1-eps, 1+eps) A)],  r = pi(a|o) / pi_old(a|o)
-                log_ratio = log_prob - batch.old_log_prob
-                ratio = th.exp(log_ratio)
-                pg_loss = -th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
-
-                # L_value = E[(R - V(o))^2], optionally with V clipped around the rollout value
-                if clip_range_vf is None:
-                    values_pred = values
-                else:
-                    values_pred = batch.old_values + th.clamp(values - batch.old_values, -clip_range_vf, clip_range_vf)
-                value_loss = F.mse_loss(batch.returns, values_pred)
-
-                # -H: entropy bonus (Gaussian entropy is analytic)
-                entropy_loss = -th.mean(entropy)
-
-                # L_sigma = (t/T) * lambda_sigma * (1/B) sum_b 1/2 ||sigma^2(o_b) - sigma^2_tgt||^2   (eq. 4)
-                sigma_loss = variance_loss(log_std, self.variance_target, coef=sigma_coef)
-
-                # L = L_CLIP + L_sigma + c_v L_value - c_ent H
-                loss = pg_loss + sigma_loss + self.vf_coef * value_loss + self.ent_coef * entropy_loss
-                check_finite(
-                    policy_gradient_loss=pg_loss,
-                    value_loss=value_loss,
-                    entropy_loss=entropy_loss,
-                    variance_loss=sigma_loss,
-                    loss=loss,
-                )
-
-                with th.no_grad():  # http://joschu.net/blog/kl-approx.html, as in SB3
-                    approx_kl = th.mean((ratio - 1) - log_ratio)
-                    # kept as tensors and reduced once per update: a host round trip per value and step adds up
-                    approx_kl_divs.append(approx_kl)
-                    logs["pg"].append(pg_loss.detach())
-                    logs["value"].append(value_loss.detach())
-                    logs["entropy"].append(entropy_loss.detach())
-                    logs["variance"].append(sigma_loss.detach())
-                    logs["clip"].append(th.mean((th.abs(ratio - 1) > clip_range).float()))
-                    logs["std"].append(log_std.detach().exp().mean())
-
+                losses = self._minibatch_losses(batch, clip_range, clip_range_vf, sigma_coef)
+                loss = losses.total
+                approx_kl = _log_minibatch(losses, clip_range, logs, approx_kl_divs)
                 if self.target_kl is not None and float(approx_kl) > 1.5 * self.target_kl:
                     continue_training = False
                     if self.verbose >= 1:
                         print(f"Early stopping at step {epoch} due to reaching max kl: {float(approx_kl):.2f}")
                     break
-
-                policy.optimizer.zero_grad()
-                loss.backward()
-                grad_norm = th.nn.utils.clip_grad_norm_(policy.parameters(), self.max_grad_norm)
-                check_finite(grad_norm=grad_norm)
-                policy.optimizer.step()
+                self._gradient_step(loss)
 
             self._n_updates += 1
             if not continue_training:
                 break
+        self._record_update(logs, approx_kl_divs, loss, schedule, clip_range, clip_range_vf)
 
+    def _minibatch_losses(self, batch: RolloutBufferSamples, clip_range: float, clip_range_vf: float | None,
+                          sigma_coef: float) -> _MinibatchLosses:
+        """The loss terms of one minibatch, from one forward pass of the policy (in training mode)."""
+        values, log_prob, entropy, log_std = self.policy.evaluate_actions_and_log_std(
+            batch.observations, batch.actions
+        )
+        values = values.flatten()
+
+        advantages = batch.advantages
+        if self.normalize_advantage and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+        # L_CLIP = -E[min(r A, clip(r, 1-eps, 1+eps) A)],  r = pi(a|o) / pi_old(a|o)
+        log_ratio = log_prob - batch.old_log_prob
+        ratio = th.exp(log_ratio)
+        pg_loss = -th.min(advantages * ratio,
+                          advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)).mean()
+
+        # L_value = E[(R - V(o))^2], optionally with V clipped around the rollout value
+        if clip_range_vf is None:
+            values_pred = values
+        else:
+            values_pred = batch.old_values + th.clamp(values - batch.old_values, -clip_range_vf, clip_range_vf)
+        value_loss = F.mse_loss(batch.returns, values_pred)
+
+        # -H: entropy bonus (Gaussian entropy is analytic)
+        entropy_loss = -th.mean(entropy)
+
+        # L_sigma = (t/T) * lambda_sigma * (1/B) sum_b 1/2 ||sigma^2(o_b) - sigma^2_tgt||^2   (eq. 4)
+        sigma_loss = variance_loss(log_std, self.variance_target, coef=sigma_coef)
+
+        # L = L_CLIP + L_sigma + c_v L_value - c_ent H
+        loss = pg_loss + sigma_loss + self.vf_coef * value_loss + self.ent_coef * entropy_loss
+        check_finite(
+            policy_gradient_loss=pg_loss,
+            value_loss=value_loss,
+            entropy_loss=entropy_loss,
+            variance_loss=sigma_loss,
+            loss=loss,
+        )
+        return _MinibatchLosses(pg_loss, value_loss, entropy_loss, sigma_loss, loss, ratio, log_ratio, log_std)
+
+    def _gradient_step(self, loss: th.Tensor) -> None:
+        """One optimiser step on ``loss``, the gradient norm clipped to ``max_grad_norm`` (and checked finite)."""
+        policy = self.policy
+        policy.optimizer.zero_grad()
+        loss.backward()
+        grad_norm = th.nn.utils.clip_grad_norm_(policy.parameters(), self.max_grad_norm)
+        check_finite(grad_norm=grad_norm)
+        policy.optimizer.step()
+
+    def _record_update(self, logs: dict[str, list[th.Tensor]], approx_kl_divs: list[th.Tensor], loss: th.Tensor,
+                       schedule: float, clip_range: float, clip_range_vf: float | None) -> None:
+        """SB3's ``train/...`` values of the update (means over its minibatches), plus ``std`` and, for ODV or a
+        variance loss, ``variance_loss`` and ``variance_schedule``."""
         buffer = self.rollout_buffer
         explained_var = explained_variance(buffer.values.flatten(), buffer.returns.flatten())
         record = self.logger.record
-        mean = lambda values: float(th.stack(values).mean()) if values else float("nan")  # noqa: E731
-        record("train/entropy_loss", mean(logs["entropy"]))
-        record("train/policy_gradient_loss", mean(logs["pg"]))
-        record("train/value_loss", mean(logs["value"]))
-        record("train/approx_kl", mean(approx_kl_divs))
-        record("train/clip_fraction", mean(logs["clip"]))
+        record("train/entropy_loss", _mean(logs["entropy"]))
+        record("train/policy_gradient_loss", _mean(logs["pg"]))
+        record("train/value_loss", _mean(logs["value"]))
+        record("train/approx_kl", _mean(approx_kl_divs))
+        record("train/clip_fraction", _mean(logs["clip"]))
         record("train/loss", loss.item())
         record("train/explained_variance", float(explained_var))
-        record("train/std", mean(logs["std"]))
+        record("train/std", _mean(logs["std"]))
         if self._logs_variance():
-            record("train/variance_loss", mean(logs["variance"]))
+            record("train/variance_loss", _mean(logs["variance"]))
             record("train/variance_schedule", schedule)
         record("train/n_updates", self._n_updates, exclude="tensorboard")
         record("train/clip_range", clip_range)
         if clip_range_vf is not None:
             record("train/clip_range_vf", clip_range_vf)
+
+
+class _MinibatchLosses(NamedTuple):
+    """The loss terms of one minibatch (``total`` = ``L``), and the tensors the logs are computed from."""
+
+    policy_gradient: th.Tensor
+    value: th.Tensor
+    entropy: th.Tensor
+    variance: th.Tensor
+    total: th.Tensor
+    ratio: th.Tensor
+    log_ratio: th.Tensor
+    log_std: th.Tensor
+
+
+def _log_minibatch(losses: _MinibatchLosses, clip_range: float, logs: dict[str, list[th.Tensor]],
+                   approx_kl_divs: list[th.Tensor]) -> th.Tensor:
+    """Append the minibatch's log values to `logs` and its approximate KL to `approx_kl_divs`; returns that KL."""
+    with th.no_grad():  # http://joschu.net/blog/kl-approx.html, as in SB3
+        approx_kl = th.mean((losses.ratio - 1) - losses.log_ratio)
+        # kept as tensors and reduced once per update: a host round trip per value and step adds up
+        approx_kl_divs.append(approx_kl)
+        logs["pg"].append(losses.policy_gradient.detach())
+        logs["value"].append(losses.value.detach())
+        logs["entropy"].append(losses.entropy.detach())
+        logs["variance"].append(losses.variance.detach())
+        logs["clip"].append(th.mean((th.abs(losses.ratio - 1) > clip_range).float()))
+        logs["std"].append(losses.log_std.detach().exp().mean())
+    return approx_kl
+
+
+def _mean(values: list[th.Tensor]) -> float:
+    """The mean of scalar tensors as a float (NaN for none)."""
+    return float(th.stack(values).mean()) if values else float("nan")

@@ -1,6 +1,10 @@
 """Safe action selection (paper IV-C): a probability-of-collision rule on the windowed
 uncertainty and the nearest human, and a cautious ORCA controller that takes over when it fires.
 
+The rule's thresholds are the paper's (:data:`THRESHOLD_PRESETS`) or calibrated from rollouts by
+:func:`calibrate_thresholds` (``socnav.safety.calibration``: records, proxy search, selection by rollouts,
+refinement).
+
 Example::
 
     from socnav.safety import SafePolicy, Thresholds
@@ -13,15 +17,15 @@ Example::
 
 from socnav.safety.calibration import (
     RECORD_COLUMNS,
-    CalibrationResult,
     CalibrationRun,
-    calibrate,
+    ProxySearchResult,
     calibrate_budgets,
     calibrate_thresholds,
     collect_records,
-    evaluate_thresholds,
+    proxy_scores,
     rollout_scores,
     save_calibration,
+    select_by_proxy,
     select_by_rollouts,
 )
 from socnav.safety.cautious import CAUTIOUS_RADIUS_SCALE, CautiousController
@@ -51,30 +55,30 @@ __all__ = [
     "RULE_CONDITIONS",
     "SENSING_CHOICES",
     "THRESHOLD_PRESETS",
-    "CalibrationResult",
     "CalibrationRun",
     "CautiousController",
     "FallbackCounter",
     "NearestHuman",
+    "ProxySearchResult",
     "RuleConditions",
     "SafePolicy",
     "Thresholds",
     "ThresholdsError",
-    "calibrate",
     "calibrate_budgets",
     "calibrate_thresholds",
     "collect_records",
     "collision_probability",
-    "evaluate_thresholds",
     "fallback_percent",
     "held_fallback",
     "load_thresholds",
     "nearest_human",
     "no_uncertainty",
     "proximity_score",
+    "proxy_scores",
     "rollout_scores",
     "rule_conditions",
     "save_calibration",
     "save_thresholds",
+    "select_by_proxy",
     "select_by_rollouts",
 ]

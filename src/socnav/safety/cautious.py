@@ -2,9 +2,9 @@
 
 ORCA for the robot towards its goal, from the observation it is given (by :class:`~socnav.safety.SafePolicy`: the
 robot's observation, or with ``sensing: true`` the simulator's noise-free one), with every human's radius taken
-``radius_scale`` (1.5) times its OBSERVED value (the human row's field 4; the robot's own radius is unchanged), the ORCA velocity turned
-into ``(v, dtheta)`` within the robot's limits (``holonomic_to_unicycle``: speed in ``[0, v_pref]``, turn within
-``max_heading_change``), i.e. an action in ``[-1, 1]^2``.
+``radius_scale`` (1.5) times its OBSERVED value (the human row's field 4; the robot's own radius is unchanged), the
+ORCA velocity turned into ``(v, dtheta)`` within the robot's limits (``holonomic_to_unicycle``: speed in
+``[0, v_pref]``, turn within ``max_heading_change``), i.e. an action in ``[-1, 1]^2``.
 
 It reuses :class:`socnav.controllers.OrcaController` (same ORCA code as the humans). As there, the robot
 takes the config's ``robot_orca_share`` of the avoidance (default 1: it assumes nothing of the humans, which is the

@@ -25,15 +25,15 @@ The proximity inputs (``d``, ``dv``, ``d(t-1)``) come from an observation (see :
 only thing a robot without a separate safety sensor has -- or ``true`` -- the simulator's noise-free observation
 of the same step, as a separate safety sensor (e.g. a lidar proximity field) would give. With ``true`` the cautious
 controller reads it too, while the policy and the uncertainty estimates still see the noisy observation
-(:class:`~socnav.safety.SafePolicy`). ``perceived`` stays the default: it is what the paper's formulation reads and
-what a deployment without such a sensor can run, and old threshold files keep their meaning.
+(:class:`~socnav.safety.SafePolicy`). ``perceived`` is the default: it is what the paper's formulation reads and
+what a deployment without such a sensor can run (a threshold file without the field reads as ``perceived``).
 
 **Holding the fallback** (``Thresholds.hold_steps``, an extension; 0 = the paper's per-step rule): once the rule
 fires, the cautious controller keeps control for the next ``hold_steps`` steps whatever the rule says
 (:func:`held_fallback`). Why: evaluated step by step, the rule can *chatter*. A fallback step stops the gap from
 shrinking, so ``c_ap`` turns False, the policy takes control back and closes the gap again; in Table 3 a collision
 ended that way with the rule firing on every other step of its last 2 s. A minimum dwell time is the usual cure of
-such switching between two controllers. The calibration searches it (``socnav.safety.calibration``).
+such switching between two controllers. The calibration searches it by replays (``socnav.safety.calibration``).
 
 **Which conditions the rule combines** (``Thresholds.conditions``, an ablation of eq. (10); ``paper`` is the
 default and eq. (10) itself):
@@ -77,6 +77,8 @@ __all__ = [
     "RuleConditions",
     "Thresholds",
     "ThresholdsError",
+    "check_conditions",
+    "check_proximity",
     "collision_probability",
     "held_fallback",
     "load_thresholds",
@@ -121,8 +123,8 @@ class Thresholds(StrictModel):
     which conditions the rule combines, ``paper`` (eq. (10)), ``proximity-only`` or ``uncertainty-only`` (the
     parameters of a removed condition are kept but ignored); see the module docstring.
 
-    ``model_dump()`` leaves ``conditions`` out while it is ``paper``, so files and records written with the
-    paper's rule are the same as before the field existed (and files without it read as ``paper``).
+    ``model_dump()`` leaves ``conditions`` out while it is ``paper``, so files and records of the paper's rule
+    carry no ``conditions`` field (and files without it read as ``paper``).
     """
 
     model_config = ConfigDict(frozen=True)
@@ -152,7 +154,7 @@ class Thresholds(StrictModel):
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        if data.get("conditions") == "paper":  # the default: dumps (files, records) as before the field existed
+        if data.get("conditions") == "paper":  # the default, eq. (10): left out of files and records
             del data["conditions"]
         return data
 
@@ -226,10 +228,8 @@ def save_thresholds(thresholds: Thresholds, path: str | Path) -> Path:
     """Write thresholds atomically: JSON for a ``.json`` suffix, YAML otherwise. ``inf`` round-trips."""
     path = Path(path)
     data = thresholds.model_dump()
-    if path.suffix == ".json":
-        text = json.dumps(data, indent=2) + "\n"  # inf is written as Infinity, which json.loads reads back
-    else:
-        text = yaml.safe_dump(data, sort_keys=False)
+    # JSON writes inf as Infinity, which json.loads reads back
+    text = json.dumps(data, indent=2) + "\n" if path.suffix == ".json" else yaml.safe_dump(data, sort_keys=False)
     return write_text_atomic(path, text)
 
 
@@ -250,7 +250,7 @@ class NearestHuman:
 
     def speed(self, proximity: Proximity) -> np.ndarray:
         """The speed input of ``c_prox`` for the given variant: ``|dv|`` or ``v_close``."""
-        _check_proximity(proximity)
+        check_proximity(proximity)
         return self.relative_speed if proximity == "abs-relative-speed" else self.closing_speed
 
 
@@ -296,15 +296,23 @@ def _nearest_kernel(humans: np.ndarray,
     return gap, relative_speed, closing_speed, present
 
 
-def _check_proximity(proximity: str) -> None:
+def check_proximity(proximity: str) -> None:
+    """Raise :class:`ThresholdsError` naming the allowed values unless ``proximity`` is one of
+    :data:`PROXIMITY_VARIANTS`."""
     if proximity not in PROXIMITY_VARIANTS:
         raise ThresholdsError(f"unknown proximity variant {proximity!r}; allowed: {', '.join(PROXIMITY_VARIANTS)}")
+
+
+def check_conditions(conditions: str) -> None:
+    """Raise ``ValueError`` naming the allowed values unless ``conditions`` is one of :data:`RULE_CONDITIONS`."""
+    if conditions not in RULE_CONDITIONS:
+        raise ValueError(f"unknown rule conditions {conditions!r}; allowed: {', '.join(RULE_CONDITIONS)}")
 
 
 def proximity_score(gap: Any, speed: Any, beta1: float, proximity: Proximity = "abs-relative-speed") -> np.ndarray:
     """The left side of ``c_prox``: ``d + beta1 * |speed|`` (abs-relative-speed, ``speed = |dv|``) or
     ``d - beta1 * speed`` (closing-speed, ``speed = v_close``: the gap extrapolated ``beta1`` seconds ahead)."""
-    _check_proximity(proximity)
+    check_proximity(proximity)
     speed = np.asarray(speed, dtype=np.float64)
     term = np.abs(speed) if proximity == "abs-relative-speed" else -speed
     return np.asarray(gap, dtype=np.float64) + beta1 * term

@@ -76,9 +76,10 @@ class SafePolicy:
     :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
 
     After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on),
-    ``last_conditions`` (:class:`RuleConditions`), ``last_uncertainty`` (dict of windowed (B,) arrays ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``,
-    ``u_al_speed``, ``u_feat``), ``last_nearest`` (:class:`NearestHuman`), ``last_previous_gap`` (B,), and
-    ``episode_fallbacks`` (n_envs,) -- fallback steps in the current episode (zeroed by :meth:`reset`).
+    ``last_conditions`` (:class:`RuleConditions`), ``last_uncertainty`` (dict of windowed (B,) arrays
+    ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``, ``u_al_speed``, ``u_feat``), ``last_nearest``
+    (:class:`NearestHuman`), ``last_previous_gap`` (B,), and ``episode_fallbacks`` (n_envs,) -- fallback steps in
+    the current episode (zeroed by :meth:`reset`).
     """
 
     def __init__(
@@ -119,7 +120,8 @@ class SafePolicy:
 
     def _allocate(self, n_envs: int) -> None:
         self.n_envs = n_envs
-        self._buffer = np.zeros((n_envs, self.window, 5))  # [u_ep speed, u_ep heading, u_al speed, u_al heading, u_feat]
+        # per environment and window slot: u_ep speed, u_ep heading, u_al speed, u_al heading, u_feat
+        self._buffer = np.zeros((n_envs, self.window, 5))
         self._count = np.zeros(n_envs, dtype=np.int64)
         self._pos = np.zeros(n_envs, dtype=np.int64)
         self._previous_gap = np.full(n_envs, np.nan)
@@ -154,6 +156,7 @@ class SafePolicy:
         self._hold_left[index] = 0
 
     def _push(self, values: np.ndarray) -> np.ndarray:
+        assert self.n_envs is not None  # allocated by the first predict
         rows = np.arange(self.n_envs)
         self._buffer[rows, self._pos] = values
         self._pos = (self._pos + 1) % self.window

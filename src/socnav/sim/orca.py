@@ -363,6 +363,180 @@ def _push_line(line_points, line_directions, n_lines, point_x, point_y, directio
     return n_lines + 1
 
 
+@numba.njit(cache=True, inline="always")
+def _covered_by_earlier_lines(line_points, line_directions, n_lines, r1x, r1y, r2x, r2y, radius,
+                              inv_time_horizon_obst):
+    """Whether both cut-off discs of an edge (end vertices at r1, r2 relative to the agent) already lie beyond one
+    of the half-planes found so far (up to RVO_EPSILON): RVO2 then adds no line for that edge."""
+    for j in range(n_lines):
+        ljx, ljy = line_points[j, 0], line_points[j, 1]
+        djx, djy = line_directions[j, 0], line_directions[j, 1]
+        c1x, c1y = inv_time_horizon_obst * r1x - ljx, inv_time_horizon_obst * r1y - ljy
+        c2x, c2y = inv_time_horizon_obst * r2x - ljx, inv_time_horizon_obst * r2y - ljy
+        if (
+            c1x * djy - c1y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
+            and c2x * djy - c2y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
+        ):
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _overlap_line(r1x, r1y, r2x, r2y, s, dist_sq1, dist_sq2, dist_sq_line, touch_sq, obstacle1, obstacle2,
+                  is_convex, unit_dir):
+    """An agent already overlapping (or touching, `TOUCH_MARGIN`) the edge or one of its vertices: the half-plane
+    through v = 0 that forbids moving further in. Returns (overlapping, has_line, direction_x, direction_y).
+
+    Only a convex vertex gets a line (a concave vertex's edges cover it); the right vertex is the next edge's left
+    vertex, so it is left to that edge unless the agent is behind it; an agent centred exactly on a vertex has no
+    direction (RVO2: a NaN line), so no line.
+    """
+    if s < 0.0 and dist_sq1 <= touch_sq:
+        if is_convex[obstacle1] and dist_sq1 > 0.0:
+            norm = np.sqrt(dist_sq1)
+            return True, True, -r1y / norm, r1x / norm
+        return True, False, 0.0, 0.0
+    if s > 1.0 and dist_sq2 <= touch_sq:
+        if is_convex[obstacle2] and r2x * unit_dir[obstacle2, 1] - r2y * unit_dir[obstacle2, 0] >= 0.0:
+            if dist_sq2 > 0.0:
+                norm = np.sqrt(dist_sq2)
+                return True, True, -r2y / norm, r2x / norm
+        return True, False, 0.0, 0.0
+    if s >= 0.0 and s <= 1.0 and dist_sq_line <= touch_sq:
+        return True, True, -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+    return False, False, 0.0, 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _obstacle_legs(r1x, r1y, r2x, r2y, s, dist_sq1, dist_sq2, dist_sq_line, radius, radius_sq, obstacle1,
+                   obstacle2, is_convex, unit_dir, prev_vertex):
+    """The legs of the edge's velocity obstacle for an agent that does not overlap it.
+
+    Leg directions are the tangents from p to the disc of radius r around a vertex at relative position q: q rotated
+    by +-asin(r / |q|), scaled to unit length: (q_x l -+ q_y r, +-q_x r + q_y l) / |q|^2 with l = sqrt(|q|^2 - r^2).
+    Seen obliquely, one (convex) vertex alone shapes the velocity obstacle (then obstacle1 == obstacle2); a concave
+    end vertex continues the cut-off line. A leg at a convex vertex must not point into the neighbouring edge: then
+    that edge's direction replaces it ("foreign" leg). Returns (skip, obstacle1, obstacle2, left_x, left_y, right_x,
+    right_y, left_foreign, right_foreign); skip: the edge adds no line (seen obliquely at a concave vertex).
+    """
+    if s < 0.0 and dist_sq_line <= radius_sq:
+        if not is_convex[obstacle1]:
+            return True, obstacle1, obstacle2, 0.0, 0.0, 0.0, 0.0, False, False
+        obstacle2 = obstacle1
+        leg1 = np.sqrt(dist_sq1 - radius_sq)
+        left_x = (r1x * leg1 - r1y * radius) / dist_sq1
+        left_y = (r1x * radius + r1y * leg1) / dist_sq1
+        right_x = (r1x * leg1 + r1y * radius) / dist_sq1
+        right_y = (-r1x * radius + r1y * leg1) / dist_sq1
+    elif s > 1.0 and dist_sq_line <= radius_sq:
+        if not is_convex[obstacle2]:
+            return True, obstacle1, obstacle2, 0.0, 0.0, 0.0, 0.0, False, False
+        obstacle1 = obstacle2
+        leg2 = np.sqrt(dist_sq2 - radius_sq)
+        left_x = (r2x * leg2 - r2y * radius) / dist_sq2
+        left_y = (r2x * radius + r2y * leg2) / dist_sq2
+        right_x = (r2x * leg2 + r2y * radius) / dist_sq2
+        right_y = (-r2x * radius + r2y * leg2) / dist_sq2
+    else:
+        if is_convex[obstacle1]:
+            leg1 = np.sqrt(dist_sq1 - radius_sq)
+            left_x = (r1x * leg1 - r1y * radius) / dist_sq1
+            left_y = (r1x * radius + r1y * leg1) / dist_sq1
+        else:
+            left_x, left_y = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+        if is_convex[obstacle2]:
+            leg2 = np.sqrt(dist_sq2 - radius_sq)
+            right_x = (r2x * leg2 + r2y * radius) / dist_sq2
+            right_y = (-r2x * radius + r2y * leg2) / dist_sq2
+        else:
+            right_x, right_y = unit_dir[obstacle1, 0], unit_dir[obstacle1, 1]
+
+    left_neighbor = prev_vertex[obstacle1]
+    left_foreign = False
+    right_foreign = False
+    if is_convex[obstacle1] and (
+        left_x * -unit_dir[left_neighbor, 1] - left_y * -unit_dir[left_neighbor, 0] >= 0.0
+    ):
+        left_x, left_y = -unit_dir[left_neighbor, 0], -unit_dir[left_neighbor, 1]
+        left_foreign = True
+    if is_convex[obstacle2] and right_x * unit_dir[obstacle2, 1] - right_y * unit_dir[obstacle2, 0] <= 0.0:
+        right_x, right_y = unit_dir[obstacle2, 0], unit_dir[obstacle2, 1]
+        right_foreign = True
+    return False, obstacle1, obstacle2, left_x, left_y, right_x, right_y, left_foreign, right_foreign
+
+
+@numba.njit(cache=True, inline="always")
+def _cutoff_circle_line(vx, vy, centre_x, centre_y, radius, inv_time_horizon_obst):
+    """v nearest to a cut-off circle: its tangent at v's projection. Returns (has_line, point_x, point_y,
+    direction_x, direction_y); v on the centre has no direction, so no line."""
+    wx, wy = vx - centre_x, vy - centre_y
+    w_length = np.sqrt(wx * wx + wy * wy)
+    if w_length > 0.0:
+        ux, uy = wx / w_length, wy / w_length
+        return (True, centre_x + radius * inv_time_horizon_obst * ux, centre_y + radius * inv_time_horizon_obst * uy,
+                uy, -ux)
+    return False, 0.0, 0.0, 0.0, 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _projection_line(px, py, vx, vy, radius, inv_time_horizon_obst, point, unit_dir, obstacle1, obstacle2, left_x,
+                     left_y, right_x, right_y, left_foreign, right_foreign):
+    """Project v on the nearest boundary piece of the truncated velocity obstacle (a cut-off circle, the cut-off
+    line, the left or the right leg) and return that piece's tangent as (has_line, point_x, point_y, direction_x,
+    direction_y); a velocity projecting on a foreign leg adds no line (the neighbouring edge handles it)."""
+    # Cut-off centres and where v projects: on the cut-off segment (t), on the left leg (t_left), right (t_right).
+    left_cx, left_cy = inv_time_horizon_obst * (point[obstacle1, 0] - px), inv_time_horizon_obst * (
+        point[obstacle1, 1] - py
+    )
+    right_cx, right_cy = inv_time_horizon_obst * (point[obstacle2, 0] - px), inv_time_horizon_obst * (
+        point[obstacle2, 1] - py
+    )
+    cut_x, cut_y = right_cx - left_cx, right_cy - left_cy
+    same_vertex = obstacle1 == obstacle2
+    if same_vertex:
+        t = 0.5
+    else:
+        t = ((vx - left_cx) * cut_x + (vy - left_cy) * cut_y) / (cut_x * cut_x + cut_y * cut_y)
+    t_left = (vx - left_cx) * left_x + (vy - left_cy) * left_y
+    t_right = (vx - right_cx) * right_x + (vy - right_cy) * right_y
+
+    if (t < 0.0 and t_left < 0.0) or (same_vertex and t_left < 0.0 and t_right < 0.0):
+        return _cutoff_circle_line(vx, vy, left_cx, left_cy, radius, inv_time_horizon_obst)
+    if t > 1.0 and t_right < 0.0:
+        return _cutoff_circle_line(vx, vy, right_cx, right_cy, radius, inv_time_horizon_obst)
+
+    # Otherwise the nearest of the cut-off line, the left leg and the right leg (those v projects onto).
+    if t < 0.0 or t > 1.0 or same_vertex:
+        dist_sq_cutoff = np.inf
+    else:
+        dx, dy = vx - (left_cx + t * cut_x), vy - (left_cy + t * cut_y)
+        dist_sq_cutoff = dx * dx + dy * dy
+    if t_left < 0.0:
+        dist_sq_left = np.inf
+    else:
+        dx, dy = vx - (left_cx + t_left * left_x), vy - (left_cy + t_left * left_y)
+        dist_sq_left = dx * dx + dy * dy
+    if t_right < 0.0:
+        dist_sq_right = np.inf
+    else:
+        dx, dy = vx - (right_cx + t_right * right_x), vy - (right_cy + t_right * right_y)
+        dist_sq_right = dx * dx + dy * dy
+
+    # Each line passes r / tau outside its boundary piece, on the normal (-d_y, d_x).
+    offset = radius * inv_time_horizon_obst
+    if dist_sq_cutoff <= dist_sq_left and dist_sq_cutoff <= dist_sq_right:
+        dx, dy = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
+        return True, left_cx - offset * dy, left_cy + offset * dx, dx, dy
+    if dist_sq_left <= dist_sq_right:
+        if left_foreign:
+            return False, 0.0, 0.0, 0.0, 0.0
+        return True, left_cx - offset * left_y, left_cy + offset * left_x, left_x, left_y
+    if right_foreign:
+        return False, 0.0, 0.0, 0.0, 0.0
+    dx, dy = -right_x, -right_y
+    return True, right_cx - offset * dy, right_cy + offset * dx, dx, dy
+
+
 @numba.njit(cache=True)
 def obstacle_orca_lines(
     px, py, vx, vy, radius, inv_time_horizon_obst, point, unit_dir, is_convex, next_vertex, prev_vertex,
@@ -387,21 +561,8 @@ def obstacle_orca_lines(
         obstacle2 = next_vertex[obstacle1]
         r1x, r1y = point[obstacle1, 0] - px, point[obstacle1, 1] - py
         r2x, r2y = point[obstacle2, 0] - px, point[obstacle2, 1] - py
-
-        # Skip an edge whose both cut-off discs already lie beyond an earlier half-plane (up to RVO_EPSILON).
-        already_covered = False
-        for j in range(n_lines):
-            ljx, ljy = line_points[j, 0], line_points[j, 1]
-            djx, djy = line_directions[j, 0], line_directions[j, 1]
-            c1x, c1y = inv_time_horizon_obst * r1x - ljx, inv_time_horizon_obst * r1y - ljy
-            c2x, c2y = inv_time_horizon_obst * r2x - ljx, inv_time_horizon_obst * r2y - ljy
-            if (
-                c1x * djy - c1y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
-                and c2x * djy - c2y * djx - inv_time_horizon_obst * radius >= -RVO_EPSILON
-            ):
-                already_covered = True
-                break
-        if already_covered:
+        if _covered_by_earlier_lines(line_points, line_directions, n_lines, r1x, r1y, r2x, r2y, radius,
+                                     inv_time_horizon_obst):
             continue
 
         dist_sq1 = r1x * r1x + r1y * r1y
@@ -412,156 +573,25 @@ def obstacle_orca_lines(
         lx, ly = -r1x - s * ox, -r1y - s * oy
         dist_sq_line = lx * lx + ly * ly
 
-        # Already overlapping (or touching, see TOUCH_MARGIN): forbid moving further into the vertex (only a convex
-        # one; a concave vertex's edges cover it) or the edge. An agent centred exactly on a vertex has no direction
-        # (RVO2: NaN line): no line.
-        if s < 0.0 and dist_sq1 <= touch_sq:
-            if is_convex[obstacle1] and dist_sq1 > 0.0:
-                norm = np.sqrt(dist_sq1)
-                n_lines = _push_line(line_points, line_directions, n_lines, 0.0, 0.0, -r1y / norm, r1x / norm)
-            continue
-        if s > 1.0 and dist_sq2 <= touch_sq:
-            # The right vertex is the next edge's left vertex; leave it to that edge unless the agent is behind it.
-            if is_convex[obstacle2] and r2x * unit_dir[obstacle2, 1] - r2y * unit_dir[obstacle2, 0] >= 0.0:
-                if dist_sq2 > 0.0:
-                    norm = np.sqrt(dist_sq2)
-                    n_lines = _push_line(line_points, line_directions, n_lines, 0.0, 0.0, -r2y / norm, r2x / norm)
-            continue
-        if s >= 0.0 and s <= 1.0 and dist_sq_line <= touch_sq:
-            n_lines = _push_line(
-                line_points, line_directions, n_lines, 0.0, 0.0, -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
-            )
+        overlapping, has_line, dx, dy = _overlap_line(r1x, r1y, r2x, r2y, s, dist_sq1, dist_sq2, dist_sq_line,
+                                                      touch_sq, obstacle1, obstacle2, is_convex, unit_dir)
+        if overlapping:
+            if has_line:
+                n_lines = _push_line(line_points, line_directions, n_lines, 0.0, 0.0, dx, dy)
             continue
 
-        # No overlap: the legs. Leg directions are the tangents from p to the disc of radius r around a vertex at
-        # relative position q: q rotated by +-asin(r / |q|), scaled to unit length: (q_x l -+ q_y r, +-q_x r + q_y l)
-        # / |q|^2 with l = sqrt(|q|^2 - r^2).
-        if s < 0.0 and dist_sq_line <= radius_sq:
-            # Seen obliquely: the left vertex alone shapes the velocity obstacle.
-            if not is_convex[obstacle1]:
-                continue
-            obstacle2 = obstacle1
-            leg1 = np.sqrt(dist_sq1 - radius_sq)
-            left_x = (r1x * leg1 - r1y * radius) / dist_sq1
-            left_y = (r1x * radius + r1y * leg1) / dist_sq1
-            right_x = (r1x * leg1 + r1y * radius) / dist_sq1
-            right_y = (-r1x * radius + r1y * leg1) / dist_sq1
-        elif s > 1.0 and dist_sq_line <= radius_sq:
-            # Seen obliquely: the right vertex alone shapes the velocity obstacle.
-            if not is_convex[obstacle2]:
-                continue
-            obstacle1 = obstacle2
-            leg2 = np.sqrt(dist_sq2 - radius_sq)
-            left_x = (r2x * leg2 - r2y * radius) / dist_sq2
-            left_y = (r2x * radius + r2y * leg2) / dist_sq2
-            right_x = (r2x * leg2 + r2y * radius) / dist_sq2
-            right_y = (-r2x * radius + r2y * leg2) / dist_sq2
-        else:
-            if is_convex[obstacle1]:
-                leg1 = np.sqrt(dist_sq1 - radius_sq)
-                left_x = (r1x * leg1 - r1y * radius) / dist_sq1
-                left_y = (r1x * radius + r1y * leg1) / dist_sq1
-            else:
-                # A concave left vertex: the left leg continues the cut-off line.
-                left_x, left_y = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
-            if is_convex[obstacle2]:
-                leg2 = np.sqrt(dist_sq2 - radius_sq)
-                right_x = (r2x * leg2 + r2y * radius) / dist_sq2
-                right_y = (-r2x * radius + r2y * leg2) / dist_sq2
-            else:
-                right_x, right_y = unit_dir[obstacle1, 0], unit_dir[obstacle1, 1]
-
-        # A leg at a convex vertex must not point into the neighbouring edge: then that edge's direction replaces it
-        # ("foreign" leg), and a velocity projecting on a foreign leg adds no line (the neighbouring edge handles it).
-        left_neighbor = prev_vertex[obstacle1]
-        left_foreign = False
-        right_foreign = False
-        if is_convex[obstacle1] and (
-            left_x * -unit_dir[left_neighbor, 1] - left_y * -unit_dir[left_neighbor, 0] >= 0.0
-        ):
-            left_x, left_y = -unit_dir[left_neighbor, 0], -unit_dir[left_neighbor, 1]
-            left_foreign = True
-        if is_convex[obstacle2] and right_x * unit_dir[obstacle2, 1] - right_y * unit_dir[obstacle2, 0] <= 0.0:
-            right_x, right_y = unit_dir[obstacle2, 0], unit_dir[obstacle2, 1]
-            right_foreign = True
-
-        # Cut-off centres and where v projects: on the cut-off segment (t), on the left leg (t_left), right (t_right).
-        left_cx, left_cy = inv_time_horizon_obst * (point[obstacle1, 0] - px), inv_time_horizon_obst * (
-            point[obstacle1, 1] - py
-        )
-        right_cx, right_cy = inv_time_horizon_obst * (point[obstacle2, 0] - px), inv_time_horizon_obst * (
-            point[obstacle2, 1] - py
-        )
-        cut_x, cut_y = right_cx - left_cx, right_cy - left_cy
-        same_vertex = obstacle1 == obstacle2
-        if same_vertex:
-            t = 0.5
-        else:
-            t = ((vx - left_cx) * cut_x + (vy - left_cy) * cut_y) / (cut_x * cut_x + cut_y * cut_y)
-        t_left = (vx - left_cx) * left_x + (vy - left_cy) * left_y
-        t_right = (vx - right_cx) * right_x + (vy - right_cy) * right_y
-
-        if (t < 0.0 and t_left < 0.0) or (same_vertex and t_left < 0.0 and t_right < 0.0):
-            # Nearest to the left cut-off circle: its tangent at the projection. v on the centre: no direction.
-            wx, wy = vx - left_cx, vy - left_cy
-            w_length = np.sqrt(wx * wx + wy * wy)
-            if w_length > 0.0:
-                ux, uy = wx / w_length, wy / w_length
-                n_lines = _push_line(
-                    line_points, line_directions, n_lines,
-                    left_cx + radius * inv_time_horizon_obst * ux, left_cy + radius * inv_time_horizon_obst * uy,
-                    uy, -ux,
-                )  # fmt: skip
+        skip, obstacle1, obstacle2, left_x, left_y, right_x, right_y, left_foreign, right_foreign = _obstacle_legs(
+            r1x, r1y, r2x, r2y, s, dist_sq1, dist_sq2, dist_sq_line, radius, radius_sq, obstacle1, obstacle2,
+            is_convex, unit_dir, prev_vertex,
+        )  # fmt: skip
+        if skip:
             continue
-        if t > 1.0 and t_right < 0.0:
-            wx, wy = vx - right_cx, vy - right_cy
-            w_length = np.sqrt(wx * wx + wy * wy)
-            if w_length > 0.0:
-                ux, uy = wx / w_length, wy / w_length
-                n_lines = _push_line(
-                    line_points, line_directions, n_lines,
-                    right_cx + radius * inv_time_horizon_obst * ux, right_cy + radius * inv_time_horizon_obst * uy,
-                    uy, -ux,
-                )  # fmt: skip
-            continue
-
-        # Otherwise the nearest of the cut-off line, the left leg and the right leg (those v projects onto).
-        if t < 0.0 or t > 1.0 or same_vertex:
-            dist_sq_cutoff = np.inf
-        else:
-            dx, dy = vx - (left_cx + t * cut_x), vy - (left_cy + t * cut_y)
-            dist_sq_cutoff = dx * dx + dy * dy
-        if t_left < 0.0:
-            dist_sq_left = np.inf
-        else:
-            dx, dy = vx - (left_cx + t_left * left_x), vy - (left_cy + t_left * left_y)
-            dist_sq_left = dx * dx + dy * dy
-        if t_right < 0.0:
-            dist_sq_right = np.inf
-        else:
-            dx, dy = vx - (right_cx + t_right * right_x), vy - (right_cy + t_right * right_y)
-            dist_sq_right = dx * dx + dy * dy
-
-        # Each line passes r / tau outside its boundary piece, on the normal (-d_y, d_x).
-        offset = radius * inv_time_horizon_obst
-        if dist_sq_cutoff <= dist_sq_left and dist_sq_cutoff <= dist_sq_right:
-            dx, dy = -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
-            n_lines = _push_line(
-                line_points, line_directions, n_lines, left_cx - offset * dy, left_cy + offset * dx, dx, dy
-            )
-            continue
-        if dist_sq_left <= dist_sq_right:
-            if not left_foreign:
-                n_lines = _push_line(
-                    line_points, line_directions, n_lines, left_cx - offset * left_y, left_cy + offset * left_x,
-                    left_x, left_y,
-                )  # fmt: skip
-            continue
-        if not right_foreign:
-            dx, dy = -right_x, -right_y
-            n_lines = _push_line(
-                line_points, line_directions, n_lines, right_cx - offset * dy, right_cy + offset * dx, dx, dy
-            )
+        has_line, line_x, line_y, dx, dy = _projection_line(
+            px, py, vx, vy, radius, inv_time_horizon_obst, point, unit_dir, obstacle1, obstacle2, left_x, left_y,
+            right_x, right_y, left_foreign, right_foreign,
+        )  # fmt: skip
+        if has_line:
+            n_lines = _push_line(line_points, line_directions, n_lines, line_x, line_y, dx, dy)
     return n_lines
 
 
@@ -569,31 +599,36 @@ def obstacle_orca_lines(
 # The batched kernels.
 # --------------------------------------------------------------------------------------------------------------------
 @numba.njit(cache=True, inline="always")
-def _orca_kernel(
-    positions,
-    velocities,
-    radii,
-    preferred_velocities,
-    max_speeds,
-    active,
-    compute,
-    radius_pad,
-    avoidance_share,
-    sees,
-    time_horizon,
-    neighbor_dist,
-    max_neighbors,
-    time_step,
-    obstacles,
-    time_horizon_obst,
-    out,
-):
+def _line_buffers(max_vertices, capacity):
+    """Scratch rows for one agent's half-planes and linearProgram3's projected ones: at most one line per obstacle
+    edge and per other agent."""
+    rows = max_vertices + capacity
+    return (np.empty((rows, 2), dtype=np.float64), np.empty((rows, 2), dtype=np.float64),
+            np.empty((rows, 2), dtype=np.float64), np.empty((rows, 2), dtype=np.float64))
+
+
+@numba.njit(cache=True, inline="always")
+def _within_speed(vx, vy, max_speed):
+    """(vx, vy) projected back into the speed disc: the LPs stay inside it by construction, but far-away projected
+    lines (nearly anti-parallel constraints in linearProgram3) can push the result out by rounding."""
+    speed_sq = vx * vx + vy * vy
+    if speed_sq > max_speed * max_speed:
+        scale = max_speed / np.sqrt(speed_sq)
+        vx, vy = vx * scale, vy * scale
+    return vx, vy
+
+
+@numba.njit(cache=True, inline="always")
+def _orca_kernel(positions, velocities, radii, preferred_velocities, max_speeds, active, compute, radius_pad,
+                 avoidance_share, sees, time_horizon, neighbor_dist, max_neighbors, time_step, obstacles,
+                 time_horizon_obst, out):
     """The two kernels' common body. `obstacles` is None or the tuple `ObstacleBatch.kernel_arrays()`; numba prunes
-    the `obstacles is None` branches at compile time, so the obstacle-free kernel carries no obstacle code at all."""
+    the `obstacles is None` branches at compile time, so the obstacle-free kernel carries no obstacle code at all.
+    Per agent, as RVO2's computeNewVelocity: obstacle half-planes, agent half-planes, linearProgram2 and, when it is
+    infeasible, linearProgram3."""
     n_envs, n_agents = positions.shape[0], positions.shape[1]
-    # Scratch buffers, reused for every agent: at most one ORCA line per obstacle edge and per other agent.
     max_vertices = 0
-    if obstacles is not None:
+    if obstacles is not None:  # the obstacle query's scratch
         max_vertices = obstacles[0].shape[1]
         obstacle_vertex = np.empty(max_vertices, dtype=np.int64)
         obstacle_dist_sq = np.empty(max_vertices, dtype=np.float64)
@@ -601,15 +636,9 @@ def _orca_kernel(
     capacity = max(0, min(max_neighbors, n_agents - 1))
     neighbor_index = np.empty(capacity, dtype=np.int64)
     neighbor_dist_sq = np.empty(capacity, dtype=np.float64)
-    points = np.empty((max_vertices + capacity, 2), dtype=np.float64)
-    directions = np.empty((max_vertices + capacity, 2), dtype=np.float64)
-    proj_points = np.empty((max_vertices + capacity, 2), dtype=np.float64)
-    proj_directions = np.empty((max_vertices + capacity, 2), dtype=np.float64)
-    inv_time_horizon = 1.0 / time_horizon
-    inv_time_horizon_obst = 1.0 / time_horizon_obst
-    inv_time_step = 1.0 / time_step
+    points, directions, proj_points, proj_directions = _line_buffers(max_vertices, capacity)
+    inv_time_horizon, inv_time_horizon_obst, inv_time_step = 1.0 / time_horizon, 1.0 / time_horizon_obst, 1.0 / time_step
     n_fallbacks = 0
-
     for e in range(n_envs):
         if obstacles is not None:
             # The env's map, as views taken once per env (a view per agent cost as much as the rest of its query).
@@ -625,73 +654,52 @@ def _orca_kernel(
             if not (active[e, i] and compute[e, i]):
                 out[e, i, 0], out[e, i, 1] = vix, viy
                 continue
-
             n_obstacle_lines = 0
-            if obstacles is not None:
-                if n_vertices > 0:
-                    # RVO2 computeNeighbors: the edges within the distance the agent covers in time_horizon_obst.
-                    px, py = positions[e, i, 0], positions[e, i, 1]
-                    obstacle_range = time_horizon_obst * max_speeds[e, i] + radii[e, i]
-                    range_sq = obstacle_range * obstacle_range
-                    n_obstacles = 0
-                    # The tree query returns only edges closer than the range: when a plain scan of the edges finds
-                    # none, it would return nothing (most agents, most steps), so it is skipped.
-                    if _any_edge_within(px, py, range_sq, env_point, env_next, n_vertices):
-                        n_obstacles = obstacle_neighbors(
-                            px, py, range_sq, env_point, env_next, env_tree_vertex, env_tree_left, env_tree_right,
-                            n_vertices, tree_stack, obstacle_vertex, obstacle_dist_sq,
-                        )  # fmt: skip
-                    if n_obstacles > 0:
-                        n_obstacle_lines = obstacle_orca_lines(
-                            px, py, vix, viy, radii[e, i], inv_time_horizon_obst, env_point, env_unit_dir,
-                            env_is_convex, env_next, env_prev, obstacle_vertex, n_obstacles, points, directions,
-                        )  # fmt: skip
-
+            if obstacles is not None and n_vertices > 0:
+                # RVO2 computeNeighbors: the edges within the distance the agent covers in time_horizon_obst. The
+                # tree query returns only edges closer than that: when a plain scan of the edges finds none (most
+                # agents, most steps), it would return nothing, so it is skipped.
+                px, py = positions[e, i, 0], positions[e, i, 1]
+                obstacle_range = time_horizon_obst * max_speeds[e, i] + radii[e, i]
+                range_sq = obstacle_range * obstacle_range
+                n_obstacles = 0
+                if _any_edge_within(px, py, range_sq, env_point, env_next, n_vertices):
+                    n_obstacles = obstacle_neighbors(
+                        px, py, range_sq, env_point, env_next, env_tree_vertex, env_tree_left, env_tree_right,
+                        n_vertices, tree_stack, obstacle_vertex, obstacle_dist_sq,
+                    )  # fmt: skip
+                if n_obstacles > 0:
+                    n_obstacle_lines = obstacle_orca_lines(
+                        px, py, vix, viy, radii[e, i], inv_time_horizon_obst, env_point, env_unit_dir,
+                        env_is_convex, env_next, env_prev, obstacle_vertex, n_obstacles, points, directions,
+                    )  # fmt: skip
             n_agent_lines = nearest_neighbors(
                 positions, active, sees, e, i, neighbor_dist, max_neighbors, neighbor_index, neighbor_dist_sq
             )
-
             # One ORCA half-plane per neighbour, nearest first (the LPs are order-sensitive when infeasible).
             for k in range(n_agent_lines):
                 j = neighbor_index[k]
-                combined_radius = radii[e, i] + radii[e, j] + radius_pad[e, i, j]
-                tie_sign = 1.0 if j < i else -1.0
                 dx, dy, ux, uy = orca_line(
-                    positions[e, j, 0] - positions[e, i, 0],
-                    positions[e, j, 1] - positions[e, i, 1],
-                    vix - velocities[e, j, 0],
-                    viy - velocities[e, j, 1],
-                    combined_radius,
-                    inv_time_horizon,
-                    inv_time_step,
-                    tie_sign,
-                )
-                # Agent i takes `share` of the correction u (RVO2: 0.5, each agent does half).
-                share = avoidance_share[e, i, j]
+                    positions[e, j, 0] - positions[e, i, 0], positions[e, j, 1] - positions[e, i, 1],
+                    vix - velocities[e, j, 0], viy - velocities[e, j, 1],
+                    radii[e, i] + radii[e, j] + radius_pad[e, i, j], inv_time_horizon, inv_time_step,
+                    1.0 if j < i else -1.0,
+                )  # fmt: skip
+                share = avoidance_share[e, i, j]  # agent i takes `share` of the correction u (RVO2: 0.5)
                 line = n_obstacle_lines + k
                 points[line, 0], points[line, 1] = vix + share * ux, viy + share * uy
                 directions[line, 0], directions[line, 1] = dx, dy
             n_lines = n_obstacle_lines + n_agent_lines
-
             # Closest velocity to the preferred one that satisfies every half-plane; if none does, the least bad one
             # for the agent lines (linearProgram3 keeps the obstacle lines hard).
             max_speed = max_speeds[e, i]
-            pref_x, pref_y = preferred_velocities[e, i, 0], preferred_velocities[e, i, 1]
-            fail, vx, vy = linear_program2(points, directions, n_lines, max_speed, pref_x, pref_y, False)
+            fail, vx, vy = linear_program2(points, directions, n_lines, max_speed, preferred_velocities[e, i, 0],
+                                           preferred_velocities[e, i, 1], False)
             if fail < n_lines:
-                vx, vy = linear_program3(
-                    points, directions, n_lines, n_obstacle_lines, fail, max_speed, vx, vy, proj_points,
-                    proj_directions,
-                )  # fmt: skip
+                vx, vy = linear_program3(points, directions, n_lines, n_obstacle_lines, fail, max_speed, vx, vy,
+                                         proj_points, proj_directions)
                 n_fallbacks += 1
-
-            # The LPs stay inside the speed disc by construction, but far-away projected lines (nearly anti-parallel
-            # constraints in linearProgram3) can push the result out by rounding; project it back.
-            speed_sq = vx * vx + vy * vy
-            if speed_sq > max_speed * max_speed:
-                scale = max_speed / np.sqrt(speed_sq)
-                vx, vy = vx * scale, vy * scale
-            out[e, i, 0], out[e, i, 1] = vx, vy
+            out[e, i, 0], out[e, i, 1] = _within_speed(vx, vy, max_speed)
     return n_fallbacks
 
 
