@@ -77,6 +77,96 @@ def _grown_bool(array, capacity):
 
 
 @numba.njit(cache=True)
+def _sides_of_edge(point, i1, i2, j1, j2):
+    """leftOf(i1, i2, .) of edge j1 -> j2's two ends: where the edge lies with respect to the line i1 -> i2."""
+    j1_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j1, 0], point[j1, 1])
+    j2_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j2, 0], point[j2, 1])
+    return j1_left, j2_left
+
+
+@numba.njit(cache=True)
+def _optimal_split(point, next_vertex, pool, start, size):
+    """The edge of pool[start:start + size] whose line best balances the others between its two sides: minimise
+    (larger side, smaller side), an edge crossing the line counting on both (ties: the first such edge). Returns
+    (left count, right count, index of the edge in the list)."""
+    min_left, min_right, optimal = size, size, 0
+    best_larger, best_smaller = size, size
+    for i in range(size):
+        i1 = pool[start + i]
+        i2 = next_vertex[i1]
+        left_size, right_size = 0, 0
+        for j in range(size):
+            if i == j:
+                continue
+            j1 = pool[start + j]
+            j1_left, j2_left = _sides_of_edge(point, i1, i2, j1, next_vertex[j1])
+            if j1_left >= -RVO_EPSILON and j2_left >= -RVO_EPSILON:
+                left_size += 1
+            elif j1_left <= RVO_EPSILON and j2_left <= RVO_EPSILON:
+                right_size += 1
+            else:
+                left_size += 1
+                right_size += 1
+            # Counts only grow, so this candidate can no longer beat the best one.
+            if not _pair_less(max(left_size, right_size), min(left_size, right_size), best_larger, best_smaller):
+                break
+        if _pair_less(max(left_size, right_size), min(left_size, right_size), best_larger, best_smaller):
+            min_left, min_right, optimal = left_size, right_size, i
+            best_larger, best_smaller = max(min_left, min_right), min(min_left, min_right)
+    return min_left, min_right, optimal
+
+
+@numba.njit(cache=True)
+def _split_edge(point, unit_dir, is_convex, next_vertex, prev_vertex, i1, i2, j1, j2, split):
+    """Split edge j1 -> j2 where it crosses the line i1 -> i2, at j1 + t (j2 - j1) with
+    t = det(i2 - i1, j1 - i1) / det(i2 - i1, j1 - j2); the new vertex `split` continues the edge (RVO2)."""
+    ex, ey = point[i2, 0] - point[i1, 0], point[i2, 1] - point[i1, 1]
+    t = (ex * (point[j1, 1] - point[i1, 1]) - ey * (point[j1, 0] - point[i1, 0])) / (
+        ex * (point[j1, 1] - point[j2, 1]) - ey * (point[j1, 0] - point[j2, 0])
+    )
+    point[split, 0] = point[j1, 0] + t * (point[j2, 0] - point[j1, 0])
+    point[split, 1] = point[j1, 1] + t * (point[j2, 1] - point[j1, 1])
+    unit_dir[split, 0], unit_dir[split, 1] = unit_dir[j1, 0], unit_dir[j1, 1]
+    is_convex[split] = True
+    next_vertex[split], prev_vertex[split] = j2, j1
+    next_vertex[j1], prev_vertex[j2] = split, split
+
+
+@numba.njit(cache=True)
+def _partition(point, unit_dir, is_convex, next_vertex, prev_vertex, pool, start, size, optimal, left_start,
+               right_start, n_vertices):
+    """Write the edges of pool[start:start + size] other than the partition edge `optimal` into the left list
+    (from left_start) and the right list (from right_start), in their order, splitting those that cross its line;
+    the arrays must have room for `size` more vertices. Returns the vertex count after the splits."""
+    left_count, right_count = 0, 0
+    i1 = pool[start + optimal]
+    i2 = next_vertex[i1]
+    for j in range(size):
+        if j == optimal:
+            continue
+        j1 = pool[start + j]
+        j2 = next_vertex[j1]
+        j1_left, j2_left = _sides_of_edge(point, i1, i2, j1, j2)
+        if j1_left >= -RVO_EPSILON and j2_left >= -RVO_EPSILON:
+            pool[left_start + left_count] = j1
+            left_count += 1
+        elif j1_left <= RVO_EPSILON and j2_left <= RVO_EPSILON:
+            pool[right_start + right_count] = j1
+            right_count += 1
+        else:
+            split = n_vertices
+            n_vertices += 1
+            _split_edge(point, unit_dir, is_convex, next_vertex, prev_vertex, i1, i2, j1, j2, split)
+            if j1_left > 0.0:
+                pool[left_start + left_count], pool[right_start + right_count] = j1, split
+            else:
+                pool[right_start + right_count], pool[left_start + left_count] = j1, split
+            left_count += 1
+            right_count += 1
+    return n_vertices
+
+
+@numba.njit(cache=True)
 def _build_obstacle_tree(point, unit_dir, is_convex, next_vertex, prev_vertex):
     """RVO2 KdTree::buildObstacleTreeRecursive, iteratively, on the addObstacle rings of `n` vertices.
 
@@ -87,11 +177,9 @@ def _build_obstacle_tree(point, unit_dir, is_convex, next_vertex, prev_vertex):
     """
     n_vertices = point.shape[0]
     capacity = max(16, 2 * n_vertices)
-    point = _grown_float2(point, capacity)
-    unit_dir = _grown_float2(unit_dir, capacity)
+    point, unit_dir = _grown_float2(point, capacity), _grown_float2(unit_dir, capacity)
     is_convex = _grown_bool(is_convex, capacity)
-    next_vertex = _grown_int(next_vertex, capacity)
-    prev_vertex = _grown_int(prev_vertex, capacity)
+    next_vertex, prev_vertex = _grown_int(next_vertex, capacity), _grown_int(prev_vertex, capacity)
     tree_vertex = np.full(capacity, -1, dtype=np.int64)
     tree_left = np.full(capacity, -1, dtype=np.int64)
     tree_right = np.full(capacity, -1, dtype=np.int64)
@@ -118,87 +206,22 @@ def _build_obstacle_tree(point, unit_dir, is_convex, next_vertex, prev_vertex):
             else:
                 tree_right[parent] = node
 
-        # The optimal split: minimise (larger side, smaller side); an edge crossing the line counts on both sides.
-        min_left, min_right, optimal = size, size, 0
-        best_larger, best_smaller = size, size
-        for i in range(size):
-            i1 = pool[start + i]
-            i2 = next_vertex[i1]
-            left_size, right_size = 0, 0
-            for j in range(size):
-                if i == j:
-                    continue
-                j1 = pool[start + j]
-                j2 = next_vertex[j1]
-                j1_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j1, 0], point[j1, 1])
-                j2_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j2, 0], point[j2, 1])
-                if j1_left >= -RVO_EPSILON and j2_left >= -RVO_EPSILON:
-                    left_size += 1
-                elif j1_left <= RVO_EPSILON and j2_left <= RVO_EPSILON:
-                    right_size += 1
-                else:
-                    left_size += 1
-                    right_size += 1
-                # Counts only grow, so this candidate can no longer beat the best one.
-                if not _pair_less(max(left_size, right_size), min(left_size, right_size), best_larger, best_smaller):
-                    break
-            if _pair_less(max(left_size, right_size), min(left_size, right_size), best_larger, best_smaller):
-                min_left, min_right, optimal = left_size, right_size, i
-                best_larger, best_smaller = max(min_left, min_right), min(min_left, min_right)
-
-        # Partition the other edges into [left list | right list] on top of the pool, in their order.
+        min_left, min_right, optimal = _optimal_split(point, next_vertex, pool, start, size)
+        # Partition the other edges into [left list | right list] on top of the pool; room for every split first.
         while pool_top + min_left + min_right > pool.shape[0]:
             pool = _grown_int(pool, 2 * pool.shape[0])
+        while n_vertices + size > point.shape[0]:
+            capacity = 2 * point.shape[0]
+            point, unit_dir = _grown_float2(point, capacity), _grown_float2(unit_dir, capacity)
+            is_convex = _grown_bool(is_convex, capacity)
+            next_vertex, prev_vertex = _grown_int(next_vertex, capacity), _grown_int(prev_vertex, capacity)
+            tree_vertex, tree_left = _grown_int(tree_vertex, capacity), _grown_int(tree_left, capacity)
+            tree_right = _grown_int(tree_right, capacity)
         left_start, right_start = pool_top, pool_top + min_left
-        left_count, right_count = 0, 0
-        i1 = pool[start + optimal]
-        i2 = next_vertex[i1]
-        for j in range(size):
-            if j == optimal:
-                continue
-            j1 = pool[start + j]
-            j2 = next_vertex[j1]
-            j1_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j1, 0], point[j1, 1])
-            j2_left = _left_of(point[i1, 0], point[i1, 1], point[i2, 0], point[i2, 1], point[j2, 0], point[j2, 1])
-            if j1_left >= -RVO_EPSILON and j2_left >= -RVO_EPSILON:
-                pool[left_start + left_count] = j1
-                left_count += 1
-            elif j1_left <= RVO_EPSILON and j2_left <= RVO_EPSILON:
-                pool[right_start + right_count] = j1
-                right_count += 1
-            else:
-                # Split edge j1 -> j2 where it crosses the line i1 -> i2: j1 + t (j2 - j1) with
-                # t = det(i2 - i1, j1 - i1) / det(i2 - i1, j1 - j2).
-                ex, ey = point[i2, 0] - point[i1, 0], point[i2, 1] - point[i1, 1]
-                t = (ex * (point[j1, 1] - point[i1, 1]) - ey * (point[j1, 0] - point[i1, 0])) / (
-                    ex * (point[j1, 1] - point[j2, 1]) - ey * (point[j1, 0] - point[j2, 0])
-                )
-                if n_vertices == point.shape[0]:
-                    capacity = 2 * point.shape[0]
-                    point = _grown_float2(point, capacity)
-                    unit_dir = _grown_float2(unit_dir, capacity)
-                    is_convex = _grown_bool(is_convex, capacity)
-                    next_vertex = _grown_int(next_vertex, capacity)
-                    prev_vertex = _grown_int(prev_vertex, capacity)
-                    tree_vertex = _grown_int(tree_vertex, capacity)
-                    tree_left = _grown_int(tree_left, capacity)
-                    tree_right = _grown_int(tree_right, capacity)
-                split = n_vertices
-                n_vertices += 1
-                point[split, 0] = point[j1, 0] + t * (point[j2, 0] - point[j1, 0])
-                point[split, 1] = point[j1, 1] + t * (point[j2, 1] - point[j1, 1])
-                unit_dir[split, 0], unit_dir[split, 1] = unit_dir[j1, 0], unit_dir[j1, 1]
-                is_convex[split] = True
-                next_vertex[split], prev_vertex[split] = j2, j1
-                next_vertex[j1], prev_vertex[j2] = split, split
-                if j1_left > 0.0:
-                    pool[left_start + left_count], pool[right_start + right_count] = j1, split
-                else:
-                    pool[right_start + right_count], pool[left_start + left_count] = j1, split
-                left_count += 1
-                right_count += 1
+        n_vertices = _partition(point, unit_dir, is_convex, next_vertex, prev_vertex, pool, start, size, optimal,
+                                left_start, right_start, n_vertices)
         pool_top += min_left + min_right
-        tree_vertex[node] = i1
+        tree_vertex[node] = pool[start + optimal]
 
         # Recurse: left subtree first (popped first), then right, as RVO2 does.
         if n_tasks + 2 > tasks.shape[0]:
@@ -211,14 +234,9 @@ def _build_obstacle_tree(point, unit_dir, is_convex, next_vertex, prev_vertex):
         n_tasks += 2
 
     return (
-        point[:n_vertices].copy(),
-        unit_dir[:n_vertices].copy(),
-        is_convex[:n_vertices].copy(),
-        next_vertex[:n_vertices].copy(),
-        prev_vertex[:n_vertices].copy(),
-        tree_vertex[:n_vertices].copy(),
-        tree_left[:n_vertices].copy(),
-        tree_right[:n_vertices].copy(),
+        point[:n_vertices].copy(), unit_dir[:n_vertices].copy(), is_convex[:n_vertices].copy(),
+        next_vertex[:n_vertices].copy(), prev_vertex[:n_vertices].copy(), tree_vertex[:n_vertices].copy(),
+        tree_left[:n_vertices].copy(), tree_right[:n_vertices].copy(),
     )
 
 
@@ -279,7 +297,11 @@ def process_obstacles(polygons: Sequence[np.ndarray]) -> ObstacleMap:
     """
     if isinstance(polygons, (str, bytes)) or not isinstance(polygons, Sequence):
         raise MapError(f"polygons: expected a list of (K, 2) vertex arrays, got {type(polygons).__name__}")
-    points, directions, convex, next_links, prev_links = [], [], [], [], []
+    points: list[np.ndarray] = []
+    directions: list[np.ndarray] = []
+    convex: list[np.ndarray] = []
+    next_links: list[np.ndarray] = []
+    prev_links: list[np.ndarray] = []
     total = 0
     for index, polygon in enumerate(polygons):
         label = f"polygons[{index}]"

@@ -397,10 +397,10 @@ def _overlap_line(r1x, r1y, r2x, r2y, s, dist_sq1, dist_sq2, dist_sq_line, touch
             return True, True, -r1y / norm, r1x / norm
         return True, False, 0.0, 0.0
     if s > 1.0 and dist_sq2 <= touch_sq:
-        if is_convex[obstacle2] and r2x * unit_dir[obstacle2, 1] - r2y * unit_dir[obstacle2, 0] >= 0.0:
-            if dist_sq2 > 0.0:
-                norm = np.sqrt(dist_sq2)
-                return True, True, -r2y / norm, r2x / norm
+        behind = r2x * unit_dir[obstacle2, 1] - r2y * unit_dir[obstacle2, 0] >= 0.0
+        if is_convex[obstacle2] and behind and dist_sq2 > 0.0:
+            norm = np.sqrt(dist_sq2)
+            return True, True, -r2y / norm, r2x / norm
         return True, False, 0.0, 0.0
     if s >= 0.0 and s <= 1.0 and dist_sq_line <= touch_sq:
         return True, True, -unit_dir[obstacle1, 0], -unit_dir[obstacle1, 1]
@@ -493,10 +493,7 @@ def _projection_line(px, py, vx, vy, radius, inv_time_horizon_obst, point, unit_
     )
     cut_x, cut_y = right_cx - left_cx, right_cy - left_cy
     same_vertex = obstacle1 == obstacle2
-    if same_vertex:
-        t = 0.5
-    else:
-        t = ((vx - left_cx) * cut_x + (vy - left_cy) * cut_y) / (cut_x * cut_x + cut_y * cut_y)
+    t = 0.5 if same_vertex else ((vx - left_cx) * cut_x + (vy - left_cy) * cut_y) / (cut_x * cut_x + cut_y * cut_y)
     t_left = (vx - left_cx) * left_x + (vy - left_cy) * left_y
     t_right = (vx - right_cx) * right_x + (vy - right_cy) * right_y
 
@@ -637,7 +634,8 @@ def _orca_kernel(positions, velocities, radii, preferred_velocities, max_speeds,
     neighbor_index = np.empty(capacity, dtype=np.int64)
     neighbor_dist_sq = np.empty(capacity, dtype=np.float64)
     points, directions, proj_points, proj_directions = _line_buffers(max_vertices, capacity)
-    inv_time_horizon, inv_time_horizon_obst, inv_time_step = 1.0 / time_horizon, 1.0 / time_horizon_obst, 1.0 / time_step
+    inv_time_horizon, inv_time_step = 1.0 / time_horizon, 1.0 / time_step
+    inv_time_horizon_obst = 1.0 / time_horizon_obst
     n_fallbacks = 0
     for e in range(n_envs):
         if obstacles is not None:

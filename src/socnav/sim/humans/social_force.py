@@ -76,8 +76,8 @@ def _wall_push(px, py, radius, seg_start, seg_end, n_segments, env, sigma, cutof
             foot = ((px - ax) * dx + (py - ay) * dy) / length2
             off_x, off_y = px - (ax + foot * dx), py - (ay + foot * dy)
             half_chord = math.sqrt(max(0.0, reach * reach - off_x * off_x - off_y * off_y) / length2)
-            first = max(0, int(math.floor((foot - half_chord) * (samples - 1))) - 1)
-            last = min(samples - 1, int(math.ceil((foot + half_chord) * (samples - 1))) + 1)
+            first = max(0, math.floor((foot - half_chord) * (samples - 1)) - 1)
+            last = min(samples - 1, math.ceil((foot + half_chord) * (samples - 1)) + 1)
         for k in range(first, last + 1):
             if k == samples - 1 and samples > 1:
                 qx, qy = bx, by
@@ -95,6 +95,40 @@ def _wall_push(px, py, radius, seg_start, seg_end, n_segments, env, sigma, cutof
             fx += dx / distance * weight
             fy += dy / distance * weight
     return fx, fy, near
+
+
+@numba.njit(cache=True, inline="always")
+def _pair_force(dx, dy, relative_vx, relative_vy, pad, lambda_importance, gamma, n, n_prime, wrap_theta):
+    """The social force of agent j on agent i (Moussaïd et al. 2009) from d = p_i - p_j and v_j - v_i, written
+    with u = d / |d|:
+
+        D = lambda (v_j - v_i) + u,   t = D / |D|,   B = gamma |D|,   theta = angle(t) - angle(u),
+        f_ij = exp(-d/B - (n' B theta)^2) t - sign(theta) exp(-d/B - (n B theta)^2) normal_left(t).
+
+    (The paper's D_ij = lambda (v_i - v_j) + e_ij is -D here, and f_ij = -exp(-d/B) [...] there.) Personal space:
+    j seems nearer by i's `pad` (0 between humans), never nearer than touching. Returns (exerted, f_x, f_y); B = 0
+    exerts none (exp(-d / 0) = 0; PySocialForce: 0, or NaN for coincident agents).
+    """
+    distance = math.sqrt(dx * dx + dy * dy)
+    ux, uy = (dx / distance, dy / distance) if distance > 0.0 else (0.0, 0.0)
+    distance = max(distance - pad, 0.0)
+
+    Dx = lambda_importance * relative_vx + ux
+    Dy = lambda_importance * relative_vy + uy
+    D_length = math.sqrt(Dx * Dx + Dy * Dy)
+    B = gamma * D_length
+    if B == 0.0:
+        return False, 0.0, 0.0
+    tx, ty = Dx / D_length, Dy / D_length
+    theta = math.atan2(ty, tx) - math.atan2(uy, ux)  # in (-2 pi, 2 pi): PySocialForce does not wrap
+    if wrap_theta:
+        # Moussaïd et al.'s angle between t and u, in [-pi, pi): without it a pair whose t and u straddle the -x
+        # direction gets |theta| near 2 pi, and its force all but vanishes.
+        theta = (theta + math.pi) % (2.0 * math.pi) - math.pi
+
+    along = math.exp(-distance / B - (n_prime * B * theta) ** 2)  # velocity term, along t
+    across = -_sign(theta) * math.exp(-distance / B - (n * B * theta) ** 2)  # angle term, along normal
+    return True, along * tx - across * ty, along * ty + across * tx  # normal_left(t) = (-t_y, t_x)
 
 
 @numba.njit(cache=True)
@@ -137,39 +171,18 @@ def social_force_velocities_kernel(
                 fx, fy = -vx / relaxation_time, -vy / relaxation_time
             fx, fy = desired_force_factor * fx, desired_force_factor * fy
 
-            # Social force of every seen agent j (Moussaïd et al. 2009), written with u = (p_i - p_j) / d:
-            #   D = lambda (v_j - v_i) + u,   t = D / |D|,   B = gamma |D|,   theta = angle(t) - angle(u),
-            #   f_ij = exp(-d/B - (n' B theta)^2) t - sign(theta) exp(-d/B - (n B theta)^2) normal_left(t).
-            # (The paper's D_ij = lambda (v_i - v_j) + e_ij is -D here, and f_ij = -exp(-d/B) [...] there.)
+            # Social force of every seen agent j (`_pair_force`), weighted by i's field of view.
             sx, sy = 0.0, 0.0
             for j in range(n_agents):
                 if j == i or not active[env, j] or not sees[env, i, j]:
                     continue  # an unseen agent (e.g. the robot of an inattentive human) exerts no force
-                dx = positions[env, i, 0] - positions[env, j, 0]
-                dy = positions[env, i, 1] - positions[env, j, 1]
-                distance = math.sqrt(dx * dx + dy * dy)
-                ux, uy = (dx / distance, dy / distance) if distance > 0.0 else (0.0, 0.0)
-                # Personal space: j seems nearer by i's pad (0 between humans), never nearer than touching.
-                distance = max(distance - radius_pad[env, i, j], 0.0)
-
-                Dx = lambda_importance * (velocities[env, j, 0] - vx) + ux
-                Dy = lambda_importance * (velocities[env, j, 1] - vy) + uy
-                D_length = math.sqrt(Dx * Dx + Dy * Dy)
-                B = gamma * D_length
-                if B == 0.0:
-                    continue  # exp(-d / 0) = 0: no force (PySocialForce: 0, or NaN for coincident agents)
-                tx, ty = Dx / D_length, Dy / D_length
-                theta = math.atan2(ty, tx) - math.atan2(uy, ux)  # in (-2 pi, 2 pi): PySocialForce does not wrap
-                if wrap_theta:
-                    # Moussaïd et al.'s angle between t and u, in [-pi, pi): without it a pair whose t and u straddle
-                    # the -x direction gets |theta| near 2 pi, and its force all but vanishes.
-                    theta = (theta + math.pi) % (2.0 * math.pi) - math.pi
-
-                along = math.exp(-distance / B - (n_prime * B * theta) ** 2)  # velocity term, along t
-                across = -_sign(theta) * math.exp(-distance / B - (n * B * theta) ** 2)  # angle term, along normal
-                pair_x = along * tx - across * ty  # normal_left(t) = (-t_y, t_x)
-                pair_y = along * ty + across * tx
-
+                exerted, pair_x, pair_y = _pair_force(
+                    positions[env, i, 0] - positions[env, j, 0], positions[env, i, 1] - positions[env, j, 1],
+                    velocities[env, j, 0] - vx, velocities[env, j, 1] - vy, radius_pad[env, i, j], lambda_importance,
+                    gamma, n, n_prime, wrap_theta,
+                )  # fmt: skip
+                if not exerted:
+                    continue
                 # Field of view (PySocialForce's FieldOfView, Helbing & Molnár's w): full weight if the force comes
                 # from inside the cone of half-angle phi around e_i, e_i . (-f) > |f| cos(phi), else the factor C.
                 weight = 1.0
