@@ -72,7 +72,7 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("calibrate", "episodes"): ("experiment `safety.calibration_episodes`", "`calibrate_thresholds(episodes=)`"),
     ("calibrate", "false_activation_budget"): ("experiment `safety.false_activation_budget`",
                                                "`calibrate_thresholds(budget=)`, "
-                                               "`calibrate(false_activation_budget=)`"),
+                                               "`select_by_proxy(false_activation_budget=)`"),
     ("calibrate", "budget"): ("—", "hidden, deprecated: `--false-activation-budget`"),
     ("calibrate", "proximity"): ("experiment `safety.calibration_proximity`", "`calibrate_thresholds(proximity=)`"),
     ("calibrate", "sensing"): ("experiment `safety.sensing`", "`calibrate_thresholds(sensing=)`"),

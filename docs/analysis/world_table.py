@@ -1,5 +1,5 @@
 """Is the world hard enough to rank controllers? straight / ORCA / the shipped policy in every scenario, in the
-default world (attention) and in the old world of always-attentive humans (configs/env/reactive_humans.yaml); with
+default world (attention) and in the world of always-attentive humans (configs/env/reactive_humans.yaml); with
 ``--humans``, in the default world with other human models (docs/humans.md), with Clopper-Pearson intervals.
 
     python docs/analysis/world_table.py --episodes 200 --seed 0
@@ -30,7 +30,7 @@ from socnav.envs.rollout import rollout_episodes, summarize
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "random", "position_swap")
 MAP_SCENARIOS = ("corridor", "doorway", "intersection", "room")  # with walls (docs/maps.md), with --humans
-WORLDS = {"default": {}, "old (reactive_humans.yaml)": "configs/env/reactive_humans.yaml"}
+WORLDS = {"default": {}, "reactive_humans.yaml": "configs/env/reactive_humans.yaml"}
 #: --humans choices: the human models of the default world (mix: half ORCA, half social force, per human)
 HUMAN_WORLDS = {"orca": {}, "social_force": {"humans": {"model": "social_force"}},
                 "mix": {"humans": {"mix": {"orca": 0.5, "social_force": 0.5}}}}

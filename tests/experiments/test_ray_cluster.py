@@ -82,7 +82,7 @@ def test_cli_sweep_on_a_multi_node_cluster_survives_a_killed_node(tmp_path, clus
     assert len(units) == 6 and len(eval_ids) == 4
 
     # RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0: Ray keeps 127.0.0.1 as given instead of replacing it by this machine's
-    # network address, where a loopback-only cluster does not listen (see the README).
+    # network address, where a loopback-only cluster does not listen (see docs/reproduction.md, "On a Ray cluster").
     env = {**os.environ, "RAY_TMPDIR": temp_dir, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
     ray_root = tmp_path / "ray"
     command = [sys.executable, "-m", "socnav.cli", "run", str(spec), "--backend", "ray", "--address", nodes.address,
