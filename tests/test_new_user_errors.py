@@ -202,6 +202,7 @@ def test_an_address_where_no_ray_answers_gives_up_within_the_timeout(silent_grpc
     assert time.perf_counter() - started < 45
 
 
+@pytest.mark.heavy
 def test_ctrl_c_while_connecting_to_ray_exits_promptly(tmp_path, silent_grpc_port):
     import os
     import signal
@@ -237,6 +238,7 @@ def test_ctrl_c_while_connecting_to_ray_exits_promptly(tmp_path, silent_grpc_por
     assert sweep.returncode == 130 and "interrupted" in output and "Traceback" not in output, output
 
 
+@pytest.mark.heavy
 def test_run_on_a_ray_address_with_nothing_listening_exits_in_bounded_time(tmp_path):
     require("ray")
     command = [sys.executable, "-m", "socnav", "run", str(REPO / "configs" / "experiments" / "smoke.yaml"),
@@ -276,6 +278,7 @@ def test_resume_refuses_options_it_would_ignore(tmp_path):
     assert code == 2 and "--timesteps" in output and "--seed" in output and "ignored" in output
 
 
+@pytest.mark.heavy
 def test_resume_says_the_step_it_resumes_from(tmp_path):
     out = tmp_path / "run"
     code, output = run("train", *TINY, "--timesteps", "512", "--eval-every", "256", "--set", "n_steps=128", "--out",

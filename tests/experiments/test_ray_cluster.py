@@ -25,6 +25,8 @@ from socnav.experiments.registry import unit_dir
 from socnav.experiments.runner import read_plan, run_experiment, unit_state
 from socnav.experiments.spec import load_experiment, plan_units
 
+pytestmark = pytest.mark.heavy  # a multi-node Ray cluster in subprocesses, one node killed
+
 EPISODES = 48  # long enough that a unit is still running when its node is killed, even on a loaded machine
 EXPERIMENT = {
     "name": "cluster",

@@ -124,6 +124,7 @@ def _wait_for(predicate, timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
+@pytest.mark.heavy
 def test_killed_sweep_resumes_with_each_result_exactly_once(tmp_path):
     experiment = load_experiment(SMOKE)  # grid as written: 4,096 steps with a checkpoint at 2,048
     root = tmp_path / "run"
@@ -200,6 +201,7 @@ def test_corrupt_and_half_written_units_are_redone(local_run, tmp_path):
     assert markers["train/circle_crossing/ppo/seed0"] == before["train/circle_crossing/ppo/seed0"]
 
 
+@pytest.mark.heavy
 def test_partial_training_resumes_only_from_a_consistent_checkpoint(local_run, tmp_path):
     from socnav.experiments.runner import prepare_unit_dir
 
