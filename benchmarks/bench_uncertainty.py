@@ -41,7 +41,7 @@ from rich.table import Table  # noqa: E402
 import socnav  # noqa: E402
 from socnav.rl import make_model  # noqa: E402
 from socnav.uncertainty import EnsembleEstimator, MCDropoutEstimator, Uncertainty, feature_uncertainty  # noqa: E402
-from socnav.uncertainty.estimators import _obs_to_tensors, summarise_samples  # noqa: E402
+from socnav.uncertainty.estimators import obs_to_tensors, summarise_samples  # noqa: E402
 
 K = 20
 TARGET_US_PER_DECISION = 1000.0
@@ -51,7 +51,7 @@ TARGET_SPEEDUP = 5.0
 def mc_loop(estimator: MCDropoutEstimator, obs: dict[str, np.ndarray]) -> Uncertainty:
     """The MC-dropout estimate with K sequential passes (the comparison point; same statistics as the estimator)."""
     policy = estimator.policy
-    tensors = _obs_to_tensors(policy, obs)
+    tensors = obs_to_tensors(policy, obs)
     with policy.mc_dropout(estimator.p_test):
         samples = [policy.action_stats(tensors) for _ in range(estimator.k)]
     h, mu, log_std = (th.stack(t) for t in zip(*samples))

@@ -1,5 +1,6 @@
-"""Validated configuration of the simulated world (SPEC sections 1-2) and what every socnav config shares: the strict
-base model, the bounded YAML reader, the deep merge and the one formatter of validation errors.
+"""Validated configuration of the simulated world (docs/world.md; every field on docs/configuration.md) and what
+every socnav config shares: the strict base model, the bounded YAML reader, the deep merge and the one formatter of
+validation errors.
 """
 
 from __future__ import annotations
@@ -185,7 +186,7 @@ class StrictModel(BaseModel):
 # ------------------------------------------------------------------------------------------- validation errors
 
 #: Fields that were renamed: an old name in a file gets "renamed: write <new name>" instead of "unknown field".
-RENAMED_FIELDS: dict[str, str] = {"dropout_p": "p_train"}  # the paper's (and SPEC's) name
+RENAMED_FIELDS: dict[str, str] = {"dropout_p": "p_train"}  # the paper's name (Table I)
 
 #: Allowed names are listed in full up to this many; a longer list is only worth reading when nothing is close.
 _SHORT_LIST = 8
@@ -303,18 +304,20 @@ def _check_range(value: Range, low: float, high: float | None = None) -> Range:
 class OrcaConfig(_Strict):
     """ORCA parameters shared by humans and the ORCA robot controller (RVO2 semantics)."""
 
-    time_horizon: float = Field(5.0, gt=0, le=60, description="seconds")
-    neighbor_dist: float = Field(10.0, gt=0, le=1000, description="metres")
-    max_neighbors: StrictInt = Field(10, ge=0, le=1000)
+    time_horizon: float = Field(default=5.0, gt=0, le=60, description="seconds")
+    neighbor_dist: float = Field(default=10.0, gt=0, le=1000, description="metres")
+    max_neighbors: StrictInt = Field(default=10, ge=0, le=1000)
     time_horizon_obst: float = Field(
-        2.0, gt=0, le=60, description="seconds: how far ahead velocities are safe with respect to walls (RVO2's "
+        default=2.0, gt=0, le=60,
+        description="seconds: how far ahead velocities are safe with respect to walls (RVO2's "
         "timeHorizonObst); read only where there are obstacles",
     )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        # Left out at its default: dumps of worlds without walls stay what they were before walls existed.
+        # Left out at its default, so that a world without walls dumps -- and names and hashes its records -- by the
+        # fields it uses only.
         if data.get("time_horizon_obst") == 2.0:
             del data["time_horizon_obst"]
         return data
@@ -323,63 +326,81 @@ class OrcaConfig(_Strict):
 class LayoutConfig(_Strict):
     """The geometry of the map scenarios (corridor, doorway, intersection; room reads circle_radius)."""
 
-    corridor_width: float = Field(3.0, ge=1.0, le=20, description="m: corridor and intersection arms (2.5-3.5: a "
-                                  "building corridor)")
-    corridor_length: float = Field(16.0, ge=6.0, le=200, description="m: the corridor; the intersection's span "
-                                   "(each arm half of it)")
-    door_width: float = Field(1.1, ge=0.7, le=5, description="m: the doorway between the two rooms (1.0-1.2: a "
-                              "building door)")
-    room_size: float = Field(8.0, ge=4.0, le=100, description="m: side of each of the doorway scenario's two rooms")
+    corridor_width: float = Field(
+        default=3.0, ge=1.0, le=20, description="m: corridor and intersection arms (2.5-3.5: a building corridor)"
+    )
+    corridor_length: float = Field(
+        default=16.0, ge=6.0, le=200, description="m: the corridor; the intersection's span (each arm half of it)"
+    )
+    door_width: float = Field(
+        default=1.1, ge=0.7, le=5, description="m: the doorway between the two rooms (1.0-1.2: a building door)"
+    )
+    room_size: float = Field(
+        default=8.0, ge=4.0, le=100, description="m: side of each of the doorway scenario's two rooms"
+    )
 
 
 class ScanConfig(_Strict):
     """The robot's range scan (a 2-D lidar's sensor_msgs/LaserScan): beams from -fov/2 to +fov/2 about its heading,
     each the distance to the first wall, `range` where none is within reach."""
 
-    beams: StrictInt = Field(72, ge=1, le=1024, description="number of beams")
-    range: float = Field(8.0, gt=0, le=100, description="m: maximum range (what a beam reads when it hits nothing)")
-    fov: float = Field(360.0, gt=0, le=360, description="degrees: field of view, centred on the robot's heading")
+    beams: StrictInt = Field(default=72, ge=1, le=1024, description="number of beams")
+    range: float = Field(
+        default=8.0, gt=0, le=100, description="m: maximum range (what a beam reads when it hits nothing)"
+    )
+    fov: float = Field(
+        default=360.0, gt=0, le=360, description="degrees: field of view, centred on the robot's heading"
+    )
 
 
 class RewardConfig(_Strict):
-    """Weights of the socially integrated reward (SPEC section 2); every term can be switched off with 0."""
+    """Weights of the socially integrated reward (Flögel et al., IROS 2024, as the paper trains with it, Sec. III-A;
+    docs/world.md); every term can be switched off with 0."""
 
-    goal: float = Field(5.0, ge=0, le=1000, description="+goal when the robot reaches its goal")
-    collision: float = Field(5.0, ge=0, le=1000, description="-collision on contact with a human")
-    time: float = Field(0.5, ge=0, le=1000, description="-time * dt every step (per second of episode)")
-    progress: float = Field(1.0, ge=0, le=1000, description="progress * (d_goal(t-1) - d_goal(t)), per metre")
-    personal_space: float = Field(0.5, ge=0, le=1000, description="-w * (1 - gap / r_prox) per intruded human")
-    disturbance: float = Field(0.25, ge=0, le=1000, description="-w * |v_i - v_i^without robot| / v_pref_i per human")
-    social_radius: float = Field(3.0, ge=0, le=100, description="metres; humans farther than this do not score")
+    goal: float = Field(default=5.0, ge=0, le=1000, description="+goal when the robot reaches its goal")
+    collision: float = Field(default=5.0, ge=0, le=1000, description="-collision on contact with a human")
+    time: float = Field(default=0.5, ge=0, le=1000, description="-time * dt every step (per second of episode)")
+    progress: float = Field(default=1.0, ge=0, le=1000, description="progress * (d_goal(t-1) - d_goal(t)), per metre")
+    personal_space: float = Field(default=0.5, ge=0, le=1000, description="-w * (1 - gap / r_prox) per intruded human")
+    disturbance: float = Field(
+        default=0.25, ge=0, le=1000, description="-w * |v_i - v_i^without robot| / v_pref_i per human"
+    )
+    social_radius: float = Field(default=3.0, ge=0, le=100, description="metres; humans farther than this do not score")
 
 
 class PerturbationConfig(_Strict):
-    """Perturbations of SPEC section 2; all zero / one means an unperturbed world."""
+    """The paper's perturbations (Sec. V-A: observation noise, action noise, faster humans, more humans) and the
+    behaviour shift; all zero / one means an unperturbed world."""
 
     observation_noise: float = Field(
-        0.0, ge=0, le=10, description="std of N(0, s^2) added to every real observation element"
+        default=0.0, ge=0, le=10, description="std of N(0, s^2) added to every real observation element"
     )
     heading_noise: float = Field(
-        0.0, ge=0, le=2 * math.pi,
+        default=0.0, ge=0, le=2 * math.pi,
         description="std (rad) of N(0, s^2) added to the heading change; beyond 2 pi the heading is random anyway",
     )
     speed_noise: float = Field(
-        0.0, ge=0, description="speed multiplied by U(1 - s, 1); values above 1 are clipped to 1 (SPEC section 2)"
+        default=0.0, ge=0,
+        description="speed multiplied by U(1 - s, 1); values above 1 are clipped to 1 (paper Sec. V-A: sigma_vel <= 1)",
     )
-    human_speed_factor: float = Field(1.0, gt=0, le=20, description="every human's v_pref multiplied by this factor")
+    human_speed_factor: float = Field(
+        default=1.0, gt=0, le=20, description="every human's v_pref multiplied by this factor"
+    )
     total_agents: StrictInt | None = Field(
-        None, ge=2, le=65,
+        default=None, ge=2, le=65,
         description="'more humans': position swap becomes circle crossing with this many agents in total",
     )
     human_model: str | None = Field(
-        None, description="'behaviour shift': the humans walk by this model (`socnav.sim.humans` registry) instead "
+        default=None,
+        description="'behaviour shift': the humans walk by this model (`socnav.sim.humans` registry) instead "
         "of humans.model, e.g. social_force humans for a policy trained with ORCA humans (null: humans.model)",
     )
 
     @field_validator("speed_noise")
     @classmethod
     def _clip_speed_noise(cls, value: float) -> float:
-        # SPEC section 2: sigma_vel is clipped to [0, 1], so the paper's grid 0 ... 2 is valid (s > 1 acts as s = 1).
+        # The paper draws U(1 - sigma_vel, 1) with sigma_vel <= 1 (Sec. V-A): clipped to [0, 1], its grid 0 ... 2 is
+        # valid (s > 1 acts as s = 1).
         return min(value, 1.0)
 
     @field_validator("human_model")
@@ -394,8 +415,8 @@ class PerturbationConfig(_Strict):
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        # No behaviour shift is left out: dumps -- model metadata, record-file names, unit hashes -- stay what they
-        # were before the field existed.
+        # No behaviour shift is left out, so that an unshifted world dumps -- model metadata, record-file names, unit
+        # hashes -- by the fields it uses only.
         if data.get("human_model") is None:
             data.pop("human_model", None)
         return data
@@ -408,63 +429,73 @@ class SocialForceConfig(_Strict):
     out."""
 
     relaxation_time: float = Field(
-        0.5, gt=0, le=10, description="s: tau of the desired force (desired_force.relaxation_time)"
+        default=0.5, gt=0, le=10, description="s: tau of the desired force (desired_force.relaxation_time)"
     )
     goal_threshold: float = Field(
-        0.2, ge=0, le=10, description="m: within this of its goal the desired force brakes, -v / tau "
+        default=0.2, ge=0, le=10, description="m: within this of its goal the desired force brakes, -v / tau "
         "(desired_force.goal_threshold)"
     )
     desired_force_factor: float = Field(
-        1.0, ge=0, le=100, description="weight of the desired force (desired_force.factor)"
+        default=1.0, ge=0, le=100, description="weight of the desired force (desired_force.factor)"
     )
     social_force_factor: float = Field(
-        5.1, ge=0, le=100, description="weight of the social force (social_force.factor)"
+        default=5.1, ge=0, le=100, description="weight of the social force (social_force.factor)"
     )
     lambda_importance: float = Field(
-        2.0, ge=0, le=100, description="weight of the relative velocity in the interaction vector D (social_force)"
+        default=2.0, ge=0, le=100,
+        description="weight of the relative velocity in the interaction vector D (social_force)"
     )
-    gamma: float = Field(0.35, gt=0, le=10, description="range B = gamma |D| of the social force (social_force)")
-    n: float = Field(2.0, ge=0, le=100, description="angular narrowness of the turning term (social_force)")
-    n_prime: float = Field(3.0, ge=0, le=100, description="angular narrowness of the slowing term (social_force)")
+    gamma: float = Field(
+        default=0.35, gt=0, le=10, description="range B = gamma |D| of the social force (social_force)"
+    )
+    n: float = Field(default=2.0, ge=0, le=100, description="angular narrowness of the turning term (social_force)")
+    n_prime: float = Field(
+        default=3.0, ge=0, le=100, description="angular narrowness of the slowing term (social_force)"
+    )
     wrap_theta: bool = Field(
-        False, description="wrap the interaction angle theta to [-pi, pi) as in Moussaid et al.; PySocialForce does "
+        default=False,
+        description="wrap the interaction angle theta to [-pi, pi) as in Moussaid et al.; PySocialForce does "
         "not, so a pair whose t and p_i - p_j straddle the -x direction loses most of its force (false: as it)"
     )
     max_speed_multiplier: float = Field(
-        1.3, gt=0, le=10, description="max speed = this x v_pref; humans walk at it (scene.max_speed_multiplier)"
+        default=1.3, gt=0, le=10,
+        description="max speed = this x v_pref; humans walk at it (scene.max_speed_multiplier)"
     )
     stop_distance: float = Field(
-        0.5, ge=0, le=10, description="m: a human this close to its goal stops (fixed in PySocialForce's step)"
+        default=0.5, ge=0, le=10, description="m: a human this close to its goal stops (fixed in PySocialForce's step)"
     )
     field_of_view: bool = Field(
-        False, description="weight forces from outside the view cone by fov_factor (PySocialForce's simulator: off)"
+        default=False,
+        description="weight forces from outside the view cone by fov_factor (PySocialForce's simulator: off)"
     )
     fov_phi: float = Field(
-        100.0, gt=0, le=180, description="degrees: half-angle of that view cone (ped_repulsive_force.fov_phi)"
+        default=100.0, gt=0, le=180, description="degrees: half-angle of that view cone (ped_repulsive_force.fov_phi)"
     )
     fov_factor: float = Field(
-        0.5, ge=0, le=1, description="weight of forces from outside the view cone (ped_repulsive_force.fov_factor)"
+        default=0.5, ge=0, le=1,
+        description="weight of forces from outside the view cone (ped_repulsive_force.fov_factor)"
     )
     obstacle_force_factor: float = Field(
-        10.0, ge=0, le=100, description="weight of the walls' force (obstacle_force.factor)"
+        default=10.0, ge=0, le=100, description="weight of the walls' force (obstacle_force.factor)"
     )
     obstacle_sigma: float = Field(
-        0.2, gt=0, le=10, description="m: decay length of each wall point's push exp(-(|p - q| - r) / sigma), r the "
+        default=0.2, gt=0, le=10,
+        description="m: decay length of each wall point's push exp(-(|p - q| - r) / sigma), r the "
         "human's radius (obstacle_force.sigma)"
     )
     obstacle_threshold: float = Field(
-        3.0, ge=0, le=100, description="m: wall points q push while |p - q| - r < threshold + r "
+        default=3.0, ge=0, le=100, description="m: wall points q push while |p - q| - r < threshold + r "
         "(obstacle_force.threshold)"
     )
     obstacle_resolution: float = Field(
-        10.0, gt=0, le=1000, description="points per metre along each wall segment, int(length x resolution) "
+        default=10.0, gt=0, le=1000, description="points per metre along each wall segment, int(length x resolution) "
         "evenly spaced from end to end; shorter segments than 1 / resolution get none (scene.resolution)"
     )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        # Left out at their defaults: dumps of worlds without walls stay what they were before walls existed.
+        # Left out at their defaults, so that a world without walls dumps by the fields it uses only.
         for key in ("obstacle_force_factor", "obstacle_sigma", "obstacle_threshold", "obstacle_resolution"):
             if data.get(key) == type(self).model_fields[key].default:
                 del data[key]
@@ -484,13 +515,15 @@ class ReplayConfig(_Strict):
         "checked line by line when the config is read; relative paths are taken from the working directory and "
         "stored absolute",
     )
-    sample_rate: float = Field(2.5, gt=0, le=1000, description="Hz: recorded samples per second (ETH/UCY: 2.5)")
+    sample_rate: float = Field(default=2.5, gt=0, le=1000, description="Hz: recorded samples per second (ETH/UCY: 2.5)")
     frame_step: StrictInt | None = Field(
-        None, ge=1, le=10**9, description="frame ids between two samples; null: inferred per file (the greatest "
+        default=None, ge=1, le=10**9,
+        description="frame ids between two samples; null: inferred per file (the greatest "
         "common divisor of its frame id steps; ETH/UCY: 10)",
     )
     robot_distance: float = Field(
-        10.0, gt=0, le=200, description="m: the robot's start-goal distance, its path through the centre of the "
+        default=10.0, gt=0, le=200,
+        description="m: the robot's start-goal distance, its path through the centre of the "
         "recorded scene in a direction drawn per episode",
     )
 
@@ -528,12 +561,13 @@ class HumansConfig(_Strict):
     humans read the ``orca`` section, shared with the ORCA robot controller."""
 
     model: str = Field(
-        "orca", description="human model: orca (RVO2), social_force, replay (recorded trajectories, with scenario: "
+        default="orca",
+        description="human model: orca (RVO2), social_force, replay (recorded trajectories, with scenario: "
         "replay), a registered one, or mix (set by humans.mix)",
     )
     social_force: SocialForceConfig = Field(default_factory=SocialForceConfig)
     mix: dict[str, float] | None = Field(
-        None, description="a mixed crowd: each human's model drawn per episode with these shares, e.g. "
+        default=None, description="a mixed crowd: each human's model drawn per episode with these shares, e.g. "
         "{orca: 0.5, social_force: 0.5} (shares >= 0 summing to 1; sets model: mix)",
     )
     replay: ReplayConfig = Field(default_factory=ReplayConfig)
@@ -593,48 +627,58 @@ class HumansConfig(_Strict):
 class EnvConfig(_Strict):
     """Everything that defines a socnav world and its Gymnasium environment."""
 
-    scenario: str = Field("circle_crossing", description="registered scenario name")
+    scenario: str = Field(default="circle_crossing", description="registered scenario name")
     n_humans: StrictInt | tuple[StrictInt, StrictInt] | None = Field(
-        None, description="humans per episode: an int, a [min, max] range drawn per episode, or null for the scenario default"
+        default=None,
+        description="humans per episode: an int, a [min, max] range drawn per episode, or null for the scenario default"
     )
-    max_humans: StrictInt = Field(10, ge=1, le=64, description="rows of the padded 'humans' observation")
-    time_step: float = Field(0.25, ge=0.01, le=1.0, description="seconds per step (0.01 s ... 1 s)")
+    max_humans: StrictInt = Field(default=10, ge=1, le=64, description="rows of the padded 'humans' observation")
+    time_step: float = Field(default=0.25, ge=0.01, le=1.0, description="seconds per step (0.01 s ... 1 s)")
 
-    robot_radius: float = Field(0.3, gt=0, le=2, description="metres")
-    human_radius: float = Field(0.3, gt=0, le=2, description="metres")
-    preferred_speed: Range = Field((0.5, 1.0), description="v_pref ~ U[min, max] m/s for every agent")
-    personal_space: Range = Field((0.3, 0.7), description="r_prox ~ U[min, max] m, from the body boundary")
-    cooperation: Range = Field((0.25, 0.5), description="human share of avoidance w.r.t. the robot ~ U[min, max]")
-    robot_visible: bool = Field(True, description="False: humans ignore the robot (out-of-distribution variant)")
+    robot_radius: float = Field(default=0.3, gt=0, le=2, description="metres")
+    human_radius: float = Field(default=0.3, gt=0, le=2, description="metres")
+    preferred_speed: Range = Field(default=(0.5, 1.0), description="v_pref ~ U[min, max] m/s for every agent")
+    personal_space: Range = Field(default=(0.3, 0.7), description="r_prox ~ U[min, max] m, from the body boundary")
+    cooperation: Range = Field(
+        default=(0.25, 0.5), description="human share of avoidance w.r.t. the robot ~ U[min, max]"
+    )
+    robot_visible: bool = Field(
+        default=True, description="False: humans ignore the robot (out-of-distribution variant)"
+    )
     inattentive_share: float = Field(
-        0.3, ge=0, le=1,
+        default=0.3, ge=0, le=1,
         description="probability that a human, drawn per human and episode, plans as if the robot were not there",
     )
     human_fov_deg: float = Field(
-        200.0, gt=0, le=360,
+        default=200.0, gt=0, le=360,
         description="attentive humans react to the robot once it enters this view cone (degrees; 360 = always)",
     )
-    max_heading_change: float = Field(math.pi / 6, gt=0, le=math.pi, description="rad per step")
+    max_heading_change: float = Field(default=math.pi / 6, gt=0, le=math.pi, description="rad per step")
     initial_heading: Literal["random", "goal"] = Field(
-        "random", description="robot heading at the start: uniform in [-pi, pi) or pointing at its goal"
+        default="random", description="robot heading at the start: uniform in [-pi, pi) or pointing at its goal"
     )
 
-    circle_radius: float = Field(7.0, gt=0, le=100, description="metres, circle scenarios and position swap")
-    circle_jitter: float = Field(0.5, ge=0, le=10, description="circle crossing: start/goal jitter (uniform +- m)")
-    swap_jitter: float = Field(0.0, ge=0, le=10, description="position swap: std (m) of start/goal jitter")
-    square_size: float = Field(14.0, gt=0, le=200, description="random scenario: side of the square (m)")
+    circle_radius: float = Field(default=7.0, gt=0, le=100, description="metres, circle scenarios and position swap")
+    circle_jitter: float = Field(
+        default=0.5, ge=0, le=10, description="circle crossing: start/goal jitter (uniform +- m)"
+    )
+    swap_jitter: float = Field(default=0.0, ge=0, le=10, description="position swap: std (m) of start/goal jitter")
+    square_size: float = Field(default=14.0, gt=0, le=200, description="random scenario: side of the square (m)")
 
     goal_tolerance: float = Field(
-        0.3, gt=0, le=10, description="success when the robot centre is this close to its goal"
+        default=0.3, gt=0, le=10, description="success when the robot centre is this close to its goal"
     )
     timeout_factor: float = Field(
-        2.0, gt=0, le=100, description="time limit = factor * |start - goal| / v_pref + margin"
+        default=2.0, gt=0, le=100, description="time limit = factor * |start - goal| / v_pref + margin"
     )
-    timeout_margin: float = Field(10.0, ge=0, le=3600, description="seconds")
+    timeout_margin: float = Field(default=10.0, ge=0, le=3600, description="seconds")
     robot_orca_share: float = Field(
-        1.0, ge=0, le=1, description="share of avoidance the ORCA robot takes (1: assumes nothing of the humans)"
+        default=1.0, ge=0, le=1,
+        description="share of avoidance the ORCA robot takes (1: assumes nothing of the humans)"
     )
-    robot_orca_safety_margin: float = Field(0.1, ge=0, le=2, description="metres the ORCA robot adds to human radii")
+    robot_orca_safety_margin: float = Field(
+        default=0.1, ge=0, le=2, description="metres the ORCA robot adds to human radii"
+    )
 
     orca: OrcaConfig = Field(default_factory=OrcaConfig)
     humans: HumansConfig = Field(default_factory=HumansConfig)
@@ -646,15 +690,17 @@ class EnvConfig(_Strict):
         "most 512 vertices each, 4096 in all (with the map's and the scenario's)",
     )
     map: str | None = Field(
-        None, description="a map file: a YAML of polygons (obstacles:, boundaries:) or a ROS map_server occupancy "
+        default=None,
+        description="a map file: a YAML of polygons (obstacles:, boundaries:) or a ROS map_server occupancy "
         "grid (YAML with image, resolution, origin, negate, occupied_thresh, free_thresh); stored absolute",
     )
     occlusion: bool | None = Field(
-        None, description="walls hide people: the robot does not observe a human it cannot see (null: on in the map "
+        default=None,
+        description="walls hide people: the robot does not observe a human it cannot see (null: on in the map "
         "scenarios, off elsewhere); humans never notice the robot through a wall",
     )
     scan: ScanConfig | None = Field(
-        None, description="the robot's range scan of the walls, an observation key 'scan' (null: no scan)",
+        default=None, description="the robot's range scan of the walls, an observation key 'scan' (null: no scan)",
     )
     layout: LayoutConfig = Field(default_factory=LayoutConfig)
 
@@ -748,11 +794,11 @@ class EnvConfig(_Strict):
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        # The default humans (ORCA) are left out: dumps -- model metadata, record-file names, unit hashes -- stay
-        # what they were before other human models existed.
+        # The default humans (ORCA) are left out, so that a world of ORCA humans dumps -- model metadata, record-file
+        # names, unit hashes -- without a humans section.
         if data.get("humans") == HumansConfig().model_dump(mode=getattr(handler, "mode", "python")):
             del data["humans"]
-        # Likewise the walls' settings, so that worlds without walls keep their dumps.
+        # Likewise the walls' settings, so that a world without walls dumps without them.
         for key, default in (("obstacles", []), ("map", None), ("occlusion", None), ("scan", None)):
             if key in data and data[key] == default:
                 del data[key]
@@ -771,7 +817,7 @@ class EnvConfig(_Strict):
         return (value, value) if isinstance(value, int) else (int(value[0]), int(value[1]))
 
 
-ConfigLike = Union[EnvConfig, Mapping[str, Any], str, Path, None]
+ConfigLike = EnvConfig | Mapping[str, Any] | str | Path | None
 
 
 def load_config(config: ConfigLike = None, **overrides: Any) -> EnvConfig:

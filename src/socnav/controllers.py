@@ -63,7 +63,9 @@ class StraightController:
     def __init__(self, config: EnvConfig):
         self.config = config
 
-    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """SB3's `predict`: the actions of a (batch of) observation(s), no recurrent state."""
         observation, single = _batched(observation)
         actions = holonomic_to_unicycle(
             _goal_velocity(observation, self.config.time_step), observation, self.config.max_heading_change
@@ -75,8 +77,8 @@ class OrcaController:
     """The robot driven by the same ORCA code as the humans, from its observation, in the goal-aligned frame.
 
     `radius_scale` inflates every observed human radius (1.5 for the safety layer's cautious controller); `share` is
-    the robot's share of the avoidance effort and `safety_margin` metres are added to every human's radius (defaults: the
-    config's `robot_orca_share` and `robot_orca_safety_margin`).
+    the robot's share of the avoidance effort and `safety_margin` metres are added to every human's radius
+    (defaults: the config's `robot_orca_share` and `robot_orca_safety_margin`).
     """
 
     def __init__(self, config: EnvConfig, radius_scale: float = 1.0, share: float | None = None,
@@ -91,9 +93,10 @@ class OrcaController:
         self.walls = ObstacleMap.from_polygons(polygons) if polygons else None
         self._wall_batches: dict[int, ObstacleBatch] = {}
 
-    def _obstacles(self, n_envs: int) -> ObstacleBatch:
+    def _obstacles(self, walls: ObstacleMap, n_envs: int) -> ObstacleBatch:
+        """The map's walls once per environment, built once per batch size."""
         if n_envs not in self._wall_batches:
-            self._wall_batches[n_envs] = ObstacleBatch.from_maps([self.walls] * n_envs)
+            self._wall_batches[n_envs] = ObstacleBatch.from_maps([walls] * n_envs)
         return self._wall_batches[n_envs]
 
     def desired_velocity(self, observation: Observation) -> np.ndarray:
@@ -126,7 +129,7 @@ class OrcaController:
         share = np.full((n_envs, n_agents, n_agents), 0.5)
         share[:, 0, :] = self.share
         orca = self.config.orca
-        walls = {}
+        obstacles: ObstacleBatch | None = None
         if self.walls is not None:
             # Walls are known in the map frame: plan there, from the robot's pose (x, y, yaw), and turn the answer
             # back into the goal frame, whose x axis points at the angle yaw - (heading relative to the goal).
@@ -140,19 +143,23 @@ class OrcaController:
             # The margin moves from the humans' radii to the robot's own, so that it keeps off walls as well.
             radii[:, 0] += self.safety_margin
             pad[:, 0, :] = 0.0
-            walls = {"obstacles": self._obstacles(n_envs), "time_horizon_obst": orca.time_horizon_obst}
+            obstacles = self._obstacles(self.walls, n_envs)
         velocities = orca_velocities(
             positions, velocities, radii, preferred, max_speeds, active, compute,
             pad, share, np.ones((n_envs, n_agents, n_agents), bool),
-            orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, self.config.time_step, **walls,
+            orca.time_horizon, orca.neighbor_dist, orca.max_neighbors, self.config.time_step,
+            obstacles=obstacles, time_horizon_obst=None if obstacles is None else orca.time_horizon_obst,
         )
         if self.walls is not None:
             return _rotate(velocities[:, :1], -goal_angle)[:, 0]
         return velocities[:, 0]
 
-    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+    def predict(self, observation: Observation, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """SB3's `predict`: the actions of a (batch of) observation(s), no recurrent state."""
         observation, single = _batched(observation)
-        actions = holonomic_to_unicycle(self.desired_velocity(observation), observation, self.config.max_heading_change)
+        actions = holonomic_to_unicycle(self.desired_velocity(observation), observation,
+                                        self.config.max_heading_change)
         return (actions[0] if single else actions), None
 
 

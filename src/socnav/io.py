@@ -211,7 +211,7 @@ def real_directory(root: str | Path, path: str | Path) -> Path:
 def find_links(directory: str | Path) -> list[Path]:
     """Every symbolic link inside `directory`, which is walked without following any (a linked directory is listed,
     never entered); empty when `directory` does not exist."""
-    links = []
+    links: list[Path] = []
     for parent, directories, files in os.walk(directory):  # followlinks=False
         links.extend(Path(parent) / name for name in (*directories, *files)
                      if os.path.islink(os.path.join(parent, name)))

@@ -1,4 +1,5 @@
-"""Bad actions and impossible environment counts are clear errors (issue 13, items 5 and 7)."""
+"""Bad actions and impossible environment counts are clear errors naming the environment, the shape or the
+memory the count would need."""
 
 from __future__ import annotations
 

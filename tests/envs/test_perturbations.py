@@ -100,7 +100,7 @@ def test_a_behaviour_shift_to_the_worlds_own_model_is_refused():
 
 
 def test_human_model_field_is_validated_and_left_out_of_default_dumps():
-    assert "human_model" not in load_config({}).model_dump()["perturbation"]  # dumps (hashes) as before
+    assert "human_model" not in load_config({}).model_dump()["perturbation"]  # an unshifted world's dump and hash
     with pytest.raises(ConfigError, match="perturbation.human_model"):
         load_config({"perturbation": {"human_model": "sfm"}})
     config = load_config({"perturbation": {"human_model": "social_force"}})

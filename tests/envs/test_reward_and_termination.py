@@ -92,7 +92,7 @@ def test_disturbance_is_relative_to_the_humans_preferred_speed_hand_computed():
     # stands still, centres d = 2 m apart. The human sees the robot bigger by its personal space:
     # R = 0.3 + 0.3 + 0.4 = 1 m. RVO2 with both velocities zero: u = (d - R) / tau along the axis (tau = 5 s), the
     # human may close in at no more than c (d - R) / tau = 0.1 m/s; without the robot it walks at its 0.5 m/s.
-    # Disturbance (SPEC section 2): |v_i - v_i^0| / v_pref,i = (0.5 - 0.1) / 0.5 = 0.8 (0.4 if not divided by v_pref).
+    # Disturbance (docs/world.md): |v_i - v_i^0| / v_pref,i = (0.5 - 0.1) / 0.5 = 0.8 (0.4 if not divided by v_pref).
     weight = 2.0
     world = staged_world((0.0, 0.0), (0.0, 6.0), [((2.0, 0.0), (-6.0, 0.0), 0.4, 0.5, 0.5)],
                          reward={"time": 0.0, "progress": 0.0, "personal_space": 0.0, "disturbance": weight})

@@ -5,7 +5,7 @@ The real environment lives in socnav.envs; this stand-in only reproduces its spa
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -19,7 +19,7 @@ MAX_HUMANS = 10
 
 
 def socnav_spaces(max_humans: int = MAX_HUMANS) -> tuple[spaces.Dict, spaces.Box]:
-    """The socnav observation and action spaces (SPEC section 2)."""
+    """The socnav observation and action spaces (docs/world.md, Observation and action)."""
     obs_space = spaces.Dict(
         {
             "robot": spaces.Box(-np.inf, np.inf, (5,), np.float32),
@@ -37,7 +37,7 @@ class DummySocNavEnv(gym.Env):
     Reward ``-|a - target(o)|``, a learnable but meaningless signal; episodes truncate after ``episode_len``.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(
         self, max_humans: int = MAX_HUMANS, episode_len: int = 100, n_humans: tuple[int, int] | None = None
@@ -78,7 +78,8 @@ def make_dummy_vec_env(n_envs: int = 4, seed: int = 0, **kwargs: Any) -> DummyVe
     return venv
 
 
-def random_obs(batch: int, max_humans: int = MAX_HUMANS, seed: int = 0, n: list[int] | None = None) -> dict[str, th.Tensor]:
+def random_obs(batch: int, max_humans: int = MAX_HUMANS, seed: int = 0,
+               n: list[int] | None = None) -> dict[str, th.Tensor]:
     """A batch of observation tensors with a random (or given) number of humans per sample."""
     gen = np.random.default_rng(seed)
     counts = np.asarray(n if n is not None else gen.integers(0, max_humans + 1, size=batch))

@@ -33,7 +33,7 @@ HAND_MEAN_TARGET0 = 0.5 * (0.25**2 + 4.0**2 + 1.0**2 + 2.25**2) / 2
 # ---- variance loss -----------------------------------------------------------------------------------------------
 def test_variance_loss_matches_hand_computation() -> None:
     log_std = SIGMA.log().requires_grad_(True)
-    assert HAND_MEAN_TARGET0 == pytest.approx(5.53125)
+    assert pytest.approx(5.53125) == HAND_MEAN_TARGET0
     assert variance_loss(log_std).item() == pytest.approx(5.53125)
     # (t / T) * lambda_sigma = (1024 / 4096) * 0.3 = 0.075
     assert variance_loss(log_std, 0.0, coef=0.075).item() == pytest.approx(0.075 * 5.53125)
@@ -129,7 +129,7 @@ def test_save_load_roundtrip(small_model, obs_batch, tmp_path, algo: str) -> Non
     a1, _ = model.predict(obs, deterministic=True)
     a2, _ = loaded.predict(obs, deterministic=True)
     np.testing.assert_array_equal(a1, a2)
-    for before, after in zip(model.policy.feature_range, loaded.policy.feature_range):
+    for before, after in zip(model.policy.feature_range, loaded.policy.feature_range, strict=True):
         assert th.isfinite(before).all()
         assert th.equal(before, after)
     assert loaded.policy.odv == model.policy.odv and loaded.policy.p_test == 0.5

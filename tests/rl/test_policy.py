@@ -139,8 +139,7 @@ def test_mc_dropout_context_enables_only_dropout_and_restores(small_model, obs_b
         assert all(d.p == 0.5 for d in policy.dropout_layers())
         assert not policy.mlp_extractor.policy_net[0].training
     assert all(m.training for m in policy.modules())
-    with pytest.raises(ValueError):
-        with policy.mc_dropout(1.0):
+    with pytest.raises(ValueError), policy.mc_dropout(1.0):
             pass
 
 

@@ -1,5 +1,5 @@
 """A policy that reads the range scan: its encoder (scaling, circular padding, dropout order), the scan-free network
-left as it was, training on a scan world, and saving / loading / checkpointing it in the safe format."""
+without any scan module, training on a scan world, and saving / loading / checkpointing it in the safe format."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from gymnasium import spaces
 import socnav
 from socnav.envs.spaces import action_space, observation_space
 from socnav.rl import make_model
-from socnav.rl.presets import policy_kwargs_for, resolve_config
 from socnav.rl.extractor import HumanLSTMExtractor, ScanEncoder
 from socnav.rl.persistence import load_checkpoint, load_policy, save_checkpoint, save_policy, verify_checkpoint
 from socnav.rl.policy import ODVActorCriticPolicy
+from socnav.rl.presets import policy_kwargs_for, resolve_config
 from socnav.uncertainty import MCDropoutEstimator
 
 CORRIDOR = {"scenario": "corridor", "n_humans": 3, "scan": {"beams": 36}}
@@ -110,7 +110,7 @@ def test_a_scan_of_few_beams_encodes(beams):
         assert encoder(th.rand(4, beams)).shape == (4, 32)
 
 
-def test_without_scan_the_network_is_the_one_before_scans():
+def test_without_scan_a_pose_key_changes_nothing_in_the_network():
     """The pose key (a world with walls, no scan) changes nothing: same parameters, drawn the same from a seed."""
     plain = observation_space(4)
     with_pose = observation_space(4, pose=True)
@@ -124,7 +124,7 @@ def test_without_scan_the_network_is_the_one_before_scans():
     for name in first:
         assert th.equal(first[name], second[name]), name
     assert built[0].features_extractor.scan_encoder is None
-    assert len(built[0].dropout_layers()) == 2 + 1 + 2  # two LSTM inputs, h, two actor layers: as before
+    assert len(built[0].dropout_layers()) == 2 + 1 + 2  # two LSTM inputs, h, two actor layers: no scan layers
 
 
 def test_mc_dropout_draws_the_scan_masks_after_h_in_forward_order():

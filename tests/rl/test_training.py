@@ -35,7 +35,8 @@ def _observations(n_envs: int = 6, seed: int = 3) -> dict[str, np.ndarray]:
 
 def _saved(tmp_path: Path, algo: str = "odv-ppo-drop") -> tuple[object, Path]:
     model = make_model(algo, socnav.make_vec_env(ENV, n_envs=2), seed=1)
-    metadata = {"algo": algo, "algo_config": model.algo_config, "env_config": socnav.load_config(ENV).model_dump(mode="json")}
+    metadata = {"algo": algo, "algo_config": model.algo_config,
+                "env_config": socnav.load_config(ENV).model_dump(mode="json")}
     return model, save_policy(model.policy, tmp_path / "policy.zip", metadata)
 
 
@@ -50,7 +51,7 @@ def test_save_load_predict_gives_identical_actions(tmp_path, algo):
     actions, _ = loaded.predict(obs, deterministic=True)
     np.testing.assert_array_equal(actions, expected)
     assert loaded.socnav_metadata["algo"] == algo
-    for mine, theirs in zip(model.policy.feature_range, loaded.feature_range):
+    for mine, theirs in zip(model.policy.feature_range, loaded.feature_range, strict=True):
         assert th.equal(mine, theirs)
     assert not loaded.training  # dropout off after loading
 
@@ -103,7 +104,8 @@ def test_evaluate_model_cli_and_clear_errors(tmp_path):
 def test_train_cli_rejects_bad_algo_and_overrides(tmp_path):
     result = runner.invoke(app, ["train", "--algo", "dqn", "--timesteps", "10", "--out", str(tmp_path / "a")])
     assert result.exit_code == 2 and "allowed: ppo, ppo-drop" in result.output
-    result = runner.invoke(app, ["train", "--set", "learning_rat=1e-3", "--timesteps", "10", "--out", str(tmp_path / "b")])
+    result = runner.invoke(app, ["train", "--set", "learning_rat=1e-3", "--timesteps", "10",
+                                 "--out", str(tmp_path / "b")])
     assert result.exit_code == 2 and "learning_rat" in result.output and "learning_rate" in result.output
     result = runner.invoke(app, ["train", "--set", "batch_size=0", "--timesteps", "10", "--out", str(tmp_path / "c")])
     assert result.exit_code == 2 and "batch_size" in result.output
@@ -208,4 +210,5 @@ def test_same_seed_gives_the_same_training_run(tmp_path):
                   eval_episodes=2, tensorboard=False) for name in ("a", "b")]
     first, second = (load_policy(run.model_path).state_dict() for run in runs)
     assert all(th.equal(first[key], second[key]) for key in first)
-    assert pd.read_csv(tmp_path / "a" / "curve.csv")["ep_rew_mean"].equals(pd.read_csv(tmp_path / "b" / "curve.csv")["ep_rew_mean"])
+    curves = [pd.read_csv(tmp_path / name / "curve.csv")["ep_rew_mean"] for name in ("a", "b")]
+    assert curves[0].equals(curves[1])

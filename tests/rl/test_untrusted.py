@@ -1,6 +1,5 @@
-"""Untrusted run directories and model files (issue 13, items 1-3, 8, 9): nothing in a checkpoint, a run directory
-or a policy file executes code, an existing run is never destroyed, and every crafted input gets a clear one-line
-error naming what is wrong."""
+"""Untrusted run directories and model files: nothing in a checkpoint, a run directory or a policy file executes
+code, an existing run is never destroyed, and every crafted input gets a clear one-line error naming what is wrong."""
 
 from __future__ import annotations
 
@@ -24,7 +23,12 @@ from socnav.cli import app
 from socnav.io import file_lock
 from socnav.rl import make_model
 from socnav.rl.persistence import (
-    CheckpointError, PolicyLoadError, load_checkpoint, load_policy, save_checkpoint, save_policy,
+    CheckpointError,
+    PolicyLoadError,
+    load_checkpoint,
+    load_policy,
+    save_checkpoint,
+    save_policy,
 )
 from socnav.rl.training import RunDirectoryBusy, train
 

@@ -59,7 +59,7 @@ def test_mc_dropout_samples_and_uncertainty_match_torch(pretrained_policy, navig
     for batch in _chunks(observations):
         expected = [t.detach().numpy() for t in estimator.samples(batch)]
         got = network.samples(batch, onnx_stream)
-        for name, g, e in zip(("h", "mu", "log_std"), got, expected):
+        for name, g, e in zip(("h", "mu", "log_std"), got, expected, strict=True):
             assert g.shape == e.shape, name
             np.testing.assert_allclose(g, e, rtol=0, atol=TOLERANCE, err_msg=name)
         expected_u, got_u = estimator(batch), network.uncertainty(batch, onnx_stream)
@@ -131,7 +131,7 @@ def test_non_odv_policy_exports_with_calibrated_thresholds(tmp_path, observation
     np.testing.assert_allclose(network.predict(batch)[0], policy.predict(batch, deterministic=True)[0], atol=TOLERANCE)
     expected = MCDropoutEstimator(policy, k=4, p_test=0.3, uniforms=DropoutStream(5)).samples(batch)
     got = network.samples(batch, DropoutStream(5))
-    for g, e in zip(got, expected):
+    for g, e in zip(got, expected, strict=True):
         np.testing.assert_allclose(g, e.detach().numpy(), rtol=0, atol=TOLERANCE)
 
 

@@ -1,4 +1,4 @@
-"""The runtime's per-decision fast path (issue 14 latency target) against its generic, unbuffered counterpart:
+"""The runtime's per-decision fast path (docs/benchmarks.md) against its generic, unbuffered counterpart:
 one uniform draw for all layers, the compiled keep-mask kernel, the preallocated IO-bound buffers and the
 simplified exported graph must all give exactly what the per-layer, allocate-per-call path gives."""
 
@@ -18,7 +18,7 @@ ROBOT = {"position": [0.0, -4.0], "velocity": [0.1, 0.4], "heading": 1.5, "goal"
 
 
 def _crowd(rng: np.random.Generator, count: int) -> dict[str, np.ndarray]:
-    return {"positions": rng.uniform(-3, 3, size=(count, 2)) + [0.0, -3.0],
+    return {"positions": rng.uniform(-3, 3, size=(count, 2)) + np.array([0.0, -3.0]),
             "velocities": rng.normal(size=(count, 2)), "radii": rng.uniform(0.2, 0.4, size=count)}
 
 

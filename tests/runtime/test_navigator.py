@@ -45,10 +45,11 @@ def test_import_socnav_imports_no_torch():
 
 def test_observation_is_the_environments(navigator_file):
     """Built from plain state arrays, the navigator's observation is bit-identical to the environment's."""
+    from socnav.sim import world as world_module
     from socnav.sim.observation import observe_batch
-    from socnav.sim.world import CrowdWorld, _observe
+    from socnav.sim.world import CrowdWorld
 
-    assert observe_batch is _observe  # one function, shared
+    assert observe_batch is world_module.observe_batch  # one function, shared
     navigator = SafeNavigator.load(navigator_file, seed=0)
     for scenario, humans in (("circle_crossing", 5), ("random", (0, 10)), ("position_swap", 1)):
         world = CrowdWorld(socnav.load_config({"scenario": scenario, "n_humans": humans}), n_envs=4)

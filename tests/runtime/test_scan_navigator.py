@@ -120,7 +120,7 @@ def test_the_file_carries_the_scan_input_and_the_walls(scan_file):
     config = socnav.load_config(CORRIDOR)
     expected = world_polygons(config, get_scenario("corridor"))
     assert len(network.walls) == len(expected) > 0
-    for got, polygon in zip(network.walls, expected):
+    for got, polygon in zip(network.walls, expected, strict=True):
         np.testing.assert_array_equal(got, polygon)
     assert network.scan == config.scan
 
@@ -152,7 +152,7 @@ def test_a_map_file_travels_as_polygons(tmp_path):
     assert metadata["version"] == 3 and "map" not in metadata["env_config"]
     navigator = SafeNavigator.load(path, seed=0)
     assert len(navigator.walls) == 2
-    for got, polygon in zip(navigator.walls, expected):
+    for got, polygon in zip(navigator.walls, expected, strict=True):
         np.testing.assert_array_equal(got, polygon)
 
 
@@ -196,7 +196,8 @@ def test_actions_values_and_mc_samples_match_torch(scan_policy, scan_file, obser
     stream = DropoutStream(4)
     for start in range(0, len(observations["robot"]), 64):
         batch = {key: value[start:start + 64] for key, value in observations.items()}
-        for name, got, want in zip(("h", "mu", "log_std"), network.samples(batch, stream), estimator.samples(batch)):
+        for name, got, want in zip(("h", "mu", "log_std"), network.samples(batch, stream), estimator.samples(batch),
+                                   strict=True):
             np.testing.assert_allclose(got, want.numpy(), rtol=0, atol=TOLERANCE, err_msg=name)
     # the scan is read: walls elsewhere, another action
     farther = dict(observations, scan=np.full_like(observations["scan"], 8.0))

@@ -26,8 +26,15 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from socnav.runtime import (NON_FINITE_OBSERVATION, NON_FINITE_OUTPUT, STOPPED, ExportedPolicy, InputError,
-                            NavigatorLoadError, SafeNavigator)
+from socnav.runtime import (
+    NON_FINITE_OBSERVATION,
+    NON_FINITE_OUTPUT,
+    STOPPED,
+    ExportedPolicy,
+    InputError,
+    NavigatorLoadError,
+    SafeNavigator,
+)
 from socnav.runtime.format import CHECKSUM_KEY, METADATA_KEY, metadata_entries, seal
 from socnav.runtime.network import MCBatch
 from socnav.sim.observation import robot_command
@@ -392,7 +399,7 @@ def test_export_refuses_a_policy_with_nan_weights(pretrained_policy, tmp_path):
 
     policy = copy.deepcopy(pretrained_policy)
     with __import__("torch").no_grad():
-        policy.value_net.bias[0] = float("nan")  # only the critic's output: the check used to let it pass
+        policy.value_net.bias[0] = float("nan")  # only the critic's output is not finite: still refused
     with pytest.raises(ExportError, match=r"NaN or inf values \(in value_net.bias\)"):
         export_onnx(policy, tmp_path / "nan.onnx", with_value=True)
     assert not (tmp_path / "nan.onnx").exists()
@@ -496,11 +503,11 @@ def test_load_policy_checks_complex_weights_for_nan(tmp_path):
     floating'; in a policy file it is refused (a PolicyLoadError, never loaded)."""
     import torch
 
-    from socnav.rl.persistence import PolicyLoadError, _finite, load_policy, pretrained_path
+    from socnav.rl.persistence import PolicyLoadError, entry_is_finite, load_policy, pretrained_path
 
-    assert not _finite("w", torch.tensor([1 + 1j, complex(0.0, math.nan)]), {})
-    assert not _finite("w", torch.tensor([complex(math.inf, 0.0)]), {})
-    assert _finite("w", torch.tensor([1 + 1j]), {}) and _finite("n", torch.tensor([3, 4]), {})
+    assert not entry_is_finite("w", torch.tensor([1 + 1j, complex(0.0, math.nan)]), {})
+    assert not entry_is_finite("w", torch.tensor([complex(math.inf, 0.0)]), {})
+    assert entry_is_finite("w", torch.tensor([1 + 1j]), {}) and entry_is_finite("n", torch.tensor([3, 4]), {})
     with zipfile.ZipFile(pretrained_path()) as archive:
         members = {name: archive.read(name) for name in archive.namelist()}
     state = torch.load(io.BytesIO(members["policy.pt"]), weights_only=True)
@@ -512,6 +519,6 @@ def test_load_policy_checks_complex_weights_for_nan(tmp_path):
     with zipfile.ZipFile(crafted, "w") as archive:
         for name, data in members.items():
             archive.writestr(name, data)
-    with pytest.raises(PolicyLoadError, match="action_net.bias") as error:
+    with pytest.raises(PolicyLoadError, match=r"action_net\.bias") as error:
         load_policy(crafted)
     assert "\n" not in str(error.value)

@@ -1,4 +1,5 @@
-"""Attention (SPEC section 1): inattentive humans and the human field of view, on hand-built scenes and in bulk."""
+"""Attention (docs/attention.md): inattentive humans and the human field of view, on hand-built scenes and in
+bulk."""
 
 import math
 

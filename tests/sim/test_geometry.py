@@ -331,7 +331,7 @@ def test_the_robot_row_of_sight_is_that_of_all_pairs(seed, n_walls, n_agents):
 @given(seed=st.integers(0, 2**31 - 1), n_beams=st.integers(1, 90), fov_deg=st.sampled_from([30.0, 180.0, 270.0, 360.0]),
        max_range=st.floats(0.5, 12.0))
 def test_the_culled_scan_agrees_with_testing_every_beam_against_every_wall(seed, n_beams, fov_deg, max_range):
-    from socnav.sim.geometry import _ray_segment_distance, scan_angles
+    from socnav.sim.geometry import ray_segment_distance, scan_angles
 
     rng = np.random.default_rng(seed)
     origins, headings = rng.uniform(-3.0, 3.0, (2, 2)), rng.uniform(-np.pi, np.pi, 2)
@@ -343,8 +343,8 @@ def test_the_culled_scan_agrees_with_testing_every_beam_against_every_wall(seed,
     for env in range(2):
         for beam in range(n_beams):
             angle = headings[env] + angle_min + beam * increment
-            expected = min([max_range] + [_ray_segment_distance(origins[env, 0], origins[env, 1], np.cos(angle),
-                                                                np.sin(angle), *wall[0], *wall[1])
+            expected = min([max_range] + [ray_segment_distance(origins[env, 0], origins[env, 1], np.cos(angle),
+                                                               np.sin(angle), *wall[0], *wall[1])
                                           for wall in walls[env]])
             assert ranges[env, beam] == pytest.approx(expected, abs=1e-9)  # beam directions rotated, not re-sined
 

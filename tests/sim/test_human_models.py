@@ -2,10 +2,9 @@
 `HumanModel` protocol replaying recorded episodes bit for bit.
 
 `tests/sim/data/orca_golden.npz` holds seeded episodes (world positions and velocities every step, observations,
-rewards, episode ends) recorded with the code from before the protocol existed (`python
-tests/sim/test_human_models.py --record` wrote it); `test_default_config_replays_the_recording_bit_for_bit`
-plays them again and compares with `np.array_equal`. The social force model's oracle tests are in
-test_social_force.py.
+rewards, episode ends), recorded once and kept (`python tests/sim/test_human_models.py --record` rewrites it);
+`test_default_config_replays_the_recording_bit_for_bit` plays them again and compares with `np.array_equal`. The
+social force model's oracle tests are in test_social_force.py.
 """
 
 from __future__ import annotations
@@ -175,7 +174,7 @@ def test_a_registered_model_is_selectable_by_name(monkeypatch):
         def velocities(self, crowd: Crowd, compute: np.ndarray) -> np.ndarray:
             return np.where(compute[..., None], 0.0, crowd.velocities)
 
-    monkeypatch.setattr(humans_registry, "_REGISTRY", dict(humans_registry._REGISTRY))
+    monkeypatch.setattr(humans_registry, "HUMAN_MODELS", dict(humans_registry.HUMAN_MODELS))
     register_human_model("standing", lambda config: Standing())
     world = CrowdWorld(load_config({"scenario": "circle_crossing", "humans": {"model": "standing"}}), 1)
     world.seed(0, 0)

@@ -1,5 +1,6 @@
 """The navigation metrics (socnav.sim.metrics) against hand-computed values on scripted trajectories, their invariants
-on rollouts, and the registry: one definition per metric, today's numbers unchanged to the last bit."""
+on rollouts, and the registry: one definition per metric, its summaries equal to the last bit to the arithmetic
+written out directly."""
 
 from __future__ import annotations
 
@@ -274,8 +275,9 @@ def _records(rng: np.random.Generator, n: int) -> pd.DataFrame:
     })
 
 
-def _old_summarize(records, pv_per=200):
-    """`socnav.envs.rollout.summarize` before the registry, verbatim: the oracle of today's numbers."""
+def _direct_summarize(records, pv_per=200):
+    """`socnav.envs.rollout.summarize`'s arithmetic written out directly, without the metrics registry: its oracle
+    to the last bit."""
     n = len(records)
     share = lambda outcome: 100.0 * float((records["outcome"] == outcome).mean())  # noqa: E731
     return {"episodes": n, "goal_pct": share("goal"), "collision_pct": share("collision"),
@@ -284,8 +286,9 @@ def _old_summarize(records, pv_per=200):
             "time_to_goal_mean": float(records["time_to_goal"].mean())}
 
 
-def _old_table1_seed_frame(records, by, pv_per=200):
-    """`socnav.experiments.report.table1_seed_frame` before the registry, verbatim (its arithmetic)."""
+def _direct_table1_seed_frame(records, by, pv_per=200):
+    """The per-seed Table 1 frame (`summarize_groups` of its metrics) written out directly with pandas, without the
+    metrics registry."""
     outcome = records["outcome"]
     per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
                                  timeout=(outcome == "timeout") * 100.0)
@@ -298,16 +301,16 @@ def _old_table1_seed_frame(records, by, pv_per=200):
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_todays_numbers_are_unchanged_to_the_last_bit(seed):
+def test_the_registry_summaries_equal_the_direct_arithmetic_to_the_last_bit(seed):
     rng = np.random.default_rng(seed)
     records = _records(rng, int(rng.integers(1, 500)))
-    new, old = summarize(records), _old_summarize(records)
-    assert list(new) == list(old)
-    for key in old:
-        assert new[key] == old[key] or (math.isnan(new[key]) and math.isnan(old[key])), key
+    registry, direct = summarize(records), _direct_summarize(records)
+    assert list(registry) == list(direct)
+    for key in direct:
+        assert registry[key] == direct[key] or (math.isnan(registry[key]) and math.isnan(direct[key])), key
     names = ["goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
     grouped = summarize_groups(records, ["group", "seed"], names)
-    pd.testing.assert_frame_equal(grouped, _old_table1_seed_frame(records, ["group", "seed"]), check_exact=True)
+    pd.testing.assert_frame_equal(grouped, _direct_table1_seed_frame(records, ["group", "seed"]), check_exact=True)
 
 
 def test_summaries_per_kind_hand_computed():

@@ -328,7 +328,7 @@ def test_replayed_episodes_are_deterministic_and_batch_independent(scene):
 
 def test_a_world_keeps_its_scenes_when_the_read_cache_drops_them(scene):
     world = _staged_world(scene)
-    replay._load.cache_clear()  # e.g. many other replay configs read in this process since
+    replay.read_scenes.cache_clear()  # e.g. many other replay configs read in this process since
     assert load_replay(world.config.humans.replay, DT) is world.human_model.scenes
     world.reset()
     world.step(np.array([[0.0, 0.0]]))

@@ -2,7 +2,7 @@
 
 PySocialForce's `Simulator` runs the same crowds with its step width set to the env's time step and its initial
 speeds (max speed = 1.3 x initial speed) set to the humans' v_pref. One step from identical states must agree to
-1e-5 and 50-step trajectories to 1e-3 m (both agree to ~1e-14 today). The robot, attention, personal space and the
+1e-5 and 50-step trajectories to 1e-3 m (measured: both agree to ~1e-14). The robot, attention, personal space and the
 field of view are checked against PySocialForce scenes built to mean the same.
 """
 

@@ -3,7 +3,7 @@ points its `EnvState` samples along line obstacles), and the invariant that huma
 
 The walls reach the model as `Crowd.wall_segments` (`polygon_segments`); PySocialForce gets the same segments as its
 (startx, endx, starty, endy) lines and each human's body radius as its agent_radius. One step from identical states
-must agree to 1e-5 and 50-step trajectories to 1e-3 m (both agree to ~1e-15 today).
+must agree to 1e-5 and 50-step trajectories to 1e-3 m (measured: both agree to ~1e-15).
 """
 
 from __future__ import annotations

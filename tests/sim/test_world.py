@@ -190,9 +190,9 @@ def test_disturbance_skips_only_humans_blind_to_the_robot(humans, scenario):
     checked_blind = checked_seeing = 0
     for _ in range(40):
         humans_now = world.human_velocities()
-        near = world._humans_near_robot(config.reward.social_radius)
+        near = world.humans_near_robot(config.reward.social_radius)
         every_near = world.human_velocities(without_robot=True, only=near)
-        skipped = world._unhindered_velocities(humans_now, near)
+        skipped = world.unhindered_velocities(humans_now, near)
         np.testing.assert_array_equal(skipped[near], every_near[near])
         checked_blind += int((near & ~world.sees[:, :, 0]).sum())
         checked_seeing += int((near & world.sees[:, :, 0]).sum())

@@ -208,7 +208,7 @@ def test_batched_pass_equals_sequential_passes_with_same_masks(
         for k in range(K):
             masks.offset = k * batch
             samples.append([t.numpy() for t in policy.action_stats(tile(obs, 1))])
-    h, mu, log_std = (np.stack(s) for s in zip(*samples))
+    h, mu, log_std = (np.stack(s) for s in zip(*samples, strict=True))
     assert masks.calls == (K + 1) * len(policy.dropout_layers())
     assert_matches(u, reference(h, mu, log_std, *feature_range(policy)), rtol=1e-5, atol=1e-9)
     assert (u.u_ep > 0).all()  # the K masks really differ
@@ -313,7 +313,7 @@ def test_ensemble_equals_numpy_formulas(members: list[Any], stacked: bool) -> No
     for member in members:
         member.set_training_mode(False)
         samples.append([t.numpy() for t in member.action_stats(obs)])
-    h, mu, log_std = (np.stack(s) for s in zip(*samples))
+    h, mu, log_std = (np.stack(s) for s in zip(*samples, strict=True))
     assert_matches(u, reference(h, mu, log_std, None, None), rtol=1e-4, atol=1e-9)
     assert (u.u_ep > 0).all()
 
@@ -351,7 +351,7 @@ def test_window_hand_checked() -> None:
     window = WindowedUncertainty(n_envs=2, window=4)
     env0 = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
     expected0 = [1.0, 1.5, 2.0, 2.5, 3.5, 4.5]  # mean of the last <= 4 values
-    for t, (value, want) in enumerate(zip(env0, expected0)):
+    for t, (value, want) in enumerate(zip(env0, expected0, strict=True)):
         out = window.update(_u([value, 100.0 + t]))
         assert out.u_ep[0].tolist() == [want, 2 * want]
         assert out.u_al[0].tolist() == [3 * want, want]

@@ -1,5 +1,5 @@
 """Frames a person understands without the source: inattentive humans marked, a legend, a metre scale, a title,
-the outcome in large type, uncertainty bars with tick values and the threshold marked (issue 12).
+the outcome in large type, uncertainty bars with tick values and the threshold marked.
 Pixel positions are computed by hand from extent / width, as in test_render.py."""
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""Each human is drawn with its model (issue 22): in scenes with other than ORCA humans (social force, replayed,
-mixed crowds) a mark in the model's colour sits at each human's centre and the legend lists the models; scenes of
-ORCA humans alone look as before. Pixel positions are computed by hand from extent / width, as in test_render.py."""
+"""Each human is drawn with its model: in scenes with other than ORCA humans (social force, replayed, mixed
+crowds) a mark in the model's colour sits at each human's centre and the legend lists the models; scenes of ORCA
+humans alone are drawn without model marks. Pixel positions are computed by hand from extent / width, as in
+test_render.py."""
 
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ def test_a_mixed_crowd_is_drawn_model_by_model_with_a_legend(renderer):
     models = ["orca", "orca", "social_force", "orca", "social_force"]
     image = renderer.render(frame(models))
     orca, social_force = MODEL_STYLES["orca"][0], MODEL_STYLES["social_force"][0]
-    for (x, y), model in zip(HUMANS, models[1:]):
+    for (x, y), model in zip(HUMANS, models[1:], strict=True):
         colour, other = (social_force, orca) if model == "social_force" else (orca, social_force)
         assert fraction(image, to_pixel(x, y), colour) >= 0.4, (x, y, model)  # the 3 x 3 px around the centre
         assert fraction(image, to_pixel(x, y), other) == 0.0, (x, y, model)
@@ -71,7 +72,7 @@ def test_a_mixed_crowd_is_drawn_model_by_model_with_a_legend(renderer):
     for x, y in HUMANS:
         assert fraction(plain, to_pixel(x, y), HUMAN_COLOR) == 1.0
         assert fraction(plain, to_pixel(x, y), orca) == 0.0
-    assert np.array_equal(plain, renderer.render(frame(None))), "no models given: drawn as before"
+    assert np.array_equal(plain, renderer.render(frame(None))), "ORCA humans alone: the image of a frame without models"
 
 
 def test_one_model_other_than_orca_is_named_too(renderer):

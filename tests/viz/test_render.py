@@ -168,9 +168,8 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 
 def test_mp4_without_ffmpeg_says_what_to_install(tmp_path, monkeypatch):
     real_find_spec = importlib.util.find_spec
-    monkeypatch.setattr(
-        anim.importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else real_find_spec(name, *a)
-    )
+    monkeypatch.setattr(anim.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "imageio_ffmpeg" else real_find_spec(name, *a))
     with pytest.raises(ImportError, match=r"\[video\]"):
         save_animation(_distinct_frames(2), tmp_path / "out.mp4")
 

@@ -1,4 +1,5 @@
-"""Gymnasium and Stable-Baselines3 environments over the crowd simulator (SPEC section 2)."""
+"""Gymnasium and Stable-Baselines3 environments over the crowd simulator (docs/world.md), with the paper's
+perturbations (Sec. V-A) and batched evaluation rollouts."""
 
 from socnav.envs.env import SocialNavEnv, make_env
 

@@ -1,12 +1,13 @@
-"""The single social-navigation environment with the Gymnasium API (SPEC section 2).
+"""The single social-navigation environment with the Gymnasium API (observation, action and reward: docs/world.md).
 
-`SocialNavEnv` is one `CrowdWorld` environment; `make_env` builds it from a config object, a partial dict or a YAML path.
+`SocialNavEnv` is one `CrowdWorld` environment; `make_env` builds it from a config object, a partial dict or a YAML
+path.
 """
 
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -14,6 +15,10 @@ import numpy as np
 from socnav.config import ConfigError, ConfigLike, EnvConfig, load_config
 from socnav.envs.spaces import ACTION_NAMES, action_space, world_observation_space
 from socnav.sim.world import OUTCOME_GOAL, OUTCOME_NAMES, CrowdWorld, StepResult
+
+if TYPE_CHECKING:
+    from socnav.viz import HumanViewer
+    from socnav.viz.render import SceneFrame, SceneRenderer
 
 
 class ActionError(ValueError):
@@ -84,12 +89,12 @@ def step_infos(world: CrowdWorld, result: StepResult) -> list[dict[str, Any]]:
     """Per-step `info` of every environment; at the end of an episode it carries the `episode` summary."""
     # .tolist() converts whole columns at once: building these dicts element by element cost more than the physics.
     columns = zip(world.time.tolist(), result.nearest_gap.tolist(), result.nearest_relative_speed.tolist(),
-                  result.intrusions.tolist())
+                  result.intrusions.tolist(), strict=True)
     infos = [
         {"time": time, "nearest_gap": gap, "nearest_relative_speed": speed, "intrusions": intrusions}
         for time, gap, speed, intrusions in columns
     ]
-    for env in np.flatnonzero(result.outcome):
+    for env in np.flatnonzero(result.outcome).tolist():
         outcome = int(result.outcome[env])
         summary = world.episode_summary(env, outcome)
         info = infos[env]
@@ -100,10 +105,12 @@ def step_infos(world: CrowdWorld, result: StepResult) -> list[dict[str, Any]]:
     return infos
 
 
-def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = None, caption: str = "", **extra: Any):
+def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = None, caption: str = "",
+                **extra: Any) -> SceneFrame:
     """Environment `env` of `world` as a `socnav.viz.SceneFrame`, with the robot's recent `trail` of positions."""
     from socnav.viz.render import SceneFrame
 
+    walls = world.walls
     return SceneFrame(
         positions=world.positions[env].copy(),
         velocities=world.velocities[env].copy(),
@@ -115,11 +122,11 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
         time=float(world.time[env]),
         trails=np.stack(trail) if trail else None,
         caption=caption,
-        attentive=None if getattr(world, "attentive", None) is None else world.attentive[env].copy(),
-        models=world.human_model_names(env) if hasattr(world, "human_model_names") else None,
-        walls=None if getattr(world, "walls", None) is None else world.walls.polygons,
-        hidden=~world.walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
-        if getattr(world, "occlusion", False) else None,
+        attentive=world.attentive[env].copy(),
+        models=world.human_model_names(env),
+        walls=None if walls is None else walls.polygons,
+        hidden=~walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
+        if world.occlusion and walls is not None else None,
         **extra,
     )
 
@@ -141,7 +148,7 @@ def scene_extent(config: EnvConfig) -> float:
 
 
 class SocialNavEnv(gym.Env):
-    """A unicycle robot crossing a crowd of reactive, socially individual humans (SPEC sections 1 and 2).
+    """A unicycle robot crossing a crowd of reactive, socially individual humans (docs/world.md).
 
     ## Description
 
@@ -208,7 +215,7 @@ class SocialNavEnv(gym.Env):
 
     ## Rewards
 
-    The socially integrated reward (SPEC section 2), every step; it is defined in one place,
+    The socially integrated reward (Flögel et al., IROS 2024; paper Sec. III-A), every step; it is defined in one place,
     `socnav.sim.world._score`, with the weights of `config.reward` (`socnav.config.RewardConfig`):
 
         r_t = - w_time dt + w_prog (d_goal(t-1) - d_goal(t))
@@ -290,7 +297,9 @@ class SocialNavEnv(gym.Env):
       `socnav/Room-v0`) with walls, the `collision_wall` outcome and the `pose` and `scan` observation keys.
     """
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 4}
+    # Gymnasium's API declares `metadata` a class attribute (gym.Env's own is a dict); `__init__` replaces it per
+    # instance, nothing mutates it in place.
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 4}  # noqa: RUF012
 
     def __init__(self, config: ConfigLike = None, render_mode: str | None = None, **overrides: Any):
         self.config: EnvConfig = load_config(config, **overrides)
@@ -302,8 +311,8 @@ class SocialNavEnv(gym.Env):
         self.action_space = action_space()
         self.metadata = {**self.metadata, "render_fps": round(1.0 / self.config.time_step)}
         self._trail: list[np.ndarray] = []
-        self._renderer = None
-        self._viewer = None
+        self._renderer: SceneRenderer | None = None
+        self._viewer: HumanViewer | None = None
         self._started = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -346,7 +355,7 @@ class SocialNavEnv(gym.Env):
 
     # ------------------------------------------------------------------------------------------------ rendering
 
-    def scene_frame(self, caption: str = "", **extra: Any):
+    def scene_frame(self, caption: str = "", **extra: Any) -> SceneFrame:
         """The current scene as a `socnav.viz.SceneFrame` (positions, goals, personal spaces, trail)."""
         return scene_frame(self.world, 0, self._trail[-40:], caption=caption, **extra)
 

@@ -123,7 +123,7 @@ def _steps(stop: float) -> tuple[float, ...]:
 
 
 #: The perturbation types, in report order. The paper's strengths: noise sigma in {0, 0.2, ..., 2} (speed noise is
-#: a factor U(1 - s, 1): the world clips s to [0, 1], so s > 1 plays as s = 1; SPEC section 2), human speed factor
+#: a factor U(1 - s, 1): the world clips s to [0, 1], so s > 1 plays as s = 1; paper Sec. V-A), human speed factor
 #: l_vel in {1, ..., 8}, N in {2, ..., 7} agents in total (2 = the unperturbed position swap). Calibration strengths
 #: lie off the evaluation grids where the grid leaves room (the number of humans is an integer, so ``more_humans``
 #: is disjoint by its episode seeds only). The behaviour shift (ours) is held out of the calibration and of the

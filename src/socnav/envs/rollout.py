@@ -7,13 +7,13 @@ records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, ev
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol, cast
 
 import numpy as np
 import pandas as pd
 
-from socnav.config import ConfigLike, EnvConfig, load_config
+from socnav.config import ConfigLike, load_config
 from socnav.envs.env import check_actions, check_env_count
 from socnav.sim.metrics import DEFAULT_METRICS, METRIC_RECORD_COLUMNS, PV_PER, summarize_episodes
 from socnav.sim.world import CrowdWorld
@@ -27,6 +27,16 @@ EPISODE_COLUMNS = (
 class Policy(Protocol):
     def predict(self, observation: dict[str, np.ndarray], state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]: ...
+
+
+class SensingPolicy(Policy, Protocol):
+    """A policy that also reads each step's true (noise-free) observation, as a separate safety sensor does: a
+    `socnav.safety.SafePolicy` with ``sensing: true``, whose `needs_true_observation` is then True."""
+
+    @property
+    def needs_true_observation(self) -> bool: ...
+
+    def sense(self, true_observation: Mapping[str, np.ndarray]) -> None: ...
 
 
 class StepObserver(Protocol):
@@ -67,23 +77,23 @@ def rollout_episodes(
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
-    config: EnvConfig = load_config(config)
-    n_envs = check_env_count(max(1, min(n_envs, n_episodes)), config)
-    world = CrowdWorld(config, n_envs, metrics=metrics)
+    env_config = load_config(config)
+    n_envs = check_env_count(max(1, min(n_envs, n_episodes)), env_config)
+    world = CrowdWorld(env_config, n_envs, metrics=metrics)
     running = np.arange(n_envs)  # episode index each environment is playing; -1 once there is none left
     for env in range(n_envs):
         world.seed(env, seed + env)
     world.reset()
-    listeners = [x.on_episode_start for x in (policy, observer) if hasattr(x, "on_episode_start")]
-    senses_truth = bool(getattr(policy, "needs_true_observation", False))
+    listeners = [x.on_episode_start for x in (policy, observer) if x is not None and hasattr(x, "on_episode_start")]
+    sensor = cast(SensingPolicy, policy) if getattr(policy, "needs_true_observation", False) else None
     for listener in listeners:
         listener(np.arange(n_envs))
     next_episode = n_envs
     records: list[dict[str, Any]] = []
     while len(records) < n_episodes:
         observation = world.observe()
-        if senses_truth:  # a separate safety sensor: only the safety layer reads the true state
-            policy.sense(world.observe(noisy=False))
+        if sensor is not None:  # a separate safety sensor: only the safety layer reads the true state
+            sensor.sense(world.observe(noisy=False))
         actions, _ = policy.predict(observation, deterministic=deterministic)
         actions = np.asarray(actions)
         result = world.step(check_actions(actions, n_envs))  # a NaN action: ActionError naming the environment
@@ -104,9 +114,8 @@ def rollout_episodes(
             world.reset(done)
             for listener in listeners:
                 listener(done)
-        if len(finished):
-            if progress is not None:
-                progress(len(finished))
+        if len(finished) and progress is not None:
+            progress(len(finished))
     columns = [*EPISODE_COLUMNS, *(METRIC_RECORD_COLUMNS if metrics else ())]
     return pd.DataFrame.from_records(records, columns=columns).sort_values("episode", ignore_index=True)
 

@@ -1,7 +1,8 @@
-"""Observation and action spaces shared by the single and the vectorised environment (SPEC section 2).
+"""Observation and action spaces shared by the single and the vectorised environment (docs/world.md, "Observation
+and action").
 
-The observation is a Dict: `robot` (5), `humans` (max_humans x 7, closest real row last, zero padding after), `humans_mask`;
-in a world with walls also `pose` (3), and with a range scan `scan` (beams).
+The observation is a Dict: `robot` (5), `humans` (max_humans x 7, closest real row last, zero padding after),
+`humans_mask`; in a world with walls also `pose` (3), and with a range scan `scan` (beams).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ ACTION_NAMES = ("speed", "heading")  # action dimension 0 maps to speed, 1 to he
 def observation_space(max_humans: int, pose: bool = False, scan: Any = None) -> spaces.Dict:
     """The Dict observation space for `max_humans` padded human rows; with walls, `pose` (x, y, yaw in the map
     frame); with a range scan (`scan`: beams, range), `scan` (beams ranges in [0, range] m)."""
-    keys = {
+    keys: dict[str, spaces.Space[Any]] = {
         "robot": spaces.Box(-np.inf, np.inf, (ROBOT_FEATURES,), np.float32),
         "humans": spaces.Box(-np.inf, np.inf, (max_humans, HUMAN_FEATURES), np.float32),
         "humans_mask": spaces.Box(0.0, 1.0, (max_humans,), np.float32),

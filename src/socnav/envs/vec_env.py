@@ -31,7 +31,9 @@ class SocialNavVecEnv(VecEnv):
         self.world = CrowdWorld(self.config, n_envs)
         self._actions: np.ndarray | None = None
         self._renderers: dict[int, Any] = {}
-        super().__init__(n_envs, world_observation_space(self.world), action_space())
+        actions = action_space()
+        self._action_shape = actions.shape
+        super().__init__(n_envs, world_observation_space(self.world), actions)
         for env in range(n_envs):
             self.world.seed(env, None)
 
@@ -52,7 +54,7 @@ class SocialNavVecEnv(VecEnv):
         any other shape -- (8,) or (2, 4) for 4 environments, (4, 2, 1) -- raises `socnav.envs.env.ActionError`
         rather than being reshaped into rows it was not meant as. A NaN action raises it naming its index."""
         shape = np.shape(actions)
-        expected = (self.num_envs, *self.action_space.shape)
+        expected = (self.num_envs, *self._action_shape)
         if shape != expected:
             raise ActionError(f"actions must have shape {expected} (one row of speed, heading change per "
                               f"environment), got shape {shape}")
@@ -106,6 +108,7 @@ class SocialNavVecEnv(VecEnv):
         return self._renderers[env].render(scene_frame(self.world, env))
 
 
-def make_vec_env(config: ConfigLike = None, n_envs: int = 1, render_mode: str | None = None, **overrides: Any) -> SocialNavVecEnv:
+def make_vec_env(config: ConfigLike = None, n_envs: int = 1, render_mode: str | None = None,
+                 **overrides: Any) -> SocialNavVecEnv:
     """Build `n_envs` batched environments as an SB3 VecEnv; `config` as for `make_env`."""
     return SocialNavVecEnv(config, n_envs=n_envs, render_mode=render_mode, **overrides)

@@ -1,4 +1,4 @@
-"""Reinforcement learning for socnav: ODV-PPO with dropout on Stable-Baselines3 (SPEC section 3).
+"""Reinforcement learning for socnav: ODV-PPO with dropout on Stable-Baselines3 (paper IV-A, Fig. 3; docs/training.md).
 Policy network (LSTM extractor, ODV actor, critic), the ODVPPO algorithm and the five named presets.
 """
 

@@ -1,4 +1,5 @@
 """From socnav's safe policy format to a full Stable-Baselines3 model, e.g. to fine-tune a trained policy.
+:func:`to_sb3` rebuilds the ODVPPO of a policy file: its preset, hyperparameters and weights.
 
 ``PPO.load("model.zip")`` cannot read a socnav policy file (it holds JSON and tensors, no pickled SB3 objects, so
 SB3 reports ``No data found in the saved file``). :func:`to_sb3` rebuilds the model instead: an
@@ -39,7 +40,7 @@ def to_sb3(path: str | Path, env: Any = None, seed: int | None = None, n_envs: i
     from socnav.rl.presets import make_model
 
     policy = load_policy(path)
-    metadata = policy.socnav_metadata  # type: ignore[attr-defined]
+    metadata = policy.socnav_metadata
     if env is None:
         env = make_vec_env(metadata["env_config"], n_envs=n_envs)
     seed = int(metadata.get("seed", 0)) if seed is None else seed

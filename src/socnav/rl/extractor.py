@@ -1,4 +1,4 @@
-"""LSTM features extractor of the ODV-PPO network (paper Fig. 3, SPEC section 3).
+"""LSTM features extractor of the ODV-PPO network (paper Fig. 3 and IV-B; docs/training.md).
 Encodes the variable-length list of humans with a 2-layer LSTM (closest human last) and appends the robot state.
 
 Shapes used below: ``B`` batch, ``M`` max_humans (padded rows), ``L = max_b n_b`` real rows in the batch,
@@ -21,6 +21,7 @@ Samples with ``n_b = 0`` get the zero hidden state (the LSTM's initial state).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 import torch as th
@@ -59,21 +60,26 @@ def _run_lstm(lstm: nn.LSTM, x: th.Tensor) -> th.Tensor:
     """Outputs (B, L, H) of a single-layer, batch-first `lstm` from the zero state, the same values as `lstm(x)[0]`.
 
     For the few humans of most scenes the oneDNN LSTM kernel costs more in per-call overhead than in arithmetic
-    (forward + backward, B = 128, one thread: L = 1 ~1.8 ms vs ~1.0 ms written out; L = 5 ~7.4 vs ~6.6 ms; L = 10 ~9.6 vs ~15 ms), and PPO makes thousands of
-    such small gradient steps. Longer sequences use the kernel. Same parameters either way:
+    (forward + backward, B = 128, one thread: L = 1 ~1.8 ms vs ~1.0 ms written out; L = 5 ~7.4 vs ~6.6 ms;
+    L = 10 ~9.6 vs ~15 ms), and PPO makes thousands of such small gradient steps. Longer sequences use the kernel.
+    Same parameters either way:
         i, f, g, o = split(W_ih x_t + b_ih + W_hh h_{t-1} + b_hh)
         c_t = sigmoid(f) * c_{t-1} + sigmoid(i) * tanh(g),   h_t = sigmoid(o) * tanh(c_t),   h_0 = c_0 = 0
     """
     steps = x.shape[1]
     if steps > SHORT_SEQUENCE:
         return lstm(x)[0]
-    input_gates = nn.functional.linear(x, lstm.weight_ih_l0, lstm.bias_ih_l0 + lstm.bias_hh_l0)  # (B, L, 4H)
+    # nn.LSTM registers its parameters by name at run time, so torch's stubs type them Tensor | Module.
+    weight_ih, weight_hh = cast(th.Tensor, lstm.weight_ih_l0), cast(th.Tensor, lstm.weight_hh_l0)
+    bias_ih, bias_hh = cast(th.Tensor, lstm.bias_ih_l0), cast(th.Tensor, lstm.bias_hh_l0)
+    input_gates = nn.functional.linear(x, weight_ih, bias_ih + bias_hh)  # (B, L, 4H)
     outputs = []
-    hidden = cell = None
+    hidden: th.Tensor | None = None
+    cell: th.Tensor | None = None
     for t in range(steps):
         gates = input_gates[:, t]
         if hidden is not None:  # W_hh h_{t-1} vanishes at t = 0
-            gates = gates + nn.functional.linear(hidden, lstm.weight_hh_l0)
+            gates = gates + nn.functional.linear(hidden, weight_hh)
         input_gate, forget_gate, candidate, output_gate = gates.chunk(4, dim=1)
         new_cell = th.sigmoid(input_gate) * th.tanh(candidate)
         cell = new_cell if cell is None else th.sigmoid(forget_gate) * cell + new_cell
@@ -85,6 +91,8 @@ def _run_lstm(lstm: nn.LSTM, x: th.Tensor) -> th.Tensor:
 class BeamPadding(nn.Module):
     """Pads the beam axis of (B, C, N) by ``width`` on each side: wrapped around for a full-circle scan (its first
     and last beams are neighbours), zeros otherwise (beyond the field of view there is nothing)."""
+
+    wrapped: th.Tensor  # (N + 2 width,) source beam of each padded position; a buffer, circular padding only
 
     def __init__(self, beams: int, width: int, circular: bool) -> None:
         super().__init__()
@@ -150,6 +158,14 @@ class ScanEncoder(nn.Module):
         return [m for m in self.layers if isinstance(m, nn.Dropout)]
 
 
+def _box(observation_space: spaces.Dict, key: str) -> spaces.Box:
+    """The ``key`` entry of the observation space, which must be a ``Box``."""
+    space = observation_space[key]
+    if not isinstance(space, spaces.Box):
+        raise TypeError(f"observation_space[{key!r}] must be a gymnasium Box, got {space}")
+    return space
+
+
 class HumanLSTMExtractor(BaseFeaturesExtractor):
     """Shared features extractor: ``features = [dropout(h), robot]`` with ``h`` the LSTM's final hidden state.
 
@@ -165,8 +181,8 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
 
     With a ``scan`` key in the observation space the features are ``[dropout(h), robot, scan features]`` (a
     :class:`ScanEncoder`, ``scan_encoder``; its ranges are scaled by the space's upper bound, the scan's range).
-    The ``pose`` key, when present, is not read. Without ``scan`` the module holds exactly what it held before
-    scans existed, built in the same order (the same initial weights for a seed).
+    The ``pose`` key, when present, is not read. The scan encoder is built after every other module, so the LSTM
+    path draws the same initial weights for a seed with or without a scan.
 
     :param observation_space: ``Dict(robot=Box(5,), humans=Box(M, 7), humans_mask=Box(M,))``, optionally with
         ``scan=Box(0, range, (N,))`` (and ``pose``, ignored).
@@ -178,6 +194,9 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
     :param scan_features: ``S``, the scan encoder's output size. Read only with a scan.
     """
 
+    h_min: th.Tensor  # (H,) buffers: the tracked feature range
+    h_max: th.Tensor
+
     def __init__(
         self,
         observation_space: spaces.Dict,
@@ -187,9 +206,9 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         scan_fov: float = 360.0,
         scan_features: int = 32,
     ) -> None:
-        robot_dim = int(observation_space["robot"].shape[0])
-        human_dim = int(observation_space["humans"].shape[-1])
-        scan_space = observation_space.spaces.get(SCAN_KEY)
+        robot_dim = int(_box(observation_space, "robot").shape[0])
+        human_dim = int(_box(observation_space, "humans").shape[-1])
+        scan_space = _box(observation_space, SCAN_KEY) if SCAN_KEY in observation_space.spaces else None
         scan_dim = 0 if scan_space is None else scan_features
         super().__init__(observation_space, features_dim=lstm_hidden_size + robot_dim + scan_dim)
         if n_lstm_layers < 1:
@@ -208,7 +227,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         # Feature range of h, tracked from rollout observations (+inf / -inf = nothing seen yet).
         self.register_buffer("h_min", th.full((lstm_hidden_size,), float("inf")))
         self.register_buffer("h_max", th.full((lstm_hidden_size,), float("-inf")))
-        # Created last, and only with a scan: a scan-free network draws its initial weights exactly as before.
+        # Created last, and only with a scan: the modules above draw the same initial weights with or without one.
         self.scan_encoder = None if scan_space is None else ScanEncoder(
             int(scan_space.shape[0]), float(np.max(scan_space.high)), scan_fov, dropout_p, features=scan_features)
 
@@ -226,8 +245,8 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
             return humans.new_zeros(batch, self.lstm_hidden_size)
 
         x = humans[:, :max_n]  # (B, L, F): trimmed to the longest real sequence in the batch
-        for dropout, lstm in zip(self.input_dropouts, self.lstm_layers):
-            x = _run_lstm(lstm, dropout(x))  # (B, L, H)
+        for dropout, lstm in zip(self.input_dropouts, self.lstm_layers, strict=True):
+            x = _run_lstm(cast(nn.LSTM, lstm), dropout(x))  # (B, L, H); ModuleList items are typed Module
         # h_b = x[b, n_b - 1]; rows after n_b - 1 were computed from padding but are never read.
         last = (n - 1).clamp(min=0)
         h = x[th.arange(batch, device=x.device), last]  # (B, H)
@@ -245,7 +264,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
             parts.append(self.scan_encoder(observations[SCAN_KEY]))
         return th.cat(parts, dim=1), h  # (B, H + R [+ S])
 
-    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:  # type: ignore[override]
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
         """SB3 entry point: the features vector ``[dropout(h), robot(, scan features)]`` of shape (B, H + R [+ S])."""
         return self.forward_with_h(observations)[0]
 

@@ -68,8 +68,9 @@ _ZIP_METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # timestamps would make two saves of the same state differ
 
 __all__ = [
-    "CheckpointError", "PolicyLoadError", "load_checkpoint", "load_policy", "pretrained_path", "read_checkpoint_header",
-    "save_checkpoint", "save_policy", "training_world", "validation_message", "verify_checkpoint",
+    "CheckpointError", "PolicyLoadError", "entry_is_finite", "load_checkpoint", "load_policy", "pretrained_path",
+    "read_checkpoint_header", "save_checkpoint", "save_policy", "training_world", "validation_message",
+    "verify_checkpoint",
 ]
 
 
@@ -318,7 +319,8 @@ def _policy_for(config: AlgoConfig, env_config: Any, learning_rate: float = 0.0)
 
     walls = bool(world_polygons(env_config, get_scenario(env_config.scenario)))
     space = observation_space(env_config.max_humans, pose=walls, scan=env_config.scan)
-    scan = {} if env_config.scan is None else {"features_extractor_kwargs": {"scan_fov": env_config.scan.fov}}
+    scan: dict[str, Any] = ({} if env_config.scan is None
+                            else {"features_extractor_kwargs": {"scan_fov": env_config.scan.fov}})
     return ODVActorCriticPolicy(space, action_space(), lambda _: learning_rate, **policy_kwargs_for(config), **scan)
 
 
@@ -330,7 +332,11 @@ def _check_scan_fov(policy: ODVActorCriticPolicy, env_config: dict[str, Any]) ->
     encoder = getattr(policy.features_extractor, "scan_encoder", None)
     if encoder is None:
         return
-    fov = load_config(env_config).scan.fov
+    scan = load_config(env_config).scan
+    if scan is None:
+        raise ValueError("the policy reads a range scan but its env config has none (scan: null): give the env "
+                         "config of the world it was built for")
+    fov = scan.fov
     if encoder.fov != fov:
         raise ValueError(f"the policy's scan encoder was built for a {encoder.fov:g}-degree scan but its env config "
                          f"has scan.fov={fov:g}: build the policy with features_extractor_kwargs="
@@ -359,8 +365,9 @@ def _tensor_kind_problem(tensor: th.Tensor) -> str | None:
     return None
 
 
-def _finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
-    """All values finite, except the feature-range sentinel: h_min = +inf where h_max = -inf (nothing seen yet).
+def entry_is_finite(name: str, tensor: th.Tensor, state: dict[str, th.Tensor]) -> bool:
+    """Whether `tensor`, the entry `name` of the state dict `state`, holds only finite values, apart from the
+    feature-range sentinel: h_min = +inf where h_max = -inf (nothing seen yet).
     Floating AND complex tensors are checked (`torch.isfinite` of a complex value checks its real and imaginary
     parts); integer and bool tensors hold no NaN or inf (their dtype is checked against the network's apart)."""
     if not (tensor.is_floating_point() or tensor.is_complex()):
@@ -393,7 +400,7 @@ def _check_state_dict(state: Any, expected: Expected, path: Path, name: str,
         if tuple(state[key].shape) != shape:
             raise error(f"{path}: weights do not fit the recorded network ({key} has shape "
                         f"{tuple(state[key].shape)}, the header's network needs {shape})")
-        if not _finite(key, state[key], state):
+        if not entry_is_finite(key, state[key], state):
             raise error(f"{path}: {name} holds NaN or Inf values in {key}")
     return state
 
@@ -453,7 +460,7 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     policy = _policy_for(header.algo_config, env_config)
     policy.load_state_dict(state, strict=True)  # names and shapes checked above
     policy.set_training_mode(False)
-    policy.socnav_metadata = raw_header  # type: ignore[attr-defined]  (validated above)
+    policy.socnav_metadata = raw_header  # validated above
     return policy
 
 
@@ -549,7 +556,7 @@ def _same_setting(saved: Any, fresh: Any) -> bool:
     not 1, a tuple's items compared one by one)."""
     if isinstance(fresh, (tuple, list)):
         return isinstance(saved, (tuple, list)) and len(saved) == len(fresh) and all(
-            _same_setting(a, b) for a, b in zip(saved, fresh))
+            _same_setting(a, b) for a, b in zip(saved, fresh, strict=True))
     return type(saved) is type(fresh) and saved == fresh
 
 
@@ -565,10 +572,16 @@ def _check_optimizer_state(saved: dict[str, Any], optimizer: th.optim.Optimizer,
     """
     fresh = optimizer.state_dict()
     groups, state = saved["param_groups"], saved["state"]
-    if not isinstance(groups, list) or len(groups) != len(fresh["param_groups"]):
+    _check_parameter_groups(groups, fresh["param_groups"], path)
+    _check_moments(state, optimizer, path)
+
+
+def _check_parameter_groups(groups: Any, expected_groups: list[dict[str, Any]], path: Path) -> None:
+    """The saved parameter groups are the fresh optimizer's: as many, each with exactly its settings."""
+    if not isinstance(groups, list) or len(groups) != len(expected_groups):
         raise CheckpointError(f"{path}: the optimizer state has {len(groups) if isinstance(groups, list) else 'no'} "
-                              f"parameter group(s); the network's optimizer has {len(fresh['param_groups'])}")
-    for number, (group, expected) in enumerate(zip(groups, fresh["param_groups"])):
+                              f"parameter group(s); the network's optimizer has {len(expected_groups)}")
+    for number, (group, expected) in enumerate(zip(groups, expected_groups, strict=True)):
         if not isinstance(group, dict):
             raise CheckpointError(f"{path}: optimizer parameter group {number} is not a mapping")
         unknown = sorted(str(key) for key in set(group) - set(expected))
@@ -580,6 +593,10 @@ def _check_optimizer_state(saved: dict[str, Any], optimizer: th.optim.Optimizer,
                 shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
                 raise CheckpointError(f"{path}: optimizer setting {key} is {shown}; training with the checkpoint's "
                                       f"hyperparameters uses {expected[key]!r}")
+
+
+def _check_moments(state: Any, optimizer: th.optim.Optimizer, path: Path) -> None:
+    """The saved per-parameter state holds, for parameters of `optimizer` only, exactly Adam's moment tensors."""
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     amsgrad = any(group.get("amsgrad") for group in optimizer.param_groups)
     slots = {"step", "exp_avg", "exp_avg_sq"} | ({"max_exp_avg_sq"} if amsgrad else set())
@@ -593,22 +610,31 @@ def _check_optimizer_state(saved: dict[str, Any], optimizer: th.optim.Optimizer,
                                   f"{', '.join(sorted(slots))}; it holds {sorted(map(str, slot))[:5]}")
         parameter = parameters[index]
         for key, value in slot.items():
-            problem = _tensor_kind_problem(value)
-            if problem is None and key == "step":
-                if value.shape != () or not value.is_floating_point():
-                    problem = f"shape {tuple(value.shape)} and dtype {value.dtype}, not a float scalar"
-                elif not (math.isfinite(float(value)) and float(value) >= 0 and float(value).is_integer()):
-                    problem = f"{float(value)!r}, not a whole number of steps"
-            elif problem is None:
-                if value.shape != parameter.shape or value.dtype != parameter.dtype:
-                    problem = (f"shape {tuple(value.shape)} and dtype {value.dtype}; the parameter's are "
-                               f"{tuple(parameter.shape)} and {parameter.dtype}")
-                elif not bool(th.isfinite(value).all()):
-                    problem = "NaN or Inf values"
-                elif key != "exp_avg" and bool((value < 0).any()):
-                    problem = "negative values (a mean of squares)"
+            problem = _moment_problem(key, value, parameter)
             if problem is not None:
                 raise CheckpointError(f"{path}: optimizer entry {index} {key}: {problem}")
+
+
+def _moment_problem(key: str, value: th.Tensor, parameter: th.Tensor) -> str | None:
+    """What is wrong with Adam's state tensor `key` of `parameter`, None if nothing: ``step`` a whole, non-negative
+    float scalar; a moment dense, of the parameter's shape and dtype, finite, and (but the first) non-negative."""
+    problem = _tensor_kind_problem(value)
+    if problem is not None:
+        return problem
+    if key == "step":
+        if value.shape != () or not value.is_floating_point():
+            return f"shape {tuple(value.shape)} and dtype {value.dtype}, not a float scalar"
+        if not (math.isfinite(float(value)) and float(value) >= 0 and float(value).is_integer()):
+            return f"{float(value)!r}, not a whole number of steps"
+        return None
+    if value.shape != parameter.shape or value.dtype != parameter.dtype:
+        return (f"shape {tuple(value.shape)} and dtype {value.dtype}; the parameter's are "
+                f"{tuple(parameter.shape)} and {parameter.dtype}")
+    if not bool(th.isfinite(value).all()):
+        return "NaN or Inf values"
+    if key != "exp_avg" and bool((value < 0).any()):
+        return "negative values (a mean of squares)"
+    return None
 
 
 def _validated_checkpoint(path: Path) -> tuple[CheckpointHeader, dict[str, th.Tensor], dict[str, Any]]:

@@ -1,4 +1,4 @@
-"""Actor-critic policy of ODV-PPO with dropout: an SB3 ``ActorCriticPolicy`` subclass (paper Fig. 3, SPEC section 3).
+"""Actor-critic policy of ODV-PPO with dropout: an SB3 ``ActorCriticPolicy`` subclass (paper Fig. 3, IV-A and IV-B).
 Shared LSTM features extractor, actor with dropout and observation-dependent variance (ODV), critic without dropout.
 
 Network (``o`` an observation, ``p`` the dropout probability ``p_train``)::
@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from functools import partial
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch as th
@@ -83,7 +83,7 @@ def check_finite(**tensors: th.Tensor) -> None:
     flags = th.stack([th.isfinite(t).all() for t in tensors.values()])
     if bool(flags.all()):
         return
-    for name, ok in zip(tensors, flags.tolist()):
+    for name, ok in zip(tensors, flags.tolist(), strict=True):
         if not ok:
             raise NonFiniteError(name)
 
@@ -91,6 +91,9 @@ def check_finite(**tensors: th.Tensor) -> None:
 # ----------------------------------------------------------------------------------------------------------
 # Building blocks
 # ----------------------------------------------------------------------------------------------------------
+SelfGaussianDistribution = TypeVar("SelfGaussianDistribution", bound="GaussianDistribution")
+
+
 class GaussianDistribution(DiagGaussianDistribution):
     """SB3's diagonal Gaussian, built without ``torch.distributions`` argument validation.
 
@@ -99,7 +102,9 @@ class GaussianDistribution(DiagGaussianDistribution):
     ``log_std`` may be a per-observation tensor (B, A) (ODV) or a parameter (A,) (broadcast).
     """
 
-    def proba_distribution(self, mean_actions: th.Tensor, log_std: th.Tensor) -> GaussianDistribution:  # type: ignore[override]
+    def proba_distribution(
+        self: SelfGaussianDistribution, mean_actions: th.Tensor, log_std: th.Tensor
+    ) -> SelfGaussianDistribution:
         self.distribution = Normal(mean_actions, log_std.exp().expand_as(mean_actions), validate_args=False)
         return self
 
@@ -186,7 +191,12 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
     """
 
     features_extractor: HumanLSTMExtractor
-    mlp_extractor: DropoutMlpExtractor
+    # SB3 declares MlpExtractor, yet lets _build_mlp_extractor install any module with its interface.
+    mlp_extractor: DropoutMlpExtractor  # type: ignore[assignment]
+    action_space: spaces.Box  # checked in __init__
+    action_dist: GaussianDistribution
+    #: The policy file's header (algo, algo_config, env_config, ...), set on policies read by `load_policy`.
+    socnav_metadata: dict[str, Any]
 
     def __init__(
         self,
@@ -297,10 +307,12 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         if self.odv:  # start at sigma ~ exp(log_std_init) everywhere, like the SB3 parameter
             nn.init.constant_(self.log_std_net.bias, float(self.log_std_init))
 
-        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
+        # torch types the base Optimizer's constructor without `lr`, which every concrete optimizer takes.
+        self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
 
     # ---- forward passes -----------------------------------------------------------------------------------
-    def obs_to_tensor(self, observation: Any) -> tuple[Any, bool]:
+    def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
         """SB3's conversion, given only the keys this policy was built with: a policy trained without walls acts in a
         world with walls (whose observations add ``pose`` and maybe ``scan``) on what it knows."""
         if isinstance(observation, dict) and isinstance(self.observation_space, spaces.Dict):
@@ -310,7 +322,9 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
     def _features(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """``(features, h)`` for an observation dict of tensors."""
         preprocessed = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
-        return self.features_extractor.forward_with_h(preprocessed)  # type: ignore[arg-type]
+        if not isinstance(preprocessed, dict):
+            raise TypeError(f"ODVActorCriticPolicy reads a Dict observation, got a {type(preprocessed).__name__}")
+        return self.features_extractor.forward_with_h(preprocessed)
 
     def mean_log_std(self, latent_pi: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """``(mu, log sigma)``, both (B, A), from the actor latent; ODV clamps log sigma to the configured range."""
@@ -321,13 +335,13 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
             log_std = self.log_std.expand_as(mean)
         return mean, log_std
 
-    def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> GaussianDistribution:  # type: ignore[override]
+    def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> GaussianDistribution:
         mean, log_std = self.mean_log_std(latent_pi)
         if self.check_outputs:
             check_finite(**{"policy.mean": mean, "policy.log_std": log_std})
         return self.action_dist.proba_distribution(mean, log_std)
 
-    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:  # type: ignore[override]
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Rollout step: ``(actions, values, log_prob)``; one extractor pass shared by actor and critic.
 
         Inside :meth:`feature_range_tracking` the hidden states also update the tracked feature range.
@@ -342,7 +356,7 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         distribution = self._get_action_dist_from_latent(latent_pi)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
-        return actions.reshape((-1, *self.action_space.shape)), values, log_prob  # type: ignore[misc]
+        return actions.reshape((-1, *self.action_space.shape)), values, log_prob
 
     def evaluate_actions_and_log_std(
         self, obs: PyTorchObs, actions: th.Tensor
@@ -359,15 +373,18 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         if self.check_outputs:
             check_finite(**{"policy.mean": mean, "policy.log_std": log_std, "policy.value": values})
         distribution = self.action_dist.proba_distribution(mean, log_std)
-        return values, distribution.log_prob(actions), distribution.entropy(), log_std  # type: ignore[return-value]
+        log_prob = distribution.log_prob(actions)
+        entropy = distribution.entropy()
+        assert entropy is not None  # SB3 types it optional; a Gaussian's entropy always exists
+        return values, log_prob, entropy, log_std
 
-    def evaluate_actions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:  # type: ignore[override]
+    def evaluate_actions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
         """SB3 interface: ``(values, log_prob, entropy)``."""
         return self.evaluate_actions_and_log_std(obs, actions)[:3]
 
     # ---- uncertainty-estimation API ----------------------------------------------------------------------
     def action_stats(
-        self, obs: PyTorchObs | dict[str, np.ndarray]
+        self, obs: dict[str, th.Tensor] | dict[str, np.ndarray]
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Per-observation ``(h, mean, log_std)`` of shapes (B, H), (B, A), (B, A), in one forward pass.
 
@@ -377,10 +394,12 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         dict of tensors or of NumPy arrays (batched or single). For non-ODV policies ``log_std`` is the
         state-independent parameter broadcast to (B, A).
         """
-        if not isinstance(next(iter(obs.values())), th.Tensor):  # type: ignore[union-attr]
-            obs, _ = self.obs_to_tensor(obs)  # type: ignore[arg-type]
+        if isinstance(next(iter(obs.values())), th.Tensor):
+            tensors: PyTorchObs = cast(dict[str, th.Tensor], obs)  # a dict of tensors (its values are alike)
+        else:
+            tensors, _ = self.obs_to_tensor(cast(dict[str, np.ndarray], obs))
         with th.no_grad():
-            features, h = self._features(obs)  # type: ignore[arg-type]
+            features, h = self._features(tensors)
             mean, log_std = self.mean_log_std(self.mlp_extractor.forward_actor(features))
         return h, mean, log_std
 
@@ -414,9 +433,9 @@ class ODVActorCriticPolicy(ActorCriticPolicy):
         try:
             yield self
         finally:
-            for d, q in zip(layers, old_p):
+            for d, q in zip(layers, old_p, strict=True):
                 d.p = q
-            for m, mode in zip(modules, modes):
+            for m, mode in zip(modules, modes, strict=True):
                 object.__setattr__(m, "training", mode)
 
     @contextmanager

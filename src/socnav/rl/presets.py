@@ -1,5 +1,5 @@
 """Named hyperparameter presets of the five paper variants and ``make_model`` to build an ODVPPO from one.
-``ppo``, ``ppo-drop``, ``odv-ppo-noloss``, ``odv-ppo``, ``odv-ppo-drop`` (paper Table I / SPEC section 3).
+``ppo``, ``ppo-drop``, ``odv-ppo-noloss``, ``odv-ppo``, ``odv-ppo-drop`` (paper Table I; docs/training.md, Presets).
 
 ODV presets follow paper Table I (lr 2.5e-4, n_steps 128 per env, batch 128, p_train 0.1, p_test 0.5,
 log-sigma clamp [-20, 0.25], lambda_sigma 0.3, sigma^2_tgt 0); the PPO presets use SB3-style defaults (lr 3e-4,
@@ -33,44 +33,46 @@ LayerSizes = tuple[Annotated[StrictInt, Field(gt=0, le=_MAX_WIDTH)], ...]
 
 class AlgoConfig(StrictModel):
     """All hyperparameters of one training run (PPO, network, ODV, dropout, runtime); every number finite, every
-    count a strict integer (socnav.config.StrictModel)."""
+    count a strict integer (socnav.config.StrictModel). Defaults are written ``Field(default=...)``: the keyword is
+    what type checkers read as a default."""
 
     model_config = ConfigDict(frozen=True)
 
     # -- PPO (SB3 names) --
-    learning_rate: float = Field(3e-4, gt=0, le=1)
-    n_steps: StrictInt = Field(128, gt=0, le=_MAX_STEPS, description="rollout steps per environment")
-    batch_size: StrictInt = Field(128, gt=1, le=_MAX_STEPS, description="minibatch size of one gradient step")
-    n_epochs: StrictInt = Field(10, gt=0, le=1000)
-    gamma: float = Field(0.99, ge=0, le=1)
-    gae_lambda: float = Field(0.95, ge=0, le=1)
-    clip_range: float = Field(0.2, gt=0, le=1, description="PPO clips the policy ratio to [1 - c, 1 + c]")
-    clip_range_vf: float | None = Field(None, gt=0, le=1e6, description="value clip, in return units (None: off)")
+    learning_rate: float = Field(default=3e-4, gt=0, le=1)
+    n_steps: StrictInt = Field(default=128, gt=0, le=_MAX_STEPS, description="rollout steps per environment")
+    batch_size: StrictInt = Field(default=128, gt=1, le=_MAX_STEPS, description="minibatch size of one gradient step")
+    n_epochs: StrictInt = Field(default=10, gt=0, le=1000)
+    gamma: float = Field(default=0.99, ge=0, le=1)
+    gae_lambda: float = Field(default=0.95, ge=0, le=1)
+    clip_range: float = Field(default=0.2, gt=0, le=1, description="PPO clips the policy ratio to [1 - c, 1 + c]")
+    clip_range_vf: float | None = Field(default=None, gt=0, le=1e6,
+                                        description="value clip, in return units (None: off)")
     normalize_advantage: bool = True
-    ent_coef: float = Field(0.0, ge=0, le=100, description="entropy bonus weight")
-    vf_coef: float = Field(0.5, ge=0, le=100, description="value loss weight")
-    max_grad_norm: float = Field(0.5, gt=0, le=1e6)
-    target_kl: float | None = Field(None, gt=0, le=1e3, description="early stop of an update (None: off)")
+    ent_coef: float = Field(default=0.0, ge=0, le=100, description="entropy bonus weight")
+    vf_coef: float = Field(default=0.5, ge=0, le=100, description="value loss weight")
+    max_grad_norm: float = Field(default=0.5, gt=0, le=1e6)
+    target_kl: float | None = Field(default=None, gt=0, le=1e3, description="early stop of an update (None: off)")
     # -- network (paper Fig. 3) --
-    lstm_hidden_size: StrictInt = Field(64, gt=0, le=_MAX_WIDTH)
-    n_lstm_layers: StrictInt = Field(2, gt=0, le=16)
-    net_arch_pi: LayerSizes = Field((128, 128), max_length=16)
-    net_arch_vf: LayerSizes = Field((128, 128), max_length=16)
+    lstm_hidden_size: StrictInt = Field(default=64, gt=0, le=_MAX_WIDTH)
+    n_lstm_layers: StrictInt = Field(default=2, gt=0, le=16)
+    net_arch_pi: LayerSizes = Field(default=(128, 128), max_length=16)
+    net_arch_vf: LayerSizes = Field(default=(128, 128), max_length=16)
     ortho_init: bool = True
-    log_std_init: float = Field(0.0, ge=-20, le=2, description="initial log sigma (sigma in e^-20 ... e^2)")
+    log_std_init: float = Field(default=0.0, ge=-20, le=2, description="initial log sigma (sigma in e^-20 ... e^2)")
     # -- observation-dependent variance (paper IV-A) --
     odv: bool = False
-    log_std_min: float = Field(-20.0, ge=-50, le=5)
-    log_std_max: float = Field(0.25, ge=-50, le=5)
-    variance_coef: float = Field(0.0, ge=0, le=1e3, description="lambda_sigma of eq. (4)")
-    variance_target: float = Field(0.0, ge=0, le=1e3, description="sigma^2_tgt of eq. (4)")
+    log_std_min: float = Field(default=-20.0, ge=-50, le=5)
+    log_std_max: float = Field(default=0.25, ge=-50, le=5)
+    variance_coef: float = Field(default=0.0, ge=0, le=1e3, description="lambda_sigma of eq. (4)")
+    variance_target: float = Field(default=0.0, ge=0, le=1e3, description="sigma^2_tgt of eq. (4)")
     # -- dropout (paper IV-B) --
-    p_train: float = Field(0.0, ge=0, lt=1, description="dropout probability during training")
-    p_test: float = Field(0.5, ge=0, lt=1, description="MC-dropout probability at test time (stored)")
+    p_train: float = Field(default=0.0, ge=0, lt=1, description="dropout probability during training")
+    p_test: float = Field(default=0.5, ge=0, lt=1, description="MC-dropout probability at test time (stored)")
     # -- runtime --
     device: str = "cpu"
     torch_threads: StrictInt | None = Field(
-        1,
+        default=1,
         gt=0,
         le=1024,
         description=(
@@ -233,6 +235,7 @@ def make_model(
         seed=seed,
         device=cfg.device,
     )
+    # Attributes of socnav's own on the SB3 model (ODVPPO declares neither); JSON-safe, so checkpoints store them.
     model.algo_name = algo  # type: ignore[attr-defined]
-    model.algo_config = cfg.model_dump(mode="json")  # type: ignore[attr-defined]  (JSON-safe: saved in the zip)
+    model.algo_config = cfg.model_dump(mode="json")  # type: ignore[attr-defined]
     return model

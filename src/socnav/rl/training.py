@@ -24,6 +24,7 @@ import json
 import re
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from stable_baselines3.common.callbacks import BaseCallback
 
-from socnav.config import ConfigError, ConfigLike, load_config
+from socnav.config import ConfigError, ConfigLike, EnvConfig, load_config
 from socnav.envs.rollout import rollout_episodes, summarize
 from socnav.envs.vec_env import make_vec_env
 from socnav.io import (
@@ -231,7 +232,7 @@ def _logs_mismatch(state: CheckpointState, curve: list[dict[str, Any]], evals: l
 
 def _step(row: dict[str, Any]) -> int | None:
     """The `timesteps` of a log row as an int, None if it is not a whole number."""
-    value = row.get("timesteps")
+    value: Any = row.get("timesteps")  # whatever the CSV held
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -392,7 +393,9 @@ def _resume_seeds(seed: int, step: int) -> tuple[int, int]:
 class _RunMonitor(BaseCallback):
     """Records the training curve, evaluates and checkpoints on schedule, and drives the progress display."""
 
-    def __init__(self, run: _Run):
+    model: ODVPPO  # the model whose learn() runs the callback
+
+    def __init__(self, run: _Run) -> None:
         super().__init__()
         self.run = run
 
@@ -411,8 +414,8 @@ class _RunMonitor(BaseCallback):
 class _Run:
     """State of one training run directory."""
 
-    def __init__(self, out_dir: Path, env_config: Any, algo: str, algo_config: Any, seed: int, timesteps: int,
-                 eval_every: int, eval_episodes: int):
+    def __init__(self, out_dir: Path, env_config: EnvConfig, algo: str, algo_config: AlgoConfig, seed: int,
+                 timesteps: int, eval_every: int, eval_episodes: int) -> None:
         self.out_dir = out_dir
         self.env_config = env_config
         # a world with walls also reports the episodes that ended against a wall (apart from collisions with people)
@@ -444,10 +447,11 @@ class _Run:
 
     # ---- logs ----
     def record_curve(self, model: ODVPPO) -> None:
-        episodes = list(model.ep_info_buffer)
-        successes = list(model.ep_success_buffer)
+        episodes = list(model.ep_info_buffer or ())  # (None only before learn() sets the buffers up)
+        successes = list(model.ep_success_buffer or ())
+        timesteps = int(model.num_timesteps)
         row = {
-            "timesteps": int(model.num_timesteps),
+            "timesteps": timesteps,
             "wall_time_s": self.wall_time(),
             "ep_rew_mean": float(np.mean([e["r"] for e in episodes])) if episodes else float("nan"),
             "ep_len_mean": float(np.mean([e["l"] for e in episodes])) if episodes else float("nan"),
@@ -455,7 +459,7 @@ class _Run:
         }
         self.curve.append(row)
         if self.progress is not None:
-            self.progress(row["timesteps"], row["success_rate"])
+            self.progress(timesteps, row["success_rate"])
 
     def evaluate(self, model: ODVPPO, log: bool = True) -> dict[str, float]:
         """Validation episodes at the model's current step; `log=False` skips TensorBoard (no logger before
@@ -560,7 +564,8 @@ def train(
 ) -> TrainResult:
     """Train preset `algo` for `timesteps` environment steps on the env `config`; write everything to `out_dir`.
 
-    :param config: env config (EnvConfig, partial dict or YAML path), e.g. ``{"scenario": "position_swap", "n_humans": 1}``.
+    :param config: env config (EnvConfig, partial dict or YAML path), e.g.
+        ``{"scenario": "position_swap", "n_humans": 1}``.
     :param algo: one of ``socnav.rl.ALGOS``; `overrides` replaces any of its hyperparameters (AlgoConfig fields).
     :param eval_every: timesteps between evaluations + checkpoints (default: a tenth of the run, >= one rollout).
     :param eval_episodes: validation episodes per periodic evaluation (seeds disjoint from training and test).
@@ -749,14 +754,17 @@ def _finish(run: _Run, model: ODVPPO, info: dict[str, Any], state: CheckpointSta
 
 
 class _NoDisplay:
-    def __enter__(self):
+    """The progress display of a run without one."""
+
+    def __enter__(self) -> _NoDisplay:
         return self
 
     def __exit__(self, *exc: Any) -> None:
         return None
 
 
-def _progress_display(progress: bool | Callable[[int, float | None], None], total: int):
+def _progress_display(progress: bool | Callable[[int, float | None], None],
+                      total: int) -> tuple[AbstractContextManager[Any], Callable[[int, float | None], None] | None]:
     """A rich progress bar showing timesteps and the live success rate (over the last 100 episodes)."""
     if callable(progress):
         return _NoDisplay(), progress

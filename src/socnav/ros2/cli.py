@@ -175,7 +175,7 @@ def sim(
         console.print(f"{len(records)} episodes: goal {metrics['goal_pct']:.1f} %, collision "
                       f"{metrics['collision_pct']:.1f} %, time-out {metrics['timeout_pct']:.1f} %", highlight=False)
         console.print(f"per-episode records: {escape(str(out))}", highlight=False)
-        if record is not None:
+        if node.recorder is not None:  # the node records exactly when given `record`
             console.print(f"recording: {escape(str(record))} ({node.recorder.messages} messages)", highlight=False)
 
     _spin(rclpy, ctx.args, build, run)

@@ -241,9 +241,11 @@ class NavigatorNode(Node):
 
     def _decide_if_complete(self) -> None:
         stamps = {self.odometry.stamp_ns, self.humans.stamp_ns, self.goal.stamp_ns}
-        if len(stamps) != 1 or None in stamps or self._pending_trigger is None:
+        if len(stamps) != 1 or self._pending_trigger is None:
             return
         stamp = stamps.pop()
+        if stamp is None:  # an input not received yet (or without a readable stamp)
+            return
         if self._last_decided_stamp is not None and stamp <= self._last_decided_stamp:
             self._pending_trigger = None  # a repeated stamp: decided already
             return
@@ -265,7 +267,7 @@ class NavigatorNode(Node):
     def _input_problem(self, latest: _Latest, what: str, now_ns: int) -> str | None:
         if latest.error is not None:
             return latest.error
-        if latest.value is None:
+        if latest.value is None or latest.stamp_ns is None:  # a parsed value always has its stamp
             return f"no {what} received yet"
         age = (now_ns - latest.stamp_ns) / _NS
         limit = self.settings["max_input_age"]
@@ -319,7 +321,7 @@ class NavigatorNode(Node):
         stopped = decision.fault is not None and not decision.fallback
         level = stop if stopped else DiagnosticStatus.WARN if decision.fallback or decision.fault else \
             DiagnosticStatus.OK
-        message = ("stopped: " + decision.fault if stopped else
+        message = (f"stopped: {decision.fault}" if stopped else
                    "fallback: the cautious controller drives" if decision.fallback else "policy drives")
         return Outcome(decision.speed, decision.turn, stopped, level, message, decision.fallback,
                        dict(decision.windowed), decision.fault, len(humans.radii), goal_distance)
@@ -367,18 +369,19 @@ class NavigatorNode(Node):
 
         humans: TrackedHumans | None = self.humans.value
         if humans is not None:
-            for index, (position, radius) in enumerate(zip(humans.positions, humans.radii)):
-                markers.append(marker("humans", index, Marker.CYLINDER, *position, 2 * radius, 1.7,
+            for index, (position, radius) in enumerate(zip(humans.positions, humans.radii, strict=True)):
+                markers.append(marker("humans", index, Marker.CYLINDER, position[0], position[1], 2 * radius, 1.7,
                                       (0.6, 0.6, 0.6, 0.8)))
-        if self.goal.value is not None:
-            markers.append(marker("goal", 0, Marker.CYLINDER, *self.goal.value, 2 * self.settings["goal_tolerance"],
+        goal = self.goal.value
+        if goal is not None:
+            markers.append(marker("goal", 0, Marker.CYLINDER, goal[0], goal[1], 2 * self.settings["goal_tolerance"],
                                   0.02, (0.1, 0.8, 0.2, 0.8)))
         robot: RobotOdometry | None = self.odometry.value
         if robot is not None:
             color = (0.9, 0.1, 0.1, 0.9) if outcome.stopped else (1.0, 0.55, 0.0, 0.9) if outcome.fallback \
                 else (0.2, 0.4, 1.0, 0.9)
-            markers.append(marker("robot", 0, Marker.CYLINDER, *robot.position, 2 * self.settings["robot_radius"],
-                                  0.3, color))
+            markers.append(marker("robot", 0, Marker.CYLINDER, robot.position[0], robot.position[1],
+                                  2 * self.settings["robot_radius"], 0.3, color))
             text = marker("uncertainty", 0, Marker.TEXT_VIEW_FACING, robot.position[0], robot.position[1], 0.0, 0.25,
                           (1.0, 1.0, 1.0, 1.0))
             text.pose.position.z = 1.0

@@ -38,6 +38,7 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy.client import Client
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -130,23 +131,24 @@ class SimulatorNode(Node):
         self.markers = self.create_publisher(MarkerArray, "~/markers", 10)
         self.create_subscription(Twist, topics["cmd_vel"], self._on_cmd_vel, 10)
         self.cmd_vel_topic = self.resolve_topic_name(topics["cmd_vel"])
-        self._parameters = None
+        # (not `_parameters`: rclpy's Node keeps its own parameters under that name)
+        self._navigator_parameters: Client | None = None
         if self.navigator_node:
             name = self.navigator_node if self.navigator_node.startswith("/") else f"/{self.navigator_node}"
-            self._parameters = self.create_client(SetParameters, f"{name}/set_parameters")
+            self._navigator_parameters = self.create_client(SetParameters, f"{name}/set_parameters")
             if self.recorder is not None:
                 for topic, type_name in (*((f"{name}/{topic}", kind) for topic, kind in _NAVIGATOR_TOPICS),
                                          ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")):
-                    self._record_topic(topic, type_name)
+                    self._record_topic(self.recorder, topic, type_name)
 
     # ------------------------------------------------------------------------------------------------- inputs
 
-    def _record_topic(self, topic: str, type_name: str) -> None:
+    def _record_topic(self, recorder: McapRecorder, topic: str, type_name: str) -> None:
         """Record another node's topic as it arrives (serialized, not decoded), at the current simulated time."""
         package, _, name = type_name.split("/")
         message_type = getattr(importlib.import_module(f"{package}.msg"), name)
-        self.create_subscription(message_type, topic, lambda data: self.recorder.write(topic, data, self.now_ns,
-                                                                                       type_name), 10, raw=True)
+        self.create_subscription(message_type, topic, lambda data: recorder.write(topic, data, self.now_ns, type_name),
+                                 10, raw=True)
 
     def _on_cmd_vel(self, message: Twist) -> None:
         try:
@@ -204,11 +206,11 @@ class SimulatorNode(Node):
         def ready() -> bool:
             return (all(p.get_subscription_count() > 0 for p in (self.odometry, self.humans, self.goal))
                     and self.count_publishers(self.cmd_vel_topic) > 0
-                    and (self._parameters is None or self._parameters.service_is_ready()))
+                    and (self._navigator_parameters is None or self._navigator_parameters.service_is_ready()))
         self._spin_until(executor, ready, self.wait_timeout,
                          f"no navigator subscribed to {self.odometry.topic_name}, {self.humans.topic_name} and "
                          f"{self.goal.topic_name} and published on {self.cmd_vel_topic}"
-                         + (f" (with node {self.navigator_node})" if self._parameters else ""))
+                         + (f" (with node {self.navigator_node})" if self._navigator_parameters else ""))
 
     def _begin_episode(self, executor: Executor) -> None:
         """Start the next episode (seed ``seed + k``), tell the navigator its robot, publish its first state."""
@@ -216,17 +218,19 @@ class SimulatorNode(Node):
         self.world.seed(0, self.seed + self.episode)
         self.world.reset([0])
         self._turn_rate, self._command = 0.0, None
-        if self._parameters is not None:
-            self._configure_navigator(executor)
+        if self._navigator_parameters is not None:
+            self._configure_navigator(executor, self._navigator_parameters)
         self._publish_state()
 
-    def _configure_navigator(self, executor: Executor) -> None:
+    def _configure_navigator(self, executor: Executor, client: Client) -> None:
+        """Set the navigator's preferred_speed and robot_radius to this episode's robot (its SetParameters
+        `client`), waiting for the answer."""
         values = {"preferred_speed": float(self.world.preferred_speeds[0, 0]),
                   "robot_radius": float(self.world.radii[0, 0])}
         request = SetParameters.Request(parameters=[
             ParameterMessage(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
             for name, value in values.items()])
-        future = self._parameters.call_async(request)
+        future = client.call_async(request)
         # Waited for, so that the episode's first decision already knows its robot (a few ms, between episodes)
         self._spin_until(executor, future.done, self.wait_timeout,
                          f"node {self.navigator_node} did not answer set_parameters")
@@ -239,12 +243,19 @@ class SimulatorNode(Node):
 
     def _run_lockstep(self, executor: Executor) -> None:
         while len(self.records) < self.episodes:
-            answered = self.commands_received
-            self._spin_until(executor, lambda: self.commands_received > answered, self.wait_timeout,
-                             f"no command on {self.cmd_vel_topic} for step {self.world.steps[0]} of episode "
-                             f"{self.episode} (is the navigator running with lockstep:=true?)",
-                             resend=self._resend_state)
-            self._advance(executor, self._command)
+            self._advance(executor, self._next_command(executor))
+
+    def _next_command(self, executor: Executor) -> tuple[float, float]:
+        """Lock-step: wait for the navigator's command for the step just published, sending the step again every
+        RESEND_PERIOD s meanwhile."""
+        answered = self.commands_received
+        self._spin_until(executor, lambda: self.commands_received > answered, self.wait_timeout,
+                         f"no command on {self.cmd_vel_topic} for step {self.world.steps[0]} of episode "
+                         f"{self.episode} (is the navigator running with lockstep:=true?)",
+                         resend=self._resend_state)
+        command = self._command
+        assert command is not None  # `_on_cmd_vel` set it: it counted the command just received
+        return command
 
     def _resend_state(self) -> None:
         """The step's messages again, same stamp, not recorded: one lost before a subscriber was matched (a relay
@@ -260,8 +271,15 @@ class SimulatorNode(Node):
             if time.monotonic() < next_step:
                 continue
             next_step += period
-            fresh = self._command is not None and self.now_ns - self._command_ns <= self.command_timeout * _NS
-            self._advance(executor, self._command if fresh else (0.0, 0.0))
+            self._advance(executor, self._fresh_command())
+
+    def _fresh_command(self) -> tuple[float, float]:
+        """Real time: the last command received, or a stop once it is older than ``command_timeout`` s of simulated
+        time (a robot base's watchdog)."""
+        command = self._command
+        if command is not None and self.now_ns - self._command_ns <= self.command_timeout * _NS:
+            return command
+        return (0.0, 0.0)
 
     def _advance(self, executor: Executor, command: tuple[float, float]) -> None:
         """Step the world with ``(v, dtheta)``; record an ended episode and begin the next (or stop)."""
@@ -335,6 +353,7 @@ class SimulatorNode(Node):
                                                                   math.cos(world.heading[0] / 2))
         markers.append(heading)
         goal_size = 2 * self.config.goal_tolerance
-        markers.append(marker("sim_goal", 0, Marker.CYLINDER, *world.goals[0, 0], (goal_size, goal_size, 0.02),
+        goal_x, goal_y = world.goals[0, 0]
+        markers.append(marker("sim_goal", 0, Marker.CYLINDER, goal_x, goal_y, (goal_size, goal_size, 0.02),
                               (0.1, 0.8, 0.2, 0.8)))
         return MarkerArray(markers=markers)

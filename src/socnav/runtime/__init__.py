@@ -24,14 +24,14 @@ another format version, or whose metadata or graph is invalid; `act` refuses inv
 
 from socnav.runtime.format import NavigatorMetadata
 from socnav.runtime.navigator import (
-                                      NON_FINITE_OBSERVATION,
-                                      NON_FINITE_OUTPUT,
-                                      STOPPED,
-                                      Decision,
-                                      HumansState,
-                                      InputError,
-                                      RobotState,
-                                      SafeNavigator,
+    NON_FINITE_OBSERVATION,
+    NON_FINITE_OUTPUT,
+    STOPPED,
+    Decision,
+    HumansState,
+    InputError,
+    RobotState,
+    SafeNavigator,
 )
 from socnav.runtime.network import DropoutStream, ExportedPolicy, NavigatorLoadError, NetworkOutput
 from socnav.uncertainty.stats import Uncertainty

@@ -24,9 +24,9 @@ with those 64 digits read as ``0``: it covers the graph, its weights and the met
 way to the robot (a flipped bit, a truncated copy) is refused at load instead of driving it (:func:`seal`,
 :func:`verify`). It is no signature: anyone can recompute it.
 
-Version 2 added the checksum; version-1 files are refused with a request to re-export them. Version 3 added the
-``scan`` input and the ``walls`` record: the exporter writes it for a world with walls or a scan only, and version 2
-otherwise (those files stay what they were); the runtime reads both.
+Format versions: 2 carries the checksum (a version-1 file, which has none, is refused with a request to re-export
+it); 3 also has the ``scan`` input and the ``walls`` record. The exporter writes version 3 for a world with walls or a
+scan only, version 2 otherwise; the runtime reads both.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ import hashlib
 import hmac
 import math
 import re
+from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -74,13 +75,16 @@ __all__ = [
     "verify",
 ]
 
-FORMAT_NAME = "socnav-navigator"
+#: The metadata's ``format`` and ``version`` values (as types: what the schema accepts; as constants below).
+FormatName = Literal["socnav-navigator"]
+FormatVersion = Literal[2, 3]
+FORMAT_NAME: FormatName = "socnav-navigator"
 #: 3: a world with walls (``walls``) or a range scan (the ``scan`` input). 2: the file carries a sha256 checksum
 #: (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
-FORMAT_VERSION = 3
-#: The version of a navigator without walls and without a scan (what every navigator was before walls existed).
-WALL_FREE_VERSION = 2
-SUPPORTED_VERSIONS = (WALL_FREE_VERSION, FORMAT_VERSION)
+FORMAT_VERSION: FormatVersion = 3
+#: The version of a navigator without walls and without a scan.
+WALL_FREE_VERSION: FormatVersion = 2
+SUPPORTED_VERSIONS: tuple[FormatVersion, ...] = (WALL_FREE_VERSION, FORMAT_VERSION)
 METADATA_KEY = "socnav"
 CHECKSUM_KEY = "socnav_sha256"
 OBSERVATION_INPUTS = ("robot", "humans", "humans_mask")
@@ -142,7 +146,7 @@ def _varint(data: bytes, position: int, end: int) -> tuple[int, int]:
         shift += 7
 
 
-def _fields(data: bytes, start: int, end: int):
+def _fields(data: bytes, start: int, end: int) -> Iterator[tuple[int, int, int, int]]:
     """``(field number, wire type, value start, value end)`` of every field of the message ``data[start:end]``."""
     position, count = start, 0
     while position < end:
@@ -317,7 +321,7 @@ class FeatureRange(_Record):
     def _pairs(self) -> FeatureRange:
         if len(self.h_min) != len(self.h_max):
             raise ValueError(f"h_min has {len(self.h_min)} values, h_max {len(self.h_max)}")
-        for index, (low, high) in enumerate(zip(self.h_min, self.h_max)):
+        for index, (low, high) in enumerate(zip(self.h_min, self.h_max, strict=True)):
             unseen = low == math.inf and high == -math.inf
             if not unseen and not (math.isfinite(low) and math.isfinite(high) and low <= high):
                 raise ValueError(f"element {index} is [{low}, {high}]: a finite range (h_min <= h_max) or the "
@@ -349,8 +353,8 @@ class NavigatorMetadata(_Record):
     """The metadata record of a navigator file, validated: every field bounded and the parts consistent with
     each other (the graph's inputs and outputs are checked against it by `ExportedPolicy`)."""
 
-    format: Literal[FORMAT_NAME]  # type: ignore[valid-type]  (a constant: pydantic reads it)
-    version: Literal[SUPPORTED_VERSIONS]  # type: ignore[valid-type]
+    format: FormatName
+    version: FormatVersion
     socnav_version: Name
     observation: ObservationRecord
     action: ActionRecord
@@ -400,7 +404,8 @@ class NavigatorMetadata(_Record):
         if [spec.name for spec in rest[1:len(scan) + 1]] != [f"{SCAN_KEEP_PREFIX}{i}" for i in range(len(scan))]:
             raise ValueError(f"dropout_inputs: the scan encoder's masks {[spec.name for spec in scan]} must follow "
                              f"the one on h, numbered from 0")
-        if (env.scan is None) != (not scan) or (scan and scan[0].width != env.scan.beams):
+        beams = None if env.scan is None else env.scan.beams
+        if (beams is None) != (not scan) or (scan and scan[0].width != beams):
             raise ValueError(f"dropout_inputs: {len(scan)} scan masks (first width "
                              f"{scan[0].width if scan else None}) for env_config.scan {short_repr(env.scan, 80)}")
         if self.walls is None and world_polygons(env, get_scenario(env.scenario)):

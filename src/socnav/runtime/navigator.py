@@ -459,7 +459,7 @@ class SafeNavigator:
         speed = turn = math.nan
         if observed:
             if fallback:
-                action = self.cautious.predict(observation)[0][0]
+                action = self.cautious.predict(dict(observation))[0][0]
             preferred = float(observation["robot"][0, 3]) if v_pref is None else float(v_pref)
             speed, turn = robot_command(action, preferred, self.config.max_heading_change)
         if not (math.isfinite(speed) and math.isfinite(turn)):  # the last guard: never a NaN command

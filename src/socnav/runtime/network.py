@@ -4,8 +4,8 @@
 Observation batches follow the environment's layout (``robot`` (B, 5), ``humans`` (B, M, 7), ``humans_mask``
 (B, M), and ``scan`` (B, beams) for a network that reads a range scan). Like the torch extractor, a call trims the
 human rows to the longest real sequence of the batch, so the uniforms drawn for the LSTM-input dropout have the
-shapes torch's dropout draws (and none are drawn when no observation has a human): fed the same stream, `MCDropoutEstimator(policy, uniforms=stream)` and
-:meth:`ExportedPolicy.samples` see the same masks.
+shapes torch's dropout draws (and none are drawn when no observation has a human): fed the same stream,
+`MCDropoutEstimator(policy, uniforms=stream)` and :meth:`ExportedPolicy.samples` see the same masks.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from socnav.runtime.format import (
     metadata_message,
     verify,
 )
-from socnav.uncertainty.stats import Uncertainty, _apply_feature_map, _feature_map, summarise_samples
+from socnav.uncertainty.stats import Uncertainty, apply_feature_map, feature_map, summarise_samples
 
 __all__ = ["DropoutStream", "ExportedPolicy", "MCBatch", "NavigatorLoadError", "NetworkOutput", "Uniforms",
            "read_metadata"]
@@ -199,7 +199,8 @@ def _expected_shape(spec: Mapping[str, Any]) -> tuple[int | str, ...]:
 def _shape_fits(actual: Sequence[Any], expected: Sequence[int | str]) -> bool:
     """The graph declares ``expected``: each fixed width exactly, each dynamic dimension as not fixed."""
     return len(actual) == len(expected) and all(
-        (dim == want) if isinstance(want, int) else not isinstance(dim, int) for dim, want in zip(actual, expected))
+        (dim == want) if isinstance(want, int) else not isinstance(dim, int)
+        for dim, want in zip(actual, expected, strict=True))
 
 
 class ExportedPolicy:
@@ -237,8 +238,8 @@ class ExportedPolicy:
         scan_input = [] if self.scan is None else [SCAN_INPUT]
         self.input_names = [*OBSERVATION_INPUTS, *scan_input, *(spec["name"] for spec in self.dropout_inputs)]
         self._check_graph()
-        self.feature_map = _feature_map(np.asarray(record.feature_range.h_min, dtype=np.float64),
-                                        np.asarray(record.feature_range.h_max, dtype=np.float64))
+        self.feature_map = feature_map(np.asarray(record.feature_range.h_min, dtype=np.float64),
+                                       np.asarray(record.feature_range.h_max, dtype=np.float64))
         self._probe()
 
     def _check_graph(self) -> None:
@@ -279,8 +280,9 @@ class ExportedPolicy:
         arrays = {"h": output.h, "mean": output.mean, "log_std": output.log_std, VALUE_OUTPUT: output.value}
         for name in self.output_names:
             array = arrays[name]
-            if array.shape != (2, widths[name]):
-                raise NavigatorLoadError(f"{self.path}: the graph's {name!r} has shape {array.shape} for 2 rows, "
+            if array is None or array.shape != (2, widths[name]):
+                shape = None if array is None else array.shape
+                raise NavigatorLoadError(f"{self.path}: the graph's {name!r} has shape {shape} for 2 rows, "
                                          f"not (2, {widths[name]})")
             if not np.isfinite(array).all():
                 raise NavigatorLoadError(f"{self.path}: the graph's {name!r} is not finite (NaN or inf) on a test "
@@ -311,7 +313,8 @@ class ExportedPolicy:
             raise ValueError("this network reads a range scan: pass scan" if scan is None else
                              "this network reads no range scan: scan must be None")
         ranges = () if scan is None else (scan,)
-        feed = dict(zip(self.input_names, (robot, humans, humans_mask, *ranges, *keep)))
+        # strict=False: masks beyond the graph's keep inputs (a caller's `keep`) are not fed
+        feed = dict(zip(self.input_names, (robot, humans, humans_mask, *ranges, *keep), strict=False))
         outputs = self.session.run(None, feed)
         value = outputs[3] if len(outputs) > 3 else None
         return NetworkOutput(outputs[0], outputs[1], outputs[2], value)
@@ -393,7 +396,7 @@ class ExportedPolicy:
     def summarise(self, h: np.ndarray, mu: np.ndarray, log_std: np.ndarray) -> Uncertainty:
         """The uncertainty of K samples (K, B, ...): eqs. (5), (6) and (8) with the exported feature range."""
         mean, u_ep, u_al, feature_variance = summarise_samples(mu, log_std, h)
-        return Uncertainty(mean, u_ep, u_al, _apply_feature_map(feature_variance, *self.feature_map))
+        return Uncertainty(mean, u_ep, u_al, apply_feature_map(feature_variance, *self.feature_map))
 
     def uncertainty(self, observation: Mapping[str, np.ndarray], uniforms: Uniforms) -> Uncertainty:
         """MC-dropout uncertainty of a batch, `MCDropoutEstimator`'s numbers for the same uniforms."""
@@ -434,17 +437,17 @@ class MCBatch:
         starts = np.cumsum([0, *(-(-size // 16) * 16 for size in sizes)])  # regions on 16-float boundaries
         self.keep_buffer = np.ones(int(starts[-1]), np.float32)
         self.keep = [self.keep_buffer[start:start + size].reshape(shape)
-                     for start, size, shape in zip(starts, sizes, shapes)]
+                     for start, size, shape in zip(starts, sizes, shapes, strict=False)]  # starts: one more, the end
         drawn = [index for index, spec in enumerate(network.dropout_inputs) if any_human or not spec["per_human"]]
         mc_sizes = [sizes[index] // rows * self.k for index in drawn]
         self.uniform_buffer = np.zeros(sum(mc_sizes), np.float32)
         offsets = np.cumsum([0, *mc_sizes])
         self.layers: list[tuple[int, tuple[int, ...], np.ndarray]] = []
-        for index, start, stop in zip(drawn, offsets[:-1], offsets[1:]):
+        for index, start, stop in zip(drawn, offsets[:-1], offsets[1:], strict=True):
             shape = network._keep_shape(network.dropout_inputs[index], self.k, steps)
             self.layers.append((index, shape, self.uniform_buffer[start:stop].reshape(shape)))
         self.segments = np.array([[start, starts[index] + sizes[index] - (stop - start), stop - start]
-                                  for index, start, stop in zip(drawn, offsets[:-1], offsets[1:])],
+                                  for index, start, stop in zip(drawn, offsets[:-1], offsets[1:], strict=True)],
                                  dtype=np.int64).reshape(-1, 3)
         self.h = np.zeros((rows, network.hidden_size), np.float32)
         self.mean = np.zeros((rows, 2), np.float32)
@@ -454,7 +457,7 @@ class MCBatch:
         self._values: list[Any] = []  # the OrtValues share the arrays' memory: keep them alive with the binding
         ranges = () if self.scan is None else (self.scan,)
         inputs = (self.robot, self.humans, self.humans_mask, *ranges, *self.keep)
-        for name, array in zip(network.input_names, inputs):
+        for name, array in zip(network.input_names, inputs, strict=True):
             value = onnxruntime.OrtValue.ortvalue_from_numpy(array)
             self._values.append(value)
             self.binding.bind_ortvalue_input(name, value)

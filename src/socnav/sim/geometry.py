@@ -21,6 +21,7 @@ __all__ = [
     "points_to_segments",
     "polygon_segments",
     "range_scan",
+    "ray_segment_distance",
     "robot_line_of_sight",
     "scan_angles",
     "swept_distance_to_segments",
@@ -51,9 +52,9 @@ def polygon_segments(polygons_per_env: Sequence[Sequence[np.ndarray]]) -> tuple[
     width = int(n_segments.max()) if len(n_segments) else 0
     seg_start = np.zeros((len(edges_per_env), width, 2))
     seg_end = np.zeros((len(edges_per_env), width, 2))
-    for env, (starts, ends) in enumerate(edges_per_env):
-        seg_start[env, : len(starts)] = starts
-        seg_end[env, : len(ends)] = ends
+    for env, (env_starts, env_ends) in enumerate(edges_per_env):
+        seg_start[env, : len(env_starts)] = env_starts
+        seg_end[env, : len(env_ends)] = env_ends
     return seg_start, seg_end, n_segments
 
 
@@ -113,7 +114,7 @@ def _segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 @numba.njit(cache=True)
-def _ray_segment_distance(ox, oy, ux, uy, ax, ay, bx, by):
+def ray_segment_distance(ox, oy, ux, uy, ax, ay, bx, by):
     """Distance t >= 0 along the unit ray o + t u to the closed segment [a, b], or inf if the ray misses it.
 
     With e = b - a and w = a - o, o + t u = a + s e solves to t = (w x e) / (u x e), s = (w x u) / (u x e), a hit when
@@ -307,17 +308,69 @@ def _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, rela
             continue
         ux = cos_h * relative_x[beam] - sin_h * relative_y[beam]
         uy = sin_h * relative_x[beam] + cos_h * relative_y[beam]
-        t = _ray_segment_distance(ox, oy, ux, uy, ax, ay, bx, by)
+        t = ray_segment_distance(ox, oy, ux, uy, ax, ay, bx, by)
         if t < ranges[env, beam]:
             ranges[env, beam] = t
 
 
 @numba.njit(cache=True)
+def _scan_wall(ranges, env, ox, oy, first, cos_h, sin_h, relative_x, relative_y, n_beams, wraps, angle_increment,
+               max_range, one_sided, ax, ay, bx, by):
+    """Shorten environment `env`'s beams to the wall [a, b], testing only the beams within the wall's angular
+    extent seen from the origin o (one beam of margin each side; `first` is the direction of beam 0), and none when
+    the wall lies beyond `max_range` or the origin is on the solid side of a `one_sided` polygon edge."""
+    full_turn = 2.0 * math.pi
+    if one_sided and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
+        return  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
+    if (min(ax, bx) - ox >= max_range or ox - max(ax, bx) >= max_range or min(ay, by) - oy >= max_range
+            or oy - max(ay, by) >= max_range):
+        return  # beyond max_range along an axis, so beyond it (a hit there would read max_range anyway)
+    on_wall = (min(ax, bx) <= ox <= max(ax, bx) and min(ay, by) <= oy <= max(ay, by)
+               and _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9)
+    if angle_increment == 0.0 or on_wall:
+        _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
+                      ax, ay, bx, by)  # one beam, or the origin on the wall: every beam
+        return
+    angle_a = math.atan2(ay - oy, ax - ox)
+    span = math.atan2(by - oy, bx - ox) - angle_a
+    if span > math.pi:  # the segment subtends at most pi
+        span -= full_turn
+    elif span < -math.pi:
+        span += full_turn
+    start = (angle_a if span >= 0.0 else angle_a + span) - first
+    while start >= math.pi:  # into [-pi, pi): the extent is [start, start + |span|]
+        start -= full_turn
+    while start < -math.pi:
+        start += full_turn
+    for offset in (0.0, full_turn):  # beams run over [0, fov]: the extent, or its copy one turn on
+        if wraps and offset > 0.0:
+            break
+        low = math.floor((start + offset) / angle_increment) - 1
+        high = math.ceil((start + offset + abs(span)) / angle_increment) + 1
+        _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
+                      ax, ay, bx, by)
+
+
+@numba.njit(cache=True)
+def _scan_circles(ranges, env, ox, oy, cos_h, sin_h, relative_x, relative_y, circle_positions, circle_radii,
+                  circle_active):
+    """Shorten environment `env`'s beams to the first active circle each one hits (`_ray_circle_distance`)."""
+    for beam in range(ranges.shape[1]):
+        ux = cos_h * relative_x[beam] - sin_h * relative_y[beam]
+        uy = sin_h * relative_x[beam] + cos_h * relative_y[beam]
+        nearest = ranges[env, beam]
+        for c in range(circle_radii.shape[1]):
+            if circle_active[env, c]:
+                nearest = min(nearest, _ray_circle_distance(ox, oy, ux, uy, circle_positions[env, c, 0],
+                                                            circle_positions[env, c, 1], circle_radii[env, c]))
+        ranges[env, beam] = nearest
+
+
+@numba.njit(cache=True)
 def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beams, angle_min, angle_increment,
                        max_range, circle_positions, circle_radii, circle_active, one_sided):
-    # Each wall is tested only against the beams within its angular extent seen from the origin (one beam of margin
-    # each side), and not at all when it lies beyond max_range: the exact ray test decides every remaining pair, so
-    # the ranges are those of testing every beam against every wall.
+    # Each wall is tested only against the beams within its angular extent seen from the origin (`_scan_wall`): the
+    # exact ray test decides every remaining pair, so the ranges are those of testing every beam against every wall.
     n_envs = origins.shape[0]
     ranges = np.full((n_envs, n_beams), max_range)
     full_turn = 2.0 * math.pi
@@ -334,45 +387,12 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
         first = headings[env] + angle_min
         cos_h, sin_h = math.cos(headings[env]), math.sin(headings[env])
         for s in range(n_segments[env]):
-            ax, ay, bx, by = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
-            if one_sided[env, s] and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
-                continue  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
-            if (min(ax, bx) - ox >= max_range or ox - max(ax, bx) >= max_range or min(ay, by) - oy >= max_range
-                    or oy - max(ay, by) >= max_range):
-                continue  # beyond max_range along an axis, so beyond it (a hit there would read max_range anyway)
-            on_wall = (min(ax, bx) <= ox <= max(ax, bx) and min(ay, by) <= oy <= max(ay, by)
-                       and _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9)
-            if angle_increment == 0.0 or on_wall:
-                _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
-                              ax, ay, bx, by)  # one beam, or the origin on the wall: every beam
-                continue
-            angle_a = math.atan2(ay - oy, ax - ox)
-            span = math.atan2(by - oy, bx - ox) - angle_a
-            if span > math.pi:  # the segment subtends at most pi
-                span -= full_turn
-            elif span < -math.pi:
-                span += full_turn
-            start = (angle_a if span >= 0.0 else angle_a + span) - first
-            while start >= math.pi:  # into [-pi, pi): the extent is [start, start + |span|]
-                start -= full_turn
-            while start < -math.pi:
-                start += full_turn
-            for offset in (0.0, full_turn):  # beams run over [0, fov]: the extent, or its copy one turn on
-                if wraps and offset > 0.0:
-                    break
-                low = int(math.floor((start + offset) / angle_increment)) - 1
-                high = int(math.ceil((start + offset + abs(span)) / angle_increment)) + 1
-                _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
-                              ax, ay, bx, by)
-        for beam in range(n_beams if n_circles > 0 else 0):
-            ux = cos_h * relative_x[beam] - sin_h * relative_y[beam]
-            uy = sin_h * relative_x[beam] + cos_h * relative_y[beam]
-            nearest = ranges[env, beam]
-            for c in range(circle_radii.shape[1]):
-                if circle_active[env, c]:
-                    nearest = min(nearest, _ray_circle_distance(ox, oy, ux, uy, circle_positions[env, c, 0],
-                                                                circle_positions[env, c, 1], circle_radii[env, c]))
-            ranges[env, beam] = nearest
+            _scan_wall(ranges, env, ox, oy, first, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
+                       angle_increment, max_range, one_sided[env, s], seg_start[env, s, 0], seg_start[env, s, 1],
+                       seg_end[env, s, 0], seg_end[env, s, 1])
+        if n_circles > 0:
+            _scan_circles(ranges, env, ox, oy, cos_h, sin_h, relative_x, relative_y, circle_positions, circle_radii,
+                          circle_active)
     return ranges
 
 

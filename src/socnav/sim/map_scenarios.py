@@ -8,8 +8,8 @@ socnav's humans and its ORCA robot steer locally (no global planner), as RVO2's 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -18,10 +18,10 @@ from socnav.sim.scenarios import (
     MIN_START_SEPARATION,
     InitialState,
     ScenarioSettings,
-    _draw_humans_count,
-    _face_goal,
-    _far_enough,
-    _fill_traits,
+    draw_humans_count,
+    face_goal,
+    far_enough,
+    fill_traits,
     n_slots,
     register_scenario,
 )
@@ -47,13 +47,13 @@ def _lateral(rng: np.random.Generator, half_width: float) -> float:
 
 
 def _place_humans(state: InitialState, env: int, n_humans: int, rng: np.random.Generator,
-                  draw: Any) -> None:
+                  draw: Callable[[np.random.Generator], tuple[np.ndarray, np.ndarray]]) -> None:
     """Start and goal of each human from `draw(rng) -> (start, goal)`, starts and goals >= 1 m from the others'."""
     starts, goals = [state.positions[env, 0]], [state.goals[env, 0]]
     for human in range(1, 1 + n_humans):
         for _ in range(MAX_TRIES):
             start, goal = draw(rng)
-            if _far_enough(start, starts, MIN_START_SEPARATION) and _far_enough(goal, goals, MIN_START_SEPARATION):
+            if far_enough(start, starts, MIN_START_SEPARATION) and far_enough(goal, goals, MIN_START_SEPARATION):
                 break
         starts.append(start)
         goals.append(goal)
@@ -86,8 +86,8 @@ class Corridor:
         state = InitialState.empty(n_envs, n_slots(config))
         end, half_width = self._end(config), config.layout.corridor_width / 2
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             side = float(rng.choice((-1.0, 1.0)))
             state.positions[env, 0] = (side * end, _lateral(rng, half_width))
             state.goals[env, 0] = (-side * end, _lateral(rng, half_width))
@@ -98,7 +98,7 @@ class Corridor:
                 return start, np.array((heading * end, _lateral(rng, half_width)))
 
             _place_humans(state, env, n_humans, rng, draw)
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
     def next_goal(self, rng: np.random.Generator, config: ScenarioSettings, reached: np.ndarray) -> np.ndarray:
@@ -138,8 +138,8 @@ class Doorway:
         state = InitialState.empty(n_envs, n_slots(config))
         size = config.layout.room_size
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             side = float(rng.choice((-1.0, 1.0)))
             jitter = 0.1 * config.layout.door_width
             state.positions[env, 0] = (side * (size - 1.0), rng.uniform(-jitter, jitter))
@@ -150,7 +150,7 @@ class Doorway:
                 return self._room_point(rng, config, room), np.array((room * self.approach, 0.0))
 
             _place_humans(state, env, n_humans, rng, draw)
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
     def next_goal(self, rng: np.random.Generator, config: ScenarioSettings, reached: np.ndarray) -> np.ndarray:
@@ -193,8 +193,8 @@ class Intersection:
         state = InitialState.empty(n_envs, n_slots(config))
         end = config.layout.corridor_length / 2 - 1.0
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             direction = int(rng.integers(4))
             state.positions[env, 0] = self._arm_point(rng, config, direction, end)
             state.goals[env, 0] = self._arm_point(rng, config, (direction + 2) % 4, end)
@@ -205,12 +205,12 @@ class Intersection:
                 return start, self._arm_point(rng, config, (arm + 2) % 4, end)
 
             _place_humans(state, env, n_humans, rng, draw)
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
     def next_goal(self, rng: np.random.Generator, config: ScenarioSettings, reached: np.ndarray) -> np.ndarray:
         """The end of the arm opposite the goal just reached."""
-        arm = int(round(math.atan2(reached[1], reached[0]) / (math.pi / 2))) % 4
+        arm = round(math.atan2(reached[1], reached[0]) / (math.pi / 2)) % 4
         return self._arm_point(rng, config, (arm + 2) % 4, config.layout.corridor_length / 2 - 1.0)
 
 

@@ -72,44 +72,50 @@ def validate_polygons(polygons: Sequence[Any], name: str = "obstacles") -> list[
     checked = []
     total = 0
     for index, polygon in enumerate(polygons):
-        label = f"{name}[{index}]"
-        try:
-            vertices = np.array(polygon)
-        except (TypeError, ValueError):  # ragged
-            vertices = np.array(None)
-        if vertices.dtype.kind not in "iuf" or vertices.ndim == 0:  # strings, None, booleans, ragged lists
-            raise MapError(f"{label}: expected a list of [x, y] vertices of numbers, got {polygon!r}")
-        vertices = vertices.astype(np.float64)
-        if vertices.size == 0:
-            vertices = vertices.reshape(0, 2)
-        if vertices.ndim != 2 or vertices.shape[1] != 2:
-            raise MapError(f"{label}: expected a list of [x, y] vertices, got an array of shape {vertices.shape}")
-        if not np.isfinite(vertices).all():
-            raise MapError(f"{label}: non-finite coordinate (every x and y must be a finite number)")
-        if len(vertices) >= 3 and np.array_equal(vertices[0], vertices[-1]):
-            vertices = vertices[:-1]  # a closed ring written with its first vertex repeated
-        if len(vertices) < 2:
-            raise MapError(f"{label}: a polygon needs at least 2 vertices (2 make a wall segment), got {len(vertices)}")
-        if len(vertices) > MAX_POLYGON_VERTICES:
-            raise MapError(
-                f"{label}: {len(vertices)} vertices, more than the bound of {MAX_POLYGON_VERTICES} per polygon")
-        following = np.roll(vertices, -1, axis=0) if len(vertices) > 2 else vertices[1:]
-        edges = vertices[: len(following)]
-        repeated = np.flatnonzero((edges == following).all(axis=1))
-        if repeated.size:
-            raise MapError(f"{label}: zero-length edge at vertex {int(repeated[0])} (consecutive vertices coincide)")
-        if len(vertices) >= 3:
-            offsets = vertices[1:] - vertices[0]
-            if np.all(offsets[0, 0] * offsets[:, 1] - offsets[0, 1] * offsets[:, 0] == 0.0):
-                raise MapError(f"{label}: zero-area polygon (all vertices on one line; use 2 vertices for a wall)")
-            if not LinearRing(vertices).is_simple:
-                reason = explain_validity(Polygon(vertices))
-                raise MapError(f"{label}: self-intersecting polygon ({reason})")
+        vertices = _polygon_vertices(polygon, f"{name}[{index}]")
         total += len(vertices)
         checked.append(vertices)
     if total > MAX_TOTAL_VERTICES:
         raise MapError(f"{name}: {total} vertices in all, more than the bound of {MAX_TOTAL_VERTICES}")
     return checked
+
+
+def _polygon_vertices(polygon: Any, label: str) -> np.ndarray:
+    """One polygon of `validate_polygons` as a float64 (k, 2) array, its closing repeat dropped, or a `MapError`
+    naming `label` and the first rule it breaks (in the order the rules are listed there)."""
+    try:
+        vertices = np.array(polygon)
+    except (TypeError, ValueError):  # ragged
+        vertices = np.array(None)
+    if vertices.dtype.kind not in "iuf" or vertices.ndim == 0:  # strings, None, booleans, ragged lists
+        raise MapError(f"{label}: expected a list of [x, y] vertices of numbers, got {polygon!r}")
+    vertices = vertices.astype(np.float64)
+    if vertices.size == 0:
+        vertices = vertices.reshape(0, 2)
+    if vertices.ndim != 2 or vertices.shape[1] != 2:
+        raise MapError(f"{label}: expected a list of [x, y] vertices, got an array of shape {vertices.shape}")
+    if not np.isfinite(vertices).all():
+        raise MapError(f"{label}: non-finite coordinate (every x and y must be a finite number)")
+    if len(vertices) >= 3 and np.array_equal(vertices[0], vertices[-1]):
+        vertices = vertices[:-1]  # a closed ring written with its first vertex repeated
+    if len(vertices) < 2:
+        raise MapError(f"{label}: a polygon needs at least 2 vertices (2 make a wall segment), got {len(vertices)}")
+    if len(vertices) > MAX_POLYGON_VERTICES:
+        raise MapError(
+            f"{label}: {len(vertices)} vertices, more than the bound of {MAX_POLYGON_VERTICES} per polygon")
+    following = np.roll(vertices, -1, axis=0) if len(vertices) > 2 else vertices[1:]
+    edges = vertices[: len(following)]
+    repeated = np.flatnonzero((edges == following).all(axis=1))
+    if repeated.size:
+        raise MapError(f"{label}: zero-length edge at vertex {int(repeated[0])} (consecutive vertices coincide)")
+    if len(vertices) >= 3:
+        offsets = vertices[1:] - vertices[0]
+        if np.all(offsets[0, 0] * offsets[:, 1] - offsets[0, 1] * offsets[:, 0] == 0.0):
+            raise MapError(f"{label}: zero-area polygon (all vertices on one line; use 2 vertices for a wall)")
+        if not LinearRing(vertices).is_simple:
+            reason = explain_validity(Polygon(vertices))
+            raise MapError(f"{label}: self-intersecting polygon ({reason})")
+    return vertices
 
 
 def is_counter_clockwise(vertices: np.ndarray) -> bool:
@@ -274,9 +280,10 @@ def _read_image(path: Path, image_path: Path) -> np.ndarray:
     if not image_path.is_file():
         raise MapError(f"{path}: image not found: {image_path}")
     try:
-        with Image.open(image_path) as image:
-            width, height = image.size
+        with Image.open(image_path) as opened:
+            width, height = opened.size
             if width * height <= MAX_GRID_CELLS:
+                image: Image.Image = opened
                 if image.mode not in ("L", "LA", "RGB", "RGBA"):
                     image = image.convert("RGBA" if "A" in image.getbands() else "RGB")
                 pixels = np.asarray(image, dtype=np.float64)
@@ -349,7 +356,7 @@ def _cell_rectangles(blocked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
         runs = set()
         if row < blocked.shape[0]:
             edges = np.diff(np.concatenate(([0], blocked[row].astype(np.int8), [0])))
-            runs = set(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+            runs = set(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
         for run in [run for run in open_runs if run not in runs]:
             rectangles.append((run[0], open_runs.pop(run), run[1], row))
         for run in runs:

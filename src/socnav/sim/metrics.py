@@ -503,7 +503,7 @@ def summarize_groups(records: pd.DataFrame, by: Sequence[str], names: Sequence[s
             table[name] = table[name] * pv_per / table["episodes"]
         elif metric.kind == STD:
             table[name] = grouped[f"_{name}"].std(ddof=0)
-    return table.reset_index()[by + ["episodes", *present]]
+    return table.reset_index()[[*by, "episodes", *present]]
 
 
 def episode_values(records: pd.DataFrame, name: str, pv_per: int = PV_PER) -> np.ndarray:

@@ -1,8 +1,9 @@
 """One robot's observation and command from plain state arrays, through the environment's own compiled kernels.
 The deployed navigator (`socnav.runtime`) and the simulator therefore build identical observations and commands.
 
-`observe_batch` IS the kernel `CrowdWorld.observe` calls (`socnav.sim.world._observe`), and `robot_command` the one
-`CrowdWorld.step` calls: one function each, shared, never a copy.
+`observe_batch` IS the kernel `CrowdWorld.observe` calls (`socnav.sim.world.observe_batch`), and `robot_command`
+wraps the one `CrowdWorld.step` calls (`socnav.sim.world.robot_command_batch`): one function each, shared, never a
+copy.
 """
 
 from __future__ import annotations
@@ -10,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from socnav.sim.walls import POSE_KEY, SCAN_KEY
-from socnav.sim.world import _observe as observe_batch
-from socnav.sim.world import _robot_command
+from socnav.sim.world import observe_batch, robot_command_batch
 
 __all__ = ["observe_batch", "observe_robot", "robot_command"]
 
@@ -71,6 +71,6 @@ def observe_robot(
 def robot_command(action: np.ndarray, v_pref: float, max_heading_change: float) -> tuple[float, float]:
     """``(v, dtheta)`` of an action in [-1, 1]^2 (clipped), as the simulator applies it without action noise:
     ``v = v_pref (a0 + 1) / 2``, ``dtheta = max_heading_change * a1``."""
-    speed, turn = _robot_command(np.asarray(action, dtype=np.float64).reshape(1, 2), np.array([float(v_pref)]),
-                                 float(max_heading_change), _NO_NOISE_KEY, _NO_NOISE_STEP, 0.0, 0.0)
+    speed, turn = robot_command_batch(np.asarray(action, dtype=np.float64).reshape(1, 2), np.array([float(v_pref)]),
+                                      float(max_heading_change), _NO_NOISE_KEY, _NO_NOISE_STEP, 0.0, 0.0)
     return float(speed[0]), float(turn[0])

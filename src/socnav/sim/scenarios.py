@@ -1,13 +1,16 @@
-"""Scenarios: where the robot and the humans start and go, and their hidden social traits (SPEC section 1).
+"""Scenarios: where the robot and the humans start and go, and their hidden social traits (the initial state
+distribution T_0 of the paper's POMDP, Sec. III-A; the scenarios of its experimental setup, Sec. V-A).
 
-Each scenario is a small registered object with `sample(rng, n_envs, config) -> InitialState`; add your own with `register_scenario`.
+Each scenario is a small registered object with `sample(rng, n_envs, config) -> InitialState`; add your own with
+`register_scenario` (docs/world.md). The sampling steps every scenario shares are public here: `draw_humans_count`,
+`fill_traits`, `far_enough` and `face_goal`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -72,13 +75,35 @@ class ScenarioSettings(Protocol):
 
 
 class Scenario(Protocol):
-    """What a scenario provides. `redraw_goals` is True when humans draw a new goal on arrival."""
+    """What a scenario provides (read-only, so that frozen dataclasses qualify). `redraw_goals` is True when humans
+    draw a new goal on arrival: the scenario then also provides `RoutedScenario.next_goal` or
+    `GoalRedrawingScenario.goal_for`."""
 
-    name: str
-    default_humans: int | tuple[int, int]
-    redraw_goals: bool
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def default_humans(self) -> int | tuple[int, int]: ...
+
+    @property
+    def redraw_goals(self) -> bool: ...
 
     def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState: ...
+
+
+@runtime_checkable
+class RoutedScenario(Protocol):
+    """A scenario whose humans walk a route (the map scenarios): the next goal follows from the goal reached."""
+
+    def next_goal(self, rng: np.random.Generator, config: ScenarioSettings, reached: np.ndarray) -> np.ndarray: ...
+
+
+@runtime_checkable
+class GoalRedrawingScenario(Protocol):
+    """A scenario whose humans draw a fresh goal on arrival, from where they stand (``random``)."""
+
+    def goal_for(self, rng: np.random.Generator, config: ScenarioSettings, start: np.ndarray,
+                 taken: list[np.ndarray] | None = None) -> np.ndarray: ...
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -114,14 +139,17 @@ def n_slots(config: ScenarioSettings) -> int:
 # Shared sampling steps
 
 
-def _draw_humans_count(rng: np.random.Generator, config: ScenarioSettings) -> int:
+def draw_humans_count(rng: np.random.Generator, config: ScenarioSettings) -> int:
+    """The number of humans of one episode, uniform over the config's inclusive range (one draw of `rng`)."""
     low, high = config.humans_range()
     return int(rng.integers(low, high + 1))
 
 
-def _fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Generator,
-                 config: ScenarioSettings) -> None:
-    """Radii, preferred speeds, personal spaces and cooperation of one environment's agents."""
+def fill_traits(state: InitialState, env: int, n_humans: int, rng: np.random.Generator,
+                config: ScenarioSettings) -> None:
+    """Mark environment `env`'s robot and `n_humans` humans active and draw their traits from `rng`, in this order:
+    every agent's preferred speed v_pref ~ U[preferred_speed], each human's personal space r_prox ~ U[personal_space]
+    and cooperation ~ U[cooperation]; radii are the config's (the hidden state of the paper's Sec. III-A)."""
     agents = 1 + n_humans
     state.active[env, :agents] = True
     state.radii[env, 0] = config.robot_radius
@@ -136,12 +164,14 @@ def _unit(angle: float) -> np.ndarray:
     return np.array((math.cos(angle), math.sin(angle)))
 
 
-def _far_enough(point: np.ndarray, others: list[np.ndarray], separation: float) -> bool:
+def far_enough(point: np.ndarray, others: list[np.ndarray], separation: float) -> bool:
+    """Whether `point` lies at least `separation` metres from every point of `others` (True when there are none)."""
     x, y = float(point[0]), float(point[1])
     return all(math.hypot(x - float(other[0]), y - float(other[1])) >= separation for other in others)
 
 
-def _face_goal(state: InitialState, env: int) -> None:
+def face_goal(state: InitialState, env: int) -> None:
+    """Turn environment `env`'s robot towards its goal (its heading before `initial_heading` applies)."""
     offset = state.goals[env, 0] - state.positions[env, 0]
     state.robot_heading[env] = np.arctan2(offset[1], offset[0])
 
@@ -165,26 +195,27 @@ class PositionSwap:
     def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             starts: list[np.ndarray] = []
             for agent in range(1 + n_humans):
                 for _ in range(MAX_TRIES):
                     angle = rng.uniform(0.0, 2 * np.pi)
                     start = config.circle_radius * _unit(angle) + rng.normal(0.0, config.swap_jitter, 2)
                     goal = -config.circle_radius * _unit(angle) + rng.normal(0.0, config.swap_jitter, 2)
-                    if _far_enough(start, starts, MIN_START_SEPARATION):
+                    if far_enough(start, starts, MIN_START_SEPARATION):
                         break
                 starts.append(start)
                 state.positions[env, agent] = start
                 state.goals[env, agent] = goal
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
 
 @dataclass(frozen=True)
 class CircleCrossing:
-    """Humans on a circle (random angles, jittered) cross to their antipodes; the robot takes one of four fixed diameters."""
+    """Humans on a circle (random angles, jittered) cross to their antipodes; the robot takes one of four fixed
+    diameters."""
 
     name: str = "circle_crossing"
     default_humans: int | tuple[int, int] = 5
@@ -194,8 +225,8 @@ class CircleCrossing:
         state = InitialState.empty(n_envs, n_slots(config))
         radius, jitter = config.circle_radius, config.circle_jitter
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             robot_angle = rng.choice(ROBOT_CROSSING_ANGLES)
             state.positions[env, 0] = radius * _unit(robot_angle)
             state.goals[env, 0] = -radius * _unit(robot_angle)
@@ -205,19 +236,21 @@ class CircleCrossing:
                     angle = rng.uniform(0.0, 2 * np.pi)
                     start = radius * _unit(angle) + rng.uniform(-jitter, jitter, 2)
                     goal = -radius * _unit(angle) + rng.uniform(-jitter, jitter, 2)
-                    if _far_enough(start, starts, MIN_START_SEPARATION) and _far_enough(goal, goals, MIN_START_SEPARATION):
+                    if (far_enough(start, starts, MIN_START_SEPARATION)
+                            and far_enough(goal, goals, MIN_START_SEPARATION)):
                         break
                 starts.append(start)
                 goals.append(goal)
                 state.positions[env, human] = start
                 state.goals[env, human] = goal
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
 
 @dataclass(frozen=True)
 class CircleInteraction:
-    """Staged interaction: each human is placed to reach the circle's centre when the robot does, from a random direction."""
+    """Staged interaction: each human is placed to reach the circle's centre when the robot does, from a random
+    direction."""
 
     name: str = "circle_interaction"
     default_humans: int | tuple[int, int] = (1, 3)
@@ -228,8 +261,8 @@ class CircleInteraction:
         state = InitialState.empty(n_envs, n_slots(config))
         radius = config.circle_radius
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             robot_angle = rng.choice(ROBOT_CROSSING_ANGLES)
             state.positions[env, 0] = radius * _unit(robot_angle)
             state.goals[env, 0] = -radius * _unit(robot_angle)
@@ -241,12 +274,12 @@ class CircleInteraction:
                     angle = rng.uniform(0.0, 2 * np.pi)
                     arrival = robot_time_to_centre * (1.0 + rng.uniform(-self.arrival_spread, self.arrival_spread))
                     start = speed * arrival * _unit(angle)
-                    if _far_enough(start, starts, MIN_START_SEPARATION):
+                    if far_enough(start, starts, MIN_START_SEPARATION):
                         break
                 starts.append(start)
                 state.positions[env, human] = start
                 state.goals[env, human] = -start  # through the centre, as far beyond it as it started
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
 
@@ -262,8 +295,8 @@ class RandomSquare:
     def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         for env in range(n_envs):
-            n_humans = _draw_humans_count(rng, config)
-            _fill_traits(state, env, n_humans, rng, config)
+            n_humans = draw_humans_count(rng, config)
+            fill_traits(state, env, n_humans, rng, config)
             starts: list[np.ndarray] = []
             goals: list[np.ndarray] = []
             for agent in range(1 + n_humans):
@@ -273,25 +306,27 @@ class RandomSquare:
                 goals.append(goal)
                 state.positions[env, agent] = start
                 state.goals[env, agent] = goal
-            _face_goal(state, env)
+            face_goal(state, env)
         return state
 
     def _point(self, rng: np.random.Generator, config: ScenarioSettings, taken: list[np.ndarray]) -> np.ndarray:
         half = config.square_size / 2
         for _ in range(MAX_TRIES):
             point = rng.uniform(-half, half, 2)
-            if _far_enough(point, taken, MIN_START_SEPARATION):
+            if far_enough(point, taken, MIN_START_SEPARATION):
                 return point
         return point
 
     def goal_for(
-        self, rng: np.random.Generator, config: ScenarioSettings, start: np.ndarray, taken: list[np.ndarray] | None = None
+        self, rng: np.random.Generator, config: ScenarioSettings, start: np.ndarray,
+        taken: list[np.ndarray] | None = None,
     ) -> np.ndarray:
         """A goal at least `min_goal_distance` from `start` (and 1 m from goals in `taken`)."""
         half = config.square_size / 2
         for _ in range(MAX_TRIES):
             goal = rng.uniform(-half, half, 2)
-            if np.linalg.norm(goal - start) >= self.min_goal_distance and _far_enough(goal, taken or [], MIN_START_SEPARATION):
+            if (np.linalg.norm(goal - start) >= self.min_goal_distance
+                    and far_enough(goal, taken or [], MIN_START_SEPARATION)):
                 return goal
         return goal
 
@@ -328,14 +363,14 @@ class Replay:
         state = InitialState.empty(n_envs, slots)
         state.script = []
         for env in range(n_envs):
-            _fill_traits(state, env, slots - 1, rng, config)
+            fill_traits(state, env, slots - 1, rng, config)
             time_limit = (config.timeout_factor * settings.robot_distance / state.preferred_speeds[env, 0]
                           + config.timeout_margin)
             plan = scenes.plan(rng, slots - 1, settings.robot_distance, math.ceil(time_limit / config.time_step))
             state.positions[env, 0], state.goals[env, 0] = plan.start, plan.goal
             state.active[env, 1:] = plan.pedestrians[1:] >= 0
             state.positions[env, 1:], state.goals[env, 1:] = plan.positions[1:], plan.goals[1:]
-            _face_goal(state, env)
+            face_goal(state, env)
             state.script.append(plan)
         return state
 

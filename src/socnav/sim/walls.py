@@ -70,7 +70,7 @@ class Walls:
         self._solid_inside = np.array([_counter_clockwise(vertices) for vertices in closed], dtype=bool)
         self._solid_outside = any(
             not solid and not any(other.contains(area) for other in self._areas if other is not area)
-            for area, solid in zip(self._areas, self._solid_inside))
+            for area, solid in zip(self._areas, self._solid_inside, strict=True))
 
     def _segments(self, n_envs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # the map is the same in every environment: the first n rows serve any n environments

@@ -1,4 +1,5 @@
-"""The batched crowd world: a unicycle robot among humans with personal space, cooperation and attention (SPEC 1).
+"""The batched crowd world: a unicycle robot among humans with personal space, cooperation and attention (the
+POMDP of the paper's Sec. III-A; its scenarios, reward and episode ends on docs/world.md).
 
 `CrowdWorld` holds the state of E environments as arrays and advances all of them in one call; every environment's
 episode depends only on its own seed, so results are bit-identical whatever the batch size. How the humans walk is
@@ -8,7 +9,7 @@ gives it its arrays (`CrowdWorld.crowd`) and moves every human by the velocity i
 replayed humans (``replay``) follow recorded tracks, entering and leaving slots mid-episode through the
 `socnav.sim.humans.ScriptedHumans` hooks.
 
-Attention (SPEC section 1, "Attention"): each human is, per episode, attentive to the robot or not (probability
+Attention (docs/attention.md): each human is, per episode, attentive to the robot or not (probability
 `inattentive_share` of not); an inattentive human plans as if the robot were absent (RVO2 `collabCoeff = 0`), and
 with `human_fov_deg < 360` an attentive human reacts only once the robot has entered its view cone, and keeps
 reacting while the robot stays within the model's interaction range (ORCA: `orca.neighbor_dist`). Attentiveness is
@@ -36,7 +37,7 @@ from socnav.sim.noise import (
     uniform01,
 )
 from socnav.sim.orca import default_social_arrays
-from socnav.sim.scenarios import InitialState, get_scenario, n_slots
+from socnav.sim.scenarios import GoalRedrawingScenario, InitialState, RoutedScenario, get_scenario, n_slots
 from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons
 
 ROBOT_FEATURES = 5  # distance to goal, heading relative to goal direction, speed, v_pref, radius
@@ -73,8 +74,8 @@ def _wrap_angle(angle):
 
 
 @numba.njit(cache=True)
-def _robot_command(actions, preferred_speed, max_heading_change, keys, steps, heading_noise, speed_noise):
-    """Map [-1, 1]^2 actions to (v, dtheta), then apply action noise (SPEC section 2).
+def robot_command_batch(actions, preferred_speed, max_heading_change, keys, steps, heading_noise, speed_noise):
+    """Map [-1, 1]^2 actions to the robot's (v, dtheta) (paper Sec. III-A), then apply action noise (Sec. V-A).
 
     v = v_pref (a0 + 1) / 2, dtheta = dtheta_max a1 (clipped); heading noise dtheta + N(0, s^2); speed v U(1 - s, 1).
     """
@@ -108,7 +109,8 @@ def _closest_approach(rel_x, rel_y, rel_vx, rel_vy, time_step):
 @numba.njit(cache=True)
 def _integrate(positions, velocities, radii, goals, active, heading, speed, turn, human_velocities, path_length, time,
                time_step):
-    """Move every agent one step and sweep the robot's path against every human's (SPEC section 1).
+    """Move every agent one step and sweep the robot's path against every human's (docs/world.md, "Observation and
+    action").
 
     Robot (unicycle): theta <- wrap(theta + dtheta), p <- p + v [cos theta, sin theta] dt; humans (holonomic) take
     the human model's velocity, p <- p + v dt. Updates positions, velocities, heading, path length and time in place.
@@ -151,8 +153,9 @@ def _integrate(positions, velocities, radii, goals, active, heading, speed, turn
 
 @numba.njit(cache=True)
 def _outcome(positions, goals, closest_gap, time, time_limit, goal_tolerance):
-    """How each episode stands after the move (SPEC section 1), the first that applies: collision (swept gap < 0),
-    goal (robot centre within `goal_tolerance` of its goal), time-out (t > time limit), else still running."""
+    """How each episode stands after the move (docs/world.md, "Reward and episode end"), the first that applies:
+    collision (swept gap < 0), goal (robot centre within `goal_tolerance` of its goal), time-out (t > time limit),
+    else still running."""
     n_envs = closest_gap.shape[0]
     outcome = np.full(n_envs, OUTCOME_RUNNING, dtype=np.int64)
     for env in range(n_envs):
@@ -178,7 +181,8 @@ def _score(
     weights, time_step,  # `reward_weights(config.reward)`, dt
     was_intruded, episode_return, min_gap, intrusion_steps, intrusion_events, disturbance_total,  # episode, in place
 ):
-    """The socially integrated reward of the step just taken (SPEC section 2): its one definition.
+    """The socially integrated reward of the step just taken (Flögel et al., IROS 2024, which the paper trains with,
+    Sec. III-A; docs/world.md): its one definition.
 
         r = -w_time dt + w_prog (d_goal(t-1) - d_goal(t))
             - sum_{i: gap_i < r_prox,i} w_prox (1 - gap_i / r_prox,i)            personal space, per intruded human
@@ -263,7 +267,7 @@ def _advance_and_score(
 
 
 @numba.njit(cache=True)
-def _observe(positions, velocities, radii, goals, preferred_speed, active, heading, max_humans):
+def observe_batch(positions, velocities, radii, goals, preferred_speed, active, heading, max_humans):
     """Robot-centric, goal-aligned observation; humans sorted by gap with the closest LAST, zero padding after them.
 
     robot: [distance to goal, heading relative to the goal direction, speed, v_pref, radius];
@@ -381,7 +385,8 @@ def _humans_within(positions, radii, active, social_radius):
 
 @numba.njit(cache=True)
 def _add_observation_noise(robot, humans, mask, keys, steps, observation_noise):
-    """Add N(0, s^2) to every real observation element (SPEC section 2); padding and the mask stay exact."""
+    """Add N(0, s^2) to every real observation element (sigma_obs, paper Sec. V-A); padding and the mask stay
+    exact."""
     n_envs, max_humans, n_features = humans.shape
     for env in range(n_envs):
         element = 0
@@ -450,7 +455,7 @@ class CrowdWorld:
         self.metrics = EpisodeMetrics(n_envs, self.n_slots, config.time_step) if metrics else None
         self.humans_slots = np.zeros(shape, dtype=bool)
         self.humans_slots[:, 1:] = True
-        # attention (SPEC section 1): per episode; `noticed` and `facing` change every step with a field of view
+        # attention (docs/attention.md): per episode; `noticed` and `facing` change every step with a field of view
         self.attentive = np.ones(shape, dtype=bool)
         self.noticed = np.ones(shape, dtype=bool)
         self.facing = np.zeros(shape)
@@ -492,8 +497,7 @@ class CrowdWorld:
 
     def reset(self, envs: np.ndarray | list[int] | None = None) -> None:
         """Start a new episode in each of `envs` (default all), drawn from that environment's own generator."""
-        envs = range(self.n_envs) if envs is None else envs
-        for env in envs:
+        for env in range(self.n_envs) if envs is None else envs:
             rng = self.rngs[env]
             initial = self._placed_episode(rng)
             self.load(env, initial)
@@ -573,6 +577,9 @@ class CrowdWorld:
         `reset` draws this (after `load`); call it after `load` to stage a mixed scene.
         """
         mix = self.mix
+        if mix is None:
+            raise ValueError(f"set_models stages a mixed crowd; these humans are {self.human_model.name!r}, not a "
+                             "mix (humans.mix)")
         self.model_index[env] = index
         self.interaction_ranges[env] = mix.ranges[self.model_index[env]]
         arrival = mix.arrival_distances[self.model_index[env]]
@@ -619,7 +626,7 @@ class CrowdWorld:
         compute = self.active & self.humans_slots if only is None else only
         return self.human_model.velocities(self.crowd(without_robot), compute)
 
-    def _unhindered_velocities(self, humans: np.ndarray, near: np.ndarray) -> np.ndarray:
+    def unhindered_velocities(self, humans: np.ndarray, near: np.ndarray) -> np.ndarray:
         """The velocities the `near` humans would take this step had the robot not been there (`v_i^0` of the
         disturbance term); `humans` are this step's velocities with the robot.
 
@@ -637,7 +644,7 @@ class CrowdWorld:
         actions = np.asarray(actions, dtype=np.float64).reshape(self.n_envs, 2)
         if self.script is not None:  # humans whose script ends leave before the move (their slots turn inactive)
             self.was_intruded[self.script.before_move(self.active, self.velocities)] = False
-        speed, turn = _robot_command(
+        speed, turn = robot_command_batch(
             actions, self.preferred_speeds[:, 0], cfg.max_heading_change, self.noise_keys, self.steps,
             pert.heading_noise, pert.speed_noise,
         )
@@ -648,8 +655,8 @@ class CrowdWorld:
         elif self.walls is not None:
             self._update_robot_visibility()
         humans = self.human_velocities()
-        near = self._humans_near_robot(rew.social_radius)
-        unhindered = self._unhindered_velocities(humans, near) if rew.disturbance > 0.0 and near.any() else humans
+        near = self.humans_near_robot(rew.social_radius)
+        unhindered = self.unhindered_velocities(humans, near) if rew.disturbance > 0.0 and near.any() else humans
         if self.metrics is not None:
             self.metrics.before_step(self)
         robot_before = self.positions[:, 0].copy() if self.walls is not None else None
@@ -661,8 +668,8 @@ class CrowdWorld:
             self.was_intruded, self.episode_return, self.path_length, self.min_gap, self.intrusion_steps,
             self.intrusion_events, self.disturbance,
         )
-        if self.walls is not None:
-            self._end_at_walls(robot_before, outcome, reward)
+        if self.walls is not None and robot_before is not None:
+            self._end_at_walls(self.walls, robot_before, outcome, reward)
         if self.metrics is not None:
             self.metrics.after_step(self)
         self.steps += 1
@@ -683,11 +690,11 @@ class CrowdWorld:
             intrusions=intrusions,
         )
 
-    def _end_at_walls(self, robot_before: np.ndarray, outcome: np.ndarray, reward: np.ndarray) -> None:
+    def _end_at_walls(self, walls: Walls, robot_before: np.ndarray, outcome: np.ndarray, reward: np.ndarray) -> None:
         """A robot whose disc touched a wall during the step (swept, like a collision with a human) ends its episode
         with `OUTCOME_COLLISION_WALL` and the collision penalty instead of the step's goal bonus; a collision with a
         human in the same step is counted as that. Updates `outcome`, `reward` and the episode return in place."""
-        hit = self.walls.robot_hit(robot_before, self.positions[:, 0], self.radii[:, 0])
+        hit = walls.robot_hit(robot_before, self.positions[:, 0], self.radii[:, 0])
         hit &= outcome != OUTCOME_COLLISION
         if not hit.any():
             return
@@ -698,24 +705,28 @@ class CrowdWorld:
         outcome[hit] = OUTCOME_COLLISION_WALL
         self.wall_collision[hit] = True
 
-    def _humans_near_robot(self, radius: float) -> np.ndarray:
+    def humans_near_robot(self, radius: float) -> np.ndarray:
+        """(E, N) bool: the active humans whose gap to the robot is below `radius` (those the disturbance term
+        scores, with ``reward.social_radius``)."""
         return _humans_within(self.positions, self.radii, self.active, radius)
 
     def _redraw_reached_goals(self) -> None:
         reached = self.active & self.humans_slots
         reached &= np.linalg.norm(self.goals - self.positions, axis=-1) < self.arrival_distances
-        routed = hasattr(self.scenario, "next_goal")  # map scenarios: the next leg of a route after the goal reached
-        for env, agent in zip(*np.nonzero(reached)):
-            if routed:
-                self.goals[env, agent] = self.scenario.next_goal(self.rngs[env], self.config, self.goals[env, agent])
+        scenario = self.scenario
+        for env, agent in zip(*np.nonzero(reached), strict=True):
+            if isinstance(scenario, RoutedScenario):  # map scenarios: the next leg of a route after the goal reached
+                self.goals[env, agent] = scenario.next_goal(self.rngs[env], self.config, self.goals[env, agent])
+            elif isinstance(scenario, GoalRedrawingScenario):
+                self.goals[env, agent] = scenario.goal_for(self.rngs[env], self.config, self.positions[env, agent])
             else:
-                self.goals[env, agent] = self.scenario.goal_for(self.rngs[env], self.config,
-                                                                self.positions[env, agent])
+                raise TypeError(f"scenario {scenario.name!r} redraws goals (redraw_goals) but has neither next_goal "
+                                "nor goal_for")
 
     # ---------------------------------------------------------------------------------------------------- observe
 
     def observe(self, envs: np.ndarray | None = None, noisy: bool = True) -> dict[str, np.ndarray]:
-        """The policy's observation of every environment (or of `envs` only, in that order; SPEC section 2),
+        """The policy's observation of every environment (or of `envs` only, in that order; docs/world.md),
         perturbed by observation noise if set; `noisy=False`: the same observation without the noise (the true
         state, as a separate safety sensor reads it; same row order, since rows are sorted before the noise)."""
         if envs is None:
@@ -730,8 +741,8 @@ class CrowdWorld:
                                                     self.heading[envs], self.noise_keys[envs], self.steps[envs])
         if self.occlusion:  # a human behind a wall is absent, exactly as one out of range
             active = active & (self.in_sight if envs is None else self.in_sight[envs])
-        robot, humans, mask = _observe(positions, velocities, radii, goals, speeds, active, heading,
-                                       self.config.max_humans)
+        robot, humans, mask = observe_batch(positions, velocities, radii, goals, speeds, active, heading,
+                                            self.config.max_humans)
         if noisy and self.config.perturbation.observation_noise > 0.0:
             _add_observation_noise(robot, humans, mask, keys, steps, self.config.perturbation.observation_noise)
         observation = {"robot": robot, "humans": humans, "humans_mask": mask}

@@ -1,4 +1,4 @@
-"""Uncertainty estimation for socnav policies: MC-dropout and deep ensembles (paper IV-B, SPEC section 4).
+"""Uncertainty estimation for socnav policies: MC-dropout and deep ensembles (paper IV-B; docs/uncertainty-safety.md).
 Epistemic / aleatoric uncertainty per action dimension, predictive feature uncertainty, and their windowed mean.
 
 Example::
@@ -9,6 +9,8 @@ Example::
     u = estimator(obs)                                       # Uncertainty(mean_action, u_ep, u_al, u_feat)
     u.u_ep_heading, u.u_feat                                 # (B,) arrays
 """
+
+from typing import Any
 
 from socnav.uncertainty.stats import Uncertainty, ensemble_feature_uncertainty, feature_uncertainty, summarise_samples
 from socnav.uncertainty.window import WindowedUncertainty
@@ -27,7 +29,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         import importlib
 

@@ -1,4 +1,4 @@
-"""Per-step uncertainty of an ODV-PPO policy from K samples: MC-dropout or a deep ensemble (paper IV-B, SPEC section 4).
+"""Per-step uncertainty of an ODV-PPO policy from K samples: MC-dropout or a deep ensemble (paper IV-B).
 Returns the epistemic and aleatoric uncertainty per action dimension and the predictive feature uncertainty.
 
 For an observation ``o`` the K samples ``(mu_k, sigma_k, h_k)``, k = 1..K, come from one batched forward pass:
@@ -34,19 +34,22 @@ from __future__ import annotations
 import copy
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager, nullcontext
-from typing import Any, ContextManager, Literal
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch as th
 from torch import nn
 
+if TYPE_CHECKING:
+    from socnav.rl.policy import ODVActorCriticPolicy
+
 # The equations live in NumPy-only `stats` (shared with the torch-free runtime); re-exported here.
 from socnav.uncertainty.stats import (
     Uncertainty,
-    _apply_feature_map,
-    _feature_map,
+    apply_feature_map,
     ensemble_feature_uncertainty,
+    feature_map,
     feature_uncertainty,
     summarise_samples,
 )
@@ -59,6 +62,7 @@ __all__ = [
     "ensemble_feature_uncertainty",
     "feature_uncertainty",
     "make_estimator",
+    "obs_to_tensors",
     "repeat_obs",
     "summarise_samples",
 ]
@@ -84,7 +88,7 @@ def _as_policy(obj: Any) -> Any:
     raise TypeError(f"expected an ODVActorCriticPolicy (or a model holding one), got {type(obj).__name__}")
 
 
-def _obs_to_tensors(policy: Any, obs: ObsLike, repeat: int = 1) -> dict[str, th.Tensor]:
+def obs_to_tensors(policy: Any, obs: ObsLike, repeat: int = 1) -> dict[str, th.Tensor]:
     """Observation dict (NumPy or torch, batched or single) -> batched float tensors on the policy's device,
     the batch repeated ``repeat`` times sample-major (as :func:`repeat_obs`).
 
@@ -214,7 +218,8 @@ class MCDropoutEstimator:
                     th.cuda.manual_seed(seed)
                 yield
                 return
-            cpu_state, cuda_state = self._rng_states  # type: ignore[misc]
+            assert self._rng_states is not None  # `samples` comes here without a seed only for a seeded stream
+            cpu_state, cuda_state = self._rng_states
             th.random.set_rng_state(cpu_state)
             if cuda is not None and cuda_state is not None:
                 th.cuda.set_rng_state(cuda_state, cuda)
@@ -230,9 +235,9 @@ class MCDropoutEstimator:
 
         Inference-mode tensors (no autograd); ``seed`` as in :meth:`__call__`.
         """
-        repeated = _obs_to_tensors(self.policy, obs, repeat=self.k)
+        repeated = obs_to_tensors(self.policy, obs, repeat=self.k)
         batch = repeated["robot"].shape[0] // self.k
-        rng: ContextManager[None] = (
+        rng: AbstractContextManager[None] = (
             self._private_rng(seed) if seed is not None or self._rng_states is not None else nullcontext()
         )
         # inference_mode: no autograd bookkeeping at all (~5 % of the pass); the samples only go to NumPy.
@@ -267,14 +272,15 @@ class MCDropoutEstimator:
         if not self._warned_range and not valid.any():
             self._warned_range = True
             warnings.warn(
-                "the policy's feature range is untracked (no rollout seen, or an old model): u_feat is 0",
+                "the policy's feature range is untracked (no rollout seen, or a model saved without one): u_feat is 0",
                 RuntimeWarning,
                 stacklevel=2,
             )
-        return Uncertainty(mean, u_ep, u_al, _apply_feature_map(feat_var, valid, inv_v_max))
+        return Uncertainty(mean, u_ep, u_al, apply_feature_map(feat_var, valid, inv_v_max))
 
     def _feature_map(self) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`_feature_map` of the policy's tracked range, recomputed only when the range buffers changed.
+        """:func:`~socnav.uncertainty.stats.feature_map` of the policy's tracked range, recomputed only when the
+        range buffers changed.
 
         The buffers are updated in place (``update_feature_range``, ``load_state_dict``), which bumps their
         version counters; a new buffer object changes the ids.
@@ -282,7 +288,7 @@ class MCDropoutEstimator:
         lo, hi = self.policy.feature_range
         key = (id(lo), lo._version, id(hi), hi._version)
         if key != self._map_key:
-            self._map_key, self._map = key, _feature_map(lo, hi)
+            self._map_key, self._map = key, feature_map(lo, hi)
         return self._map
 
 
@@ -306,28 +312,27 @@ class _UniformSource:
 class _ActionStats(nn.Module):
     """``forward = policy.action_stats``, so that ``torch.func.functional_call`` can run it on stacked weights."""
 
-    def __init__(self, policy: nn.Module) -> None:
+    policy: ODVActorCriticPolicy
+
+    def __init__(self, policy: ODVActorCriticPolicy) -> None:
         super().__init__()
         self.policy = policy
 
     def forward(self, obs: dict[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        return self.policy.action_stats(obs)  # type: ignore[operator]
+        return self.policy.action_stats(obs)
 
 
 @contextmanager
 def _explicit_lstm() -> Iterator[None]:
     """Context: the extractor's LSTMs run through their written-out equations for every sequence length.
 
-    ``vmap`` has no batching rule for ``aten::lstm`` (the fused kernel that ``socnav.rl.extractor._run_lstm``
-    uses above ``SHORT_SEQUENCE`` humans); its written-out path gives the same values from the same weights
+    ``vmap`` has no batching rule for ``aten::lstm`` (the fused kernel that the extractor, `socnav.rl.extractor`,
+    runs above ``SHORT_SEQUENCE`` humans); its written-out path gives the same values from the same weights
     and vectorises. The module constant is raised for the duration of the stacked call only; another thread
     running the extractor meanwhile would take the written-out path too (same values, different speed).
     """
     from socnav.rl import extractor
 
-    if not hasattr(extractor, "SHORT_SEQUENCE"):
-        yield
-        return
     previous = extractor.SHORT_SEQUENCE
     extractor.SHORT_SEQUENCE = 1 << 30
     try:
@@ -393,7 +398,7 @@ class EnsembleEstimator:
             raise ValueError(f"members differ in {', '.join(_FORWARD_SETTINGS)}")
         if len({th.device(p.device) for p in self.policies}) != 1:
             raise ValueError("members live on different devices")
-        params, buffers = stack_module_state(wrappers)  # type: ignore[arg-type]
+        params, buffers = stack_module_state(wrappers)
         params = {k: v.detach() for k, v in params.items()}
         # Weightless skeleton (meta device) in eval mode: no dropout.
         skeleton = copy.deepcopy(_ActionStats(self.policies[0])).to("meta").train(False)
@@ -411,7 +416,7 @@ class EnsembleEstimator:
 
     def samples(self, obs: ObsLike) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """The members' ``(h, mu, log_std)`` of shapes (K, B, D), (K, B, A), (K, B, A) (inference-mode tensors)."""
-        tensors = _obs_to_tensors(self.policies[0], obs)
+        tensors = obs_to_tensors(self.policies[0], obs)
         if self._stack is not None:
             fn, params, buffers = self._stack
             try:
@@ -426,7 +431,7 @@ class EnsembleEstimator:
         for policy in self.policies:  # the loop path (see the class docstring for when it is used)
             with th.inference_mode(), _eval_mode(policy):
                 outs.append(policy.action_stats(tensors))
-        h, mu, log_std = (th.stack(t) for t in zip(*outs))
+        h, mu, log_std = (th.stack(t) for t in zip(*outs, strict=True))
         return h, mu, log_std
 
     def __call__(self, obs: ObsLike) -> Uncertainty:

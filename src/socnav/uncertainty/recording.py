@@ -35,7 +35,8 @@ class UncertaintyRecorder:
         self._columns: dict[str, list[np.ndarray]] = {}
 
     def on_episode_start(self, envs: np.ndarray) -> None:
-        if self.window is None:  # the first call names every environment of the rollout
+        """Restart the windows and step counts of the environments `envs` (a rollout's first call names them all)."""
+        if self.window is None or self.steps is None:  # the first call names every environment of the rollout
             self.window = WindowedUncertainty(len(envs), self.window_size)
             self.steps = np.zeros(len(envs), dtype=np.int64)
         self.window.reset(envs)
@@ -43,14 +44,16 @@ class UncertaintyRecorder:
 
     def on_step(self, observation: dict[str, np.ndarray], actions: np.ndarray, result: Any,
                 episodes: np.ndarray) -> None:
+        """Estimate the uncertainty of `observation` and record a row per environment playing an episode."""
         from socnav.sim.world import OUTCOME_NAMES
 
+        window, steps = self._started()
         uncertainty = self.estimator(observation)
-        windowed = self.window.update(uncertainty)
+        windowed = window.update(uncertainty)
         playing = episodes >= 0
         raw, smooth = uncertainty.as_dict(), windowed.as_dict()
         self._add("episode", episodes[playing])
-        self._add("step", self.steps[playing])
+        self._add("step", steps[playing])
         for name in UNCERTAINTY_COLUMNS:
             self._add(name, np.asarray(raw[name])[playing])
             self._add(f"w_{name}", np.asarray(smooth[name])[playing])
@@ -58,7 +61,13 @@ class UncertaintyRecorder:
         self._add("nearest_relative_speed", result.nearest_relative_speed[playing])
         outcome = np.array([OUTCOME_NAMES.get(int(o), "") for o in result.outcome[playing]], dtype=object)
         self._add("outcome", outcome)
-        self.steps += 1
+        steps += 1  # in place: self.steps
+
+    def _started(self) -> tuple[WindowedUncertainty, np.ndarray]:
+        """The window and the step counts, which the rollout's first `on_episode_start` creates."""
+        if self.window is None or self.steps is None:
+            raise RuntimeError("UncertaintyRecorder.on_step before on_episode_start (rollout_episodes calls it first)")
+        return self.window, self.steps
 
     def _add(self, name: str, values: np.ndarray) -> None:
         self._columns.setdefault(name, []).append(np.asarray(values))

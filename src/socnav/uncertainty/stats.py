@@ -1,4 +1,4 @@
-"""The equations of the uncertainty estimates in NumPy alone (paper eqs. (5)-(9), SPEC section 4).
+"""The equations of the uncertainty estimates in NumPy alone (paper IV-B, eqs. (5)-(9)).
 Shared by the torch estimators (`socnav.uncertainty.estimators`) and the torch-free runtime (`socnav.runtime`).
 
 See `socnav.uncertainty.estimators` for the estimators that draw the K samples these functions summarise.
@@ -18,7 +18,9 @@ __all__ = [
     "HEADING",
     "SPEED",
     "Uncertainty",
+    "apply_feature_map",
     "ensemble_feature_uncertainty",
+    "feature_map",
     "feature_uncertainty",
     "summarise_samples",
 ]
@@ -125,11 +127,13 @@ def feature_uncertainty(variances: Any, h_min: Any, h_max: Any) -> np.ndarray:
     :param h_max: (D,) tracked element-wise maximum.
     :return: (...) float64 array.
     """
-    return _apply_feature_map(_to_numpy(variances), *_feature_map(h_min, h_max))
+    return apply_feature_map(_to_numpy(variances), *feature_map(h_min, h_max))
 
 
-def _feature_map(h_min: Any, h_max: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``(valid, 1 / V_max)`` per element, (D,) each; ``1 / V_max = 0`` on the excluded (invalid) elements."""
+def feature_map(h_min: Any, h_max: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The per-element part of eq. (8) that depends on the tracked range only, computed once per range:
+    ``(valid, 1 / V_max)``, (D,) each, with ``V_max,d = (h_max,d - h_min,d)^2 / 12``; ``1 / V_max = 0`` on the
+    excluded (invalid) elements (see :func:`feature_uncertainty`). :func:`apply_feature_map` uses it."""
     lo, hi = _to_numpy(h_min), _to_numpy(h_max)
     width = hi - lo
     valid = np.isfinite(lo) & np.isfinite(hi) & (width > 0.0)
@@ -137,9 +141,10 @@ def _feature_map(h_min: Any, h_max: Any) -> tuple[np.ndarray, np.ndarray]:
     return valid, inv_v_max
 
 
-def _apply_feature_map(v: np.ndarray, valid: np.ndarray, inv_v_max: np.ndarray) -> np.ndarray:
-    """Eq. (8) over the valid elements: ``sum_d V_d^2 / V_max,d / sum_d V_d`` (0 where ``sum_d V_d = 0``).
-    ``v`` (..., D) float; one compiled pass (cheap at batch 1, where NumPy's per-call overhead would dominate)."""
+def apply_feature_map(v: np.ndarray, valid: np.ndarray, inv_v_max: np.ndarray) -> np.ndarray:
+    """Eq. (8) over the valid elements: ``sum_d V_d^2 / V_max,d / sum_d V_d`` (0 where ``sum_d V_d = 0``), with
+    ``(valid, inv_v_max)`` from :func:`feature_map`. ``v`` (..., D) float; returns (...) float64. One compiled pass
+    (cheap at batch 1, where NumPy's per-call overhead would dominate)."""
     v = _float_array(v)
     flat = v.reshape(-1, v.shape[-1]) if v.ndim != 2 else v
     out = _feature_kernel(flat, np.asarray(valid, dtype=np.bool_), np.asarray(inv_v_max, dtype=np.float64))
@@ -153,7 +158,8 @@ def _feature_kernel(v: np.ndarray, valid: np.ndarray, inv_v_max: np.ndarray) -> 
     for row in range(rows):
         total, weighted = 0.0, 0.0
         for d in range(width):
-            x = np.float64(v[row, d]) * (1.0 if valid[d] else 0.0)  # (x * 0 keeps NaN / inf -> NaN, as before)
+            # multiplied, not skipped: a NaN / inf variance of an excluded element still makes the result NaN
+            x = np.float64(v[row, d]) * (1.0 if valid[d] else 0.0)
             total += x
             weighted += x * x * inv_v_max[d]
         out[row] = weighted / total if total > 0.0 else 0.0

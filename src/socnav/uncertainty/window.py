@@ -1,4 +1,4 @@
-"""Windowed uncertainty: the mean of the last ``w`` per-step estimates of every environment (SPEC section 4).
+"""Windowed uncertainty: the mean of the last ``w`` per-step estimates of every environment (paper IV-C, V-B.2).
 A per-environment ring buffer that the safety rule reads instead of the raw, noisier per-step values.
 
 For environment ``i`` at step ``t`` with ``n_i = min(w, steps since its episode started)``::

@@ -61,7 +61,8 @@ def _write_mp4(tmp: Path, frames: list[np.ndarray], fps: float) -> None:
             pad_h, pad_w = frame.shape[0] % 2, frame.shape[1] % 2  # yuv420p needs even sizes
             if pad_h or pad_w:
                 frame = np.pad(frame, ((0, pad_h), (0, pad_w), (0, 0)), mode="edge")
-            writer.append_data(frame)
+            # imageio types get_writer's result as its plugin base class; the FFMPEG (legacy) writer appends frames
+            writer.append_data(frame)  # type: ignore[attr-defined]
 
 
 def check_animation_path(path: str | Path) -> Path:

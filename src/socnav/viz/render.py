@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from matplotlib.artist import Artist
@@ -143,9 +144,9 @@ class SceneRenderer:
         """Light 1 m grid, axes through the origin and the arena border."""
         e = self.extent
         ticks = np.arange(np.ceil(-e), np.floor(e) + 1)
-        grid = [[(t, -e), (t, e)] for t in ticks] + [[(-e, t), (e, t)] for t in ticks]
+        grid: list[list[tuple[float, float]]] = [[(t, -e), (t, e)] for t in ticks] + [[(-e, t), (e, t)] for t in ticks]
         self.ax.add_collection(LineCollection(grid, colors="#eeeeee", linewidths=0.6, zorder=0))
-        origin = [[(0, -e), (0, e)], [(-e, 0), (e, 0)]]
+        origin: list[list[tuple[float, float]]] = [[(0, -e), (0, e)], [(-e, 0), (e, 0)]]
         self.ax.add_collection(LineCollection(origin, colors="#d8d8d8", linewidths=0.8, zorder=0))
         self.ax.add_patch(Rectangle((-e, -e), 2 * e, 2 * e, fill=False, edgecolor="#999999", linewidth=1.0))
         if self.annotate:
@@ -205,8 +206,9 @@ class SceneRenderer:
 
     def _add_model_legend(self, models: Sequence[str]) -> None:
         """Without the side legend: the human models shown, in the scene's lower right corner (static layer)."""
-        if self.ax.get_legend() is not None:
-            self.ax.get_legend().remove()
+        legend = self.ax.get_legend()
+        if legend is not None:
+            legend.remove()
         if models and not self.annotate:
             self.ax.legend(handles=self._model_handles(models), loc="lower right", fontsize=7, title="human model",
                            title_fontsize=7, framealpha=0.8, handletextpad=0.3, borderaxespad=0.3)
@@ -215,28 +217,32 @@ class SceneRenderer:
         """Create every moving artist once (animated, so it is left out of the static layer)."""
         ax = self.ax
 
-        def discs(**kw) -> EllipseCollection:
+        def discs(**kw: Any) -> EllipseCollection:
             empty = np.zeros((0, 2))
-            return ax.add_collection(
-                EllipseCollection([], [], [], units="xy", offsets=empty, offset_transform=ax.transData, **kw)
-            )
+            collection = EllipseCollection([], [], [], units="xy", offsets=empty, offset_transform=ax.transData, **kw)
+            ax.add_collection(collection)
+            return collection
 
-        self.wall_blocks = ax.add_collection(PolyCollection([], facecolors=WALL_COLOR, edgecolors=WALL_COLOR,
-                                                            linewidths=1.0))
-        self.wall_lines = ax.add_collection(LineCollection([], colors=WALL_COLOR, linewidths=3.0,
-                                                           capstyle="round"))
-        self.trail_lines = ax.add_collection(LineCollection([], linewidths=1.5, joinstyle="round"))
+        # Each artist is created, then added (the add_* methods are typed to return the base class).
+        self.wall_blocks = PolyCollection([], facecolors=WALL_COLOR, edgecolors=WALL_COLOR, linewidths=1.0)
+        ax.add_collection(self.wall_blocks)
+        self.wall_lines = LineCollection([], colors=WALL_COLOR, linewidths=3.0, capstyle="round")
+        ax.add_collection(self.wall_lines)
+        self.trail_lines = LineCollection([], linewidths=1.5, joinstyle="round")
+        ax.add_collection(self.trail_lines)
         self.personal_space = discs(facecolors="none", edgecolors=to_rgba(HUMAN_COLOR, 0.45),
                                     linestyles="--", linewidths=0.9)
         (self.human_goals,) = ax.plot([], [], "x", color=HUMAN_COLOR, alpha=0.35, markersize=4)
         self.humans = discs(facecolors=HUMAN_COLOR, edgecolors=HUMAN_EDGE_COLOR, linewidths=0.8)
         self.inattentive = discs(facecolors=INATTENTIVE_COLOR, edgecolors=INATTENTIVE_EDGE_COLOR, linewidths=1.2,
                                  linestyles="--")
-        self.human_vel = ax.add_collection(LineCollection([], colors=to_rgba(HUMAN_EDGE_COLOR, 0.5), linewidths=1.0))
+        self.human_vel = LineCollection([], colors=to_rgba(HUMAN_EDGE_COLOR, 0.5), linewidths=1.0)
+        ax.add_collection(self.human_vel)
         self.hidden_humans = discs(facecolors=HIDDEN_VEIL, edgecolors=HUMAN_EDGE_COLOR, linewidths=1.0,
                                    linestyles=":")
         (self.robot_goal,) = ax.plot([], [], "*", color=ROBOT_GOAL_COLOR, markeredgecolor="#14524b", markersize=15)
-        self.robot = ax.add_patch(Circle((0.0, 0.0), 0.3, facecolor=ROBOT_COLOR, edgecolor="black", linewidth=1.0))
+        self.robot = Circle((0.0, 0.0), 0.3, facecolor=ROBOT_COLOR, edgecolor="black", linewidth=1.0)
+        ax.add_patch(self.robot)
         (self.heading_line,) = ax.plot([], [], color="black", linewidth=2.0, solid_capstyle="round")
         box = {"boxstyle": "round,pad=0.2", "facecolor": "white", "alpha": 0.7, "edgecolor": "none"}
         self.time_text = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=9, bbox=box)
@@ -291,7 +297,8 @@ class SceneRenderer:
             for position, label in ticks.get(key, ()):
                 self.panel_ax.plot([position, position], [y + 0.3, y + 0.38], color="#777777", linewidth=0.6)
                 self.panel_ax.text(position, y + 0.38, label, fontsize=6, ha="center", va="top", color="#555555")
-            bar = self.panel_ax.add_patch(Rectangle((0.0, y), 0.0, 0.3, facecolor=PANEL_BAR_COLOR, animated=True))
+            bar = Rectangle((0.0, y), 0.0, 0.3, facecolor=PANEL_BAR_COLOR, animated=True)
+            self.panel_ax.add_patch(bar)
             self._panel_bars.append(bar)
             if key in marks:  # animated too: drawn over the moving bar
                 (mark,) = self.panel_ax.plot([marks[key]] * 2, [y - 0.08, y + 0.38], color=THRESHOLD_COLOR,
@@ -328,7 +335,8 @@ class SceneRenderer:
             discs.set_widths(diameters)
             discs.set_heights(diameters)
             discs.set_angles(np.zeros(len(agents)))
-        self.human_vel.set_segments(np.stack([pos[humans], pos[humans] + vel[humans]], axis=1))
+        # matplotlib's stubs want a sequence of segments; set_segments iterates an (N, 2, 2) array the same way
+        self.human_vel.set_segments(np.stack([pos[humans], pos[humans] + vel[humans]], axis=1))  # type: ignore[arg-type]
         hidden = humans if f.hidden is None else humans[np.asarray(f.hidden, dtype=bool)[humans]]
         hidden = hidden if f.hidden is not None else humans[:0]
         self.hidden_humans.set_offsets(pos[hidden].reshape(-1, 2))
@@ -389,20 +397,23 @@ class SceneRenderer:
                                        animated=True)
                 self._model_marks[name] = mark
                 self._dynamic.insert(self._dynamic.index(self.human_vel), mark)  # over the discs
-        names = np.asarray(f.models, dtype=object) if models else None
+        names = np.asarray(f.models, dtype=object) if models else None  # (models: the frame has f.models)
         for name, mark in self._model_marks.items():
-            agents = np.concatenate([seeing, ignoring]) if models else np.zeros(0, dtype=int)
-            agents = agents[names[agents] == name] if models else agents
+            if names is None:
+                agents = np.zeros(0, dtype=int)
+            else:
+                agents = np.concatenate([seeing, ignoring])
+                agents = agents[names[agents] == name]
             mark.set_data(pos[agents, 0], pos[agents, 1])
             mark.set_visible(len(agents) > 0)
         for discs, agents, plain in ((self.humans, seeing, HUMAN_EDGE_COLOR),
                                      (self.inattentive, ignoring, INATTENTIVE_EDGE_COLOR)):
-            if models:
-                discs.set_edgecolors([model_style(str(names[a]))[0] for a in agents] or plain)
-                discs.set_linewidths(1.6)
+            if names is not None:
+                discs.set_edgecolor([model_style(str(names[a]))[0] for a in agents] or plain)
+                discs.set_linewidth(1.6)
             else:
-                discs.set_edgecolors(plain)
-                discs.set_linewidths(0.8 if discs is self.humans else 1.2)
+                discs.set_edgecolor(plain)
+                discs.set_linewidth(0.8 if discs is self.humans else 1.2)
 
     def _place_outcome(self, robot: np.ndarray | None) -> None:
         """Put the outcome banner in the band of the scene farther from the robot (below the title, or above the
@@ -431,7 +442,8 @@ class SceneRenderer:
         agents = np.flatnonzero(active[: trails.shape[1]])
         edges = np.unique(np.linspace(0, len(trails) - 1, TRAIL_BANDS + 1).round().astype(int))
         lines, colors = [], []
-        for start, stop, alpha in zip(edges[:-1], edges[1:], np.linspace(*TRAIL_ALPHA_RANGE, len(edges) - 1)):
+        alphas = np.linspace(*TRAIL_ALPHA_RANGE, len(edges) - 1)
+        for start, stop, alpha in zip(edges[:-1], edges[1:], alphas, strict=True):
             for a in agents:
                 lines.append(trails[start : stop + 1, a])  # chunks share their end point: no gaps
                 colors.append(to_rgba(robot_color if a == 0 else HUMAN_COLOR, alpha))
@@ -439,7 +451,7 @@ class SceneRenderer:
         self.trail_lines.set_color(colors)
 
     def _update_panel(self, panel: dict[str, float]) -> None:
-        for bar, value in zip(self._panel_bars, panel.values()):
+        for bar, value in zip(self._panel_bars, panel.values(), strict=True):  # the layout's bars: one per key
             value = float(value)
             bar.set_width(float(np.clip(value, 0.0, 1.0)) if np.isfinite(value) else 0.0)
 
@@ -452,7 +464,7 @@ class SceneRenderer:
         if self._background is None or layout != self._layout:
             self._set_layout(layout)
         self._update_scene(frame)
-        if panel_keys:
+        if frame.side_panel:  # (panel_keys)
             self._update_panel(frame.side_panel)
 
         self.canvas.restore_region(self._background)

@@ -17,26 +17,27 @@ from socnav.sim.humans.replay import ReplayHumans, TrajectoryFileError
 from socnav.sim.humans.social_force import SocialForceHumans
 
 __all__ = [
-    "MIX", "Crowd", "HumanModel", "HumanModelFactory", "HumanSettings", "MixedHumans", "OrcaHumans", "ReplayHumans",
-    "ScriptedHumans", "SocialForceHumans", "TrajectoryFileError", "human_model_names", "make_human_model",
-    "register_human_model",
+    "HUMAN_MODELS", "MIX", "Crowd", "HumanModel", "HumanModelFactory", "HumanSettings", "MixedHumans", "OrcaHumans",
+    "ReplayHumans", "ScriptedHumans", "SocialForceHumans", "TrajectoryFileError", "human_model_names",
+    "make_human_model", "register_human_model",
 ]
 
 #: Builds a model from a world's config (`socnav.config.EnvConfig`, read through `HumanSettings`).
 HumanModelFactory = Callable[[HumanSettings], HumanModel]
 
-_REGISTRY: dict[str, HumanModelFactory] = {}
+#: The registered models, by name, in registration order; `register_human_model` adds to it.
+HUMAN_MODELS: dict[str, HumanModelFactory] = {}
 
 
 def register_human_model(name: str, factory: HumanModelFactory) -> HumanModelFactory:
     """Register `factory` under `name` (replacing one of the same name); ``humans.model: name`` then selects it."""
-    _REGISTRY[name] = factory
+    HUMAN_MODELS[name] = factory
     return factory
 
 
 def human_model_names() -> list[str]:
     """The registered model names, in registration order (the default, ``orca``, first)."""
-    return list(_REGISTRY)
+    return list(HUMAN_MODELS)
 
 
 def make_human_model(config: HumanSettings) -> HumanModel:
@@ -51,7 +52,7 @@ def make_human_model(config: HumanSettings) -> HumanModel:
 
 def _build(name: str, config: HumanSettings) -> HumanModel:
     try:
-        factory = _REGISTRY[name]
+        factory = HUMAN_MODELS[name]
     except KeyError:
         raise KeyError(f"unknown human model {name!r}; registered: {', '.join(human_model_names())}") from None
     return factory(config)

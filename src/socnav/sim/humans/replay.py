@@ -24,7 +24,7 @@ import warnings
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numba
 import numpy as np
@@ -73,7 +73,7 @@ class Recording:
         return sum(len(samples) for samples in self.samples)
 
 
-def _fail(path: Path, line: int, message: str) -> None:
+def _fail(path: Path, line: int, message: str) -> NoReturn:
     raise TrajectoryFileError(f"trajectory file {path} line {line}: {message}")
 
 
@@ -95,7 +95,7 @@ def _scan(text: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
             _fail(path, number, f"expected {len(COLUMNS)} columns (frame_id ped_id x y), found {len(tokens)}: "
                                 f"{shown!r}")
         values = []
-        for column, token in zip(COLUMNS, tokens):
+        for column, token in zip(COLUMNS, tokens, strict=True):
             shown = token if len(token) <= 40 else token[:37] + "..."
             try:
                 value = float(token)
@@ -217,7 +217,7 @@ def interpolate_tracks(recording: Recording, time_step: float, sample_rate: floa
     """
     ratio = time_step * sample_rate  # recorded samples per env step
     tracks = []
-    for samples, positions in zip(recording.samples, recording.positions):
+    for samples, positions in zip(recording.samples, recording.positions, strict=True):
         first = math.ceil(samples[0] / ratio - _EPS)
         last = math.floor(samples[-1] / ratio + _EPS)
         steps = np.arange(first, max(last, first - 1) + 1)
@@ -347,15 +347,22 @@ def build_scenes(recordings: list[Recording], time_step: float, sample_rate: flo
         raise TrajectoryFileError(
             f"trajectory files {', '.join(r.path for r in recordings)} give {total:,} positions at time_step "
             f"{time_step:g} s; socnav keeps at most {MAX_SAMPLES:,} (fewer or shorter files, or a longer time_step)")
-    centres, half_sizes, scene_steps, scene_lo, scene_hi = [], [], [], [], []
-    ids, first, count, chunks = [], [], [], []
-    for recording, tracks in zip(recordings, per_scene):
+    centres: list[np.ndarray] = []
+    half_sizes: list[np.ndarray] = []
+    scene_steps: list[int] = []
+    scene_lo: list[int] = []
+    scene_hi: list[int] = []
+    ids: list[float] = []
+    first: list[int] = []
+    count: list[int] = []
+    chunks: list[np.ndarray] = []
+    for recording, tracks in zip(recordings, per_scene, strict=True):
         everything = np.concatenate(recording.positions)
         low, high = everything.min(axis=0), everything.max(axis=0)
         centre = (low + high) / 2.0
         centres.append(centre)
         half_sizes.append((high - low) / 2.0)
-        kept = [(k0, xy, pid) for (k0, xy), pid in zip(tracks, recording.ids) if len(xy)]
+        kept = [(k0, xy, pid) for (k0, xy), pid in zip(tracks, recording.ids, strict=True) if len(xy)]
         kept.sort(key=lambda item: item[0])  # stable: ties keep the order of first appearance
         scene_lo.append(len(first))
         for k0, xy, pid in kept:
@@ -378,12 +385,14 @@ def build_scenes(recordings: list[Recording], time_step: float, sample_rate: flo
 
 
 @functools.lru_cache(maxsize=8)
-def _load(files: tuple[str, ...], sample_rate: float, frame_step: int | None, time_step: float) -> ReplayScenes:
+def read_scenes(files: tuple[str, ...], sample_rate: float, frame_step: int | None, time_step: float) -> ReplayScenes:
+    """The `ReplayScenes` of trajectory files (`read_trajectories`, `build_scenes`), cached for the last 8 sets of
+    arguments; `load_replay`, which keeps the scenes some world still uses, is the entry point."""
     return build_scenes([read_trajectories(path, frame_step) for path in files], time_step, sample_rate)
 
 
 #: The scenes some model still uses, by key: `load_replay` hands out the same object while one does, whatever
-#: `_load`'s cache has dropped meanwhile (the model's arrays and the scenario's plans must index the same scenes).
+#: `read_scenes`'s cache has dropped meanwhile (the model's arrays and the scenario's plans must index the same scenes).
 _LIVE: weakref.WeakValueDictionary[tuple, ReplayScenes] = weakref.WeakValueDictionary()
 
 
@@ -396,7 +405,7 @@ def load_replay(settings: Any, time_step: float) -> ReplayScenes:
            None if settings.frame_step is None else int(settings.frame_step), float(time_step))
     scenes = _LIVE.get(key)
     if scenes is None:
-        scenes = _LIVE[key] = _load(*key)
+        scenes = _LIVE[key] = read_scenes(*key)
     return scenes
 
 
