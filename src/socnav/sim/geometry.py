@@ -313,45 +313,41 @@ def _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, rela
             ranges[env, beam] = t
 
 
-@numba.njit(cache=True)
-def _scan_wall(ranges, env, ox, oy, first, cos_h, sin_h, relative_x, relative_y, n_beams, wraps, angle_increment,
-               max_range, one_sided, ax, ay, bx, by):
-    """Shorten environment `env`'s beams to the wall [a, b], testing only the beams within the wall's angular
-    extent seen from the origin o (one beam of margin each side; `first` is the direction of beam 0), and none when
-    the wall lies beyond `max_range` or the origin is on the solid side of a `one_sided` polygon edge."""
+@numba.njit(cache=True, inline="always")
+def _beyond_range(ox, oy, ax, ay, bx, by, max_range):
+    """Whether the wall [a, b] lies beyond `max_range` from o along an axis, so beyond it (a hit there would read
+    max_range anyway)."""
+    return (min(ax, bx) - ox >= max_range or ox - max(ax, bx) >= max_range or min(ay, by) - oy >= max_range
+            or oy - max(ay, by) >= max_range)
+
+
+@numba.njit(cache=True, inline="always")
+def _on_wall(ox, oy, ax, ay, bx, by):
+    """Whether the origin o lies on the wall [a, b] (then every beam reads 0)."""
+    return (min(ax, bx) <= ox <= max(ax, bx) and min(ay, by) <= oy <= max(ay, by)
+            and _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9)
+
+
+@numba.njit(cache=True, inline="always")
+def _angular_extent(ox, oy, ax, ay, bx, by, first):
+    """The directions the wall [a, b] covers seen from o, relative to beam 0's direction `first`: (start, width),
+    start in [-pi, pi), the extent [start, start + width] (a segment subtends at most pi)."""
     full_turn = 2.0 * math.pi
-    if one_sided and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
-        return  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
-    if (min(ax, bx) - ox >= max_range or ox - max(ax, bx) >= max_range or min(ay, by) - oy >= max_range
-            or oy - max(ay, by) >= max_range):
-        return  # beyond max_range along an axis, so beyond it (a hit there would read max_range anyway)
-    on_wall = (min(ax, bx) <= ox <= max(ax, bx) and min(ay, by) <= oy <= max(ay, by)
-               and _point_segment_distance(ox, oy, ax, ay, bx, by) < 1e-9)
-    if angle_increment == 0.0 or on_wall:
-        _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
-                      ax, ay, bx, by)  # one beam, or the origin on the wall: every beam
-        return
     angle_a = math.atan2(ay - oy, ax - ox)
     span = math.atan2(by - oy, bx - ox) - angle_a
-    if span > math.pi:  # the segment subtends at most pi
+    if span > math.pi:
         span -= full_turn
     elif span < -math.pi:
         span += full_turn
     start = (angle_a if span >= 0.0 else angle_a + span) - first
-    while start >= math.pi:  # into [-pi, pi): the extent is [start, start + |span|]
+    while start >= math.pi:
         start -= full_turn
     while start < -math.pi:
         start += full_turn
-    for offset in (0.0, full_turn):  # beams run over [0, fov]: the extent, or its copy one turn on
-        if wraps and offset > 0.0:
-            break
-        low = math.floor((start + offset) / angle_increment) - 1
-        high = math.ceil((start + offset + abs(span)) / angle_increment) + 1
-        _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
-                      ax, ay, bx, by)
+    return start, abs(span)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _scan_circles(ranges, env, ox, oy, cos_h, sin_h, relative_x, relative_y, circle_positions, circle_radii,
                   circle_active):
     """Shorten environment `env`'s beams to the first active circle each one hits (`_ray_circle_distance`)."""
@@ -369,8 +365,9 @@ def _scan_circles(ranges, env, ox, oy, cos_h, sin_h, relative_x, relative_y, cir
 @numba.njit(cache=True)
 def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beams, angle_min, angle_increment,
                        max_range, circle_positions, circle_radii, circle_active, one_sided):
-    # Each wall is tested only against the beams within its angular extent seen from the origin (`_scan_wall`): the
-    # exact ray test decides every remaining pair, so the ranges are those of testing every beam against every wall.
+    # Each wall is tested only against the beams within its angular extent seen from the origin (one beam of margin
+    # each side), and not at all when it lies beyond max_range: the exact ray test decides every remaining pair, so
+    # the ranges are those of testing every beam against every wall.
     n_envs = origins.shape[0]
     ranges = np.full((n_envs, n_beams), max_range)
     full_turn = 2.0 * math.pi
@@ -387,9 +384,23 @@ def _range_scan_kernel(origins, headings, seg_start, seg_end, n_segments, n_beam
         first = headings[env] + angle_min
         cos_h, sin_h = math.cos(headings[env]), math.sin(headings[env])
         for s in range(n_segments[env]):
-            _scan_wall(ranges, env, ox, oy, first, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
-                       angle_increment, max_range, one_sided[env, s], seg_start[env, s, 0], seg_start[env, s, 1],
-                       seg_end[env, s, 0], seg_end[env, s, 1])
+            ax, ay, bx, by = seg_start[env, s, 0], seg_start[env, s, 1], seg_end[env, s, 0], seg_end[env, s, 1]
+            if one_sided[env, s] and _orientation(ax, ay, bx, by, ox, oy) > 0.0:
+                continue  # the origin on the solid side of a polygon's edge: a beam leaves solid there, never first
+            if _beyond_range(ox, oy, ax, ay, bx, by, max_range):
+                continue
+            if angle_increment == 0.0 or _on_wall(ox, oy, ax, ay, bx, by):
+                _scan_segment(ranges, env, 0, n_beams - 1, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
+                              ax, ay, bx, by)  # one beam, or the origin on the wall: every beam
+                continue
+            start, width = _angular_extent(ox, oy, ax, ay, bx, by, first)
+            for offset in (0.0, full_turn):  # beams run over [0, fov]: the extent, or its copy one turn on
+                if wraps and offset > 0.0:
+                    break
+                low = math.floor((start + offset) / angle_increment) - 1
+                high = math.ceil((start + offset + width) / angle_increment) + 1
+                _scan_segment(ranges, env, low, high, ox, oy, cos_h, sin_h, relative_x, relative_y, n_beams, wraps,
+                              ax, ay, bx, by)
         if n_circles > 0:
             _scan_circles(ranges, env, ox, oy, cos_h, sin_h, relative_x, relative_y, circle_positions, circle_radii,
                           circle_active)
