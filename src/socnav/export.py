@@ -554,13 +554,13 @@ def _check(graph: NavigatorGraph, path: Path, input_names: list[str], output_nam
         inputs = _example_inputs(graph, rows, steps, seed=rows)
         expected = [tensor.numpy() for tensor in graph(*inputs)]
         got = session.run(None, {name: value.numpy() for name, value in zip(input_names, inputs, strict=True)})
-        error = _largest_difference(got, expected, output_names, f"rows={rows}, human rows={steps}")
+        error = largest_difference(got, expected, output_names, f"rows={rows}, human rows={steps}")
         if error > EXPORT_TOLERANCE:
             raise ExportError(f"the exported graph differs from the torch policy by {error:.2e} "
                               f"(rows={rows}, human rows={steps}); tolerance {EXPORT_TOLERANCE:g}")
 
 
-def _largest_difference(got: Sequence[np.ndarray], expected: Sequence[np.ndarray], names: Sequence[str],
+def largest_difference(got: Sequence[np.ndarray], expected: Sequence[np.ndarray], names: Sequence[str],
                         where: str) -> float:
     """The largest |ONNX - torch| over all outputs. A NaN / inf output (either side) or a missing or misshapen one
     is an :class:`ExportError`, never a number: ``max`` would silently drop a NaN difference (``nan > x`` is

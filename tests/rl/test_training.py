@@ -166,6 +166,7 @@ def test_nan_stops_training_naming_step_and_tensor(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "run.json").read_text())["status"] == "failed"
 
 
+@pytest.mark.heavy
 def test_killed_training_resumes_to_the_same_total(tmp_path):
     out = tmp_path / "run"
     command = [sys.executable, "-m", "socnav.cli", "train", "--scenario", "position_swap", "--n-humans", "1",

@@ -31,7 +31,7 @@ from socnav.envs.rollout import EPISODE_COLUMNS
 from socnav.runtime import SafeNavigator
 from socnav.sim.world import CrowdWorld
 
-pytestmark = pytest.mark.ros2
+pytestmark = [pytest.mark.ros2, pytest.mark.heavy]  # heavy: a ROS 2 graph of separate processes
 
 EPISODES = 20
 SEED = 100

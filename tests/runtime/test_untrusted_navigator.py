@@ -379,19 +379,19 @@ def test_a_non_finite_observation_stops_the_robot(navigator_file):
 
 def test_equivalence_check_treats_nan_as_failure():
     """`max` drops a NaN difference (``nan > x`` is False): the check must fail on it, in any output, either side."""
-    from socnav.export import ExportError, _largest_difference
+    from socnav.export import ExportError, largest_difference
 
     good = [np.zeros((2, 4), np.float32), np.zeros((2, 2), np.float32)]
-    assert _largest_difference(good, [a + 1e-7 for a in good], ["h", "mean"], "x") == pytest.approx(1e-7)
+    assert largest_difference(good, [a + 1e-7 for a in good], ["h", "mean"], "x") == pytest.approx(1e-7)
     for side in (0, 1):
         for value in (np.nan, np.inf):
             bad = [good[0], good[1].copy()]
             bad[1][1, 0] = value
             got, expected = (bad, good) if side == 0 else (good, bad)
             with pytest.raises(ExportError, match=r"'mean' output is not finite"):
-                _largest_difference(got, expected, ["h", "mean"], "rows=1")
+                largest_difference(got, expected, ["h", "mean"], "rows=1")
     with pytest.raises(ExportError, match="shape"):
-        _largest_difference([good[0], good[1][:1]], good, ["h", "mean"], "rows=1")
+        largest_difference([good[0], good[1][:1]], good, ["h", "mean"], "rows=1")
 
 
 def test_export_refuses_a_policy_with_nan_weights(pretrained_policy, tmp_path):

@@ -85,6 +85,9 @@ class ODVPPO(PPO):
     :param kwargs: any :class:`~stable_baselines3.PPO` argument.
     """
 
+    #: the preset that built the model (`socnav.rl.presets.make_model`) and its hyperparameters, saved with it
+    algo_name: str
+    algo_config: dict[str, Any]
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         **PPO.policy_aliases,
         "ODVPolicy": ODVActorCriticPolicy,

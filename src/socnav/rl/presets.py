@@ -236,6 +236,6 @@ def make_model(
         device=cfg.device,
     )
     # Attributes of socnav's own on the SB3 model (ODVPPO declares neither); JSON-safe, so checkpoints store them.
-    model.algo_name = algo  # type: ignore[attr-defined]
-    model.algo_config = cfg.model_dump(mode="json")  # type: ignore[attr-defined]
+    model.algo_name = algo
+    model.algo_config = cfg.model_dump(mode="json")
     return model
