@@ -211,8 +211,11 @@ def test_ctrl_c_while_connecting_to_ray_exits_promptly(tmp_path, silent_grpc_por
     command = [sys.executable, "-m", "socnav", "run", str(REPO / "configs" / "experiments" / "smoke.yaml"),
                "--budget", "quick", "--backend", "ray", "--address", f"127.0.0.1:{silent_grpc_port}", "--out",
                str(tmp_path / "run")]
+    # As a terminal starts a foreground job: its own process group, Ctrl-C at its default action. A process that
+    # ignores SIGINT passes that on to its children, so this test must not depend on what the test process inherited.
     sweep = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             start_new_session=True)
+                             start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
     def connecting() -> bool:  # the sweep has started its connection attempt (a child process running ray.init)
         for status in Path("/proc").glob("[0-9]*/cmdline"):
             try:

@@ -313,3 +313,49 @@ def test_no_message_crashes_the_node_and_every_command_is_safe(ros_context, navi
         stops += (twist.linear.x, twist.angular.z) == (0.0, 0.0)
     assert node.decisions == 300 and 30 < stops < 270  # both kinds of decisions were exercised
     node.destroy_node()
+
+
+class _FakeRclpy:
+    """rclpy's init / ok / shutdown, as `socnav.ros2.cli._spin` uses them, on a flag."""
+
+    def __init__(self) -> None:
+        self.alive = False
+
+    def init(self, args: list[str]) -> None:
+        self.alive = True
+
+    def ok(self) -> bool:
+        return self.alive
+
+    def shutdown(self) -> None:
+        self.alive = False
+
+
+class _Node:
+    destroyed = False
+
+    def destroy_node(self) -> None:
+        self.destroyed = True
+
+
+def test_a_context_shut_down_by_ctrl_c_while_spinning_is_a_clean_interruption(capsys):
+    """rclpy's SIGINT handler shuts the context down; an executor building its wait set just then raises RCLError
+    ("the given context is not valid"): the node exits as for any Ctrl-C. The same error while ROS 2 is still up
+    is a real failure and propagates."""
+    from socnav.ros2.cli import _spin
+
+    rclpy = _FakeRclpy()
+    node = _Node()
+
+    def interrupted(_node: _Node) -> None:
+        rclpy.alive = False  # what rclpy's signal handler does
+        raise RuntimeError("failed to initialize wait set: the given context is not valid")
+
+    _spin(rclpy, [], lambda: node, interrupted)
+    assert node.destroyed and "interrupted" in capsys.readouterr().out
+
+    def broken(_node: _Node) -> None:
+        raise RuntimeError("something else")
+
+    with pytest.raises(RuntimeError, match="something else"):
+        _spin(_FakeRclpy(), [], _Node, broken)

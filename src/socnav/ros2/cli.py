@@ -61,6 +61,12 @@ def _spin(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Calla
             fail(str(exc), code=1)
         except (KeyboardInterrupt, ExternalShutdownException, ROSInterruptException):
             console.print("interrupted: shutting down", highlight=False)
+        except RuntimeError:
+            # rclpy's own SIGINT/SIGTERM handler shuts the context down; an executor then building its wait set
+            # raises RCLError (a RuntimeError) "the given context is not valid": that too is the interruption.
+            if rclpy.ok():
+                raise
+            console.print("interrupted: shutting down", highlight=False)
     finally:
         if node is not None:
             node.destroy_node()
