@@ -339,3 +339,51 @@ def read_json(path: str | Path, max_bytes: int = JSON_MAX_BYTES, max_depth: int 
     :raises OSError: missing or unreadable.
     """
     return parse_json(read_bounded(path, max_bytes, follow_links), str(path), max_depth)
+
+
+class OutputPathError(ValueError):
+    """An output path socnav refuses before any work starts; the message is one line naming the path and why."""
+
+
+_SPECIAL_ROOTS = (Path("/proc"), Path("/sys"), Path("/dev"))
+
+
+def check_output_file(path: str | Path, what: str = "output", force: bool = False,
+                      create_parent: bool = False) -> Path:
+    """Refuse, before any work, an output path that is not a new or regular file in a writable directory.
+
+    Refused: an existing path that is not a regular file (a directory, FIFO, device or socket), a path that resolves
+    into ``/proc``, ``/sys`` or ``/dev``, an existing regular file unless `force`, a parent directory that does not
+    exist (unless `create_parent`: then its first existing ancestor must be a writable directory) or is not
+    writable. A symbolic link at `path` is checked by what it points to (atomic writes replace the link itself).
+
+    :param what: the option or output the message names (e.g. ``--out``).
+    :returns: `path` as a Path.
+    :raises OutputPathError: one line naming `what`, the path and the reason.
+    """
+    path = Path(path)
+    resolved = path.resolve()
+    if any(resolved == root or root in resolved.parents for root in _SPECIAL_ROOTS):
+        raise OutputPathError(f"{what} {path} resolves to {resolved}, a system path (/proc, /sys, /dev); "
+                              f"give a regular file")
+    if path.exists() or path.is_symlink():
+        try:
+            mode = path.stat().st_mode
+        except OSError as exc:
+            raise OutputPathError(f"{what} {path} cannot be checked: {exc.strerror or exc}") from None
+        if stat.S_ISDIR(mode):
+            raise OutputPathError(f"{what} {path} is a directory; give a file name")
+        if not stat.S_ISREG(mode):
+            raise OutputPathError(f"{what} {path} is not a regular file (a FIFO, device or socket); give a new file")
+        if not force:
+            raise OutputPathError(f"{what} {path} exists; pass --force to replace it, or choose another name")
+    parent = resolved.parent
+    if not parent.exists():
+        if not create_parent:
+            raise OutputPathError(f"{what} {path}: directory {path.parent} does not exist (a typo? create it first)")
+        parent = next(ancestor for ancestor in parent.parents if ancestor.exists())
+    if not parent.is_dir():
+        raise OutputPathError(f"{what} {path}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{what} {path}: directory {parent} is not writable")
+    return path
