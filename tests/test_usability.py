@@ -1,5 +1,6 @@
-"""What a new user trips over (issue 12): results that overwrite each other, misleading output, missing options.
-Each test checks the behaviour a user of SB3 / rl-zoo / CrowdNav would expect against an independent truth."""
+"""What a new user would trip over, kept from happening: results never overwrite each other, output says what it
+means, the options a user looks for exist. Each test checks the behaviour a user of SB3 / rl-zoo / CrowdNav would
+expect against an independent truth."""
 
 from __future__ import annotations
 

@@ -30,6 +30,8 @@ from socnav.experiments.cli_options import (
     estimator_option,
     eval_episodes_option,
     eval_every_option,
+    force_option,
+    humans_option,
     max_humans_option,
     mc_samples_option,
     members_option,
@@ -48,6 +50,7 @@ from socnav.sim.metrics import PV_PER
 if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --help` stays fast
     import pandas as pd
 
+    from socnav.envs.rollout import RolloutInterrupted
     from socnav.rl.training import RunInfo, TrainResult
     from socnav.safety import SafePolicy
 
@@ -94,17 +97,21 @@ def _check_n_envs(n_envs: int, env_config: EnvConfig) -> None:
 
 
 def _env_config(scenario: str | None, config_file: Path | None, n_humans: int | None,
-                max_humans: int | None = None, base: Any = None, observes: int | None = None) -> EnvConfig:
+                max_humans: int | None = None, base: Any = None, observes: int | None = None,
+                humans: str | None = None) -> EnvConfig:
     """The env config of a command: `base` (a config file, or e.g. a model's stored config), then the options.
 
     :param observes: the max_humans of the model the command runs, if any: raising max_humans is then no way out
         (a model runs only with the observation size it was trained with), fewer humans are.
+    :param humans: --humans, the human model (checked by `_check_human_model`).
     """
     import re
 
     overrides: dict[str, Any] = {}
     if scenario is not None:
         overrides["scenario"] = scenario
+    if humans is not None:  # one model for every human: a mixed crowd of the base world is replaced, not kept
+        overrides["humans"] = {"model": humans, "mix": None}
     if n_humans is not None:
         overrides["n_humans"] = n_humans
     if max_humans is not None:
@@ -247,6 +254,7 @@ def train(
     resume: Path | None = typer.Option(None, help="continue the run in this directory from its last checkpoint"),
     force: bool = typer.Option(False, "--force", help="move an existing --out directory aside to "
                                                       "OUT.old-<timestamp> (never deleted) and start afresh"),
+    humans: str | None = humans_option(),
 ) -> None:
     """Train a policy: progress with live success rate, TensorBoard in OUT/tb, checkpoints, final OUT/model.zip."""
     if resume is not None:
@@ -258,7 +266,8 @@ def train(
         if start is None:  # the run is complete: reported, nothing to train
             return
     else:
-        env_config = _env_config(scenario, config, n_humans, max_humans)
+        _check_human_model(humans)
+        env_config = _env_config(scenario, config, n_humans, max_humans, humans=humans)
         overrides = _algo_overrides(algo, algo_config, settings)
         out = _new_run_directory(out or Path("runs") / "train" / f"{env_config.scenario}_{algo}_seed{seed}", force)
         start = 0
@@ -363,7 +372,7 @@ def _run_training(out: Path, run: Callable[[], TrainResult]) -> TrainResult:
 
 #: What `train --resume` takes from the run's own run.json: giving any of these with it would be ignored.
 _RESUME_IGNORES = ("scenario", "algo", "seed", "timesteps", "n_envs", "n_humans", "max_humans", "config",
-                   "algo_config", "settings", "eval_every", "eval_episodes", "out", "force")
+                   "algo_config", "settings", "eval_every", "eval_episodes", "out", "force", "humans")
 
 
 def _refuse_options_resume_ignores(ctx: typer.Context) -> None:
@@ -392,12 +401,86 @@ def _report_interrupted(out: Path) -> NoReturn:
     raise typer.Exit(code=130)
 
 
-def _check_out_file(option: str, path: Path) -> None:
-    """A clear error, before any work, when the output file `path` cannot be written (a directory there, a file
-    among its parents, no permission)."""
-    if path.is_dir():
-        fail(f"{option} {path} is a directory; name a file")
+def _check_out_file(option: str, path: Path, force: bool = False, create_parent: bool = False) -> None:
+    """A clear error, before any work, when the output file `path` cannot or may not be written
+    (`socnav.io.check_output_file`): an existing file without --force, a directory, FIFO or device, a path in
+    /proc, /sys or /dev, a directory that does not exist (a typo is never created silently; `create_parent` only
+    for a command's own default directory, e.g. runs/evaluate) or that cannot be written."""
+    from socnav.io import OutputPathError, check_output_file
+
+    try:
+        check_output_file(path, what=option, force=force, create_parent=create_parent)
+    except OutputPathError as exc:
+        fail(str(exc))
+    # Probed as well: root passes the permission check above where no file can be created (a read-only mount).
     _check_out_writable(option, path, directory=False)
+
+
+def _check_human_model(humans: str | None) -> None:
+    """--humans names a registered human model (`socnav.sim.humans`), or a one-line error with did-you-mean."""
+    if humans is None:
+        return
+    from socnav.config import unknown_name_message
+    from socnav.sim.humans import human_model_names
+
+    if humans not in human_model_names():
+        fail(f"--humans: {unknown_name_message('human model', humans, human_model_names())}")
+
+
+def _check_choice(option: str, value: str | None, allowed: Any) -> None:
+    """A one-line error naming `option` and the `allowed` values when `value` (None: not given) is not one."""
+    if value is not None and value not in allowed:
+        fail(f"{option} {value!r} is not known; allowed: {', '.join(allowed)}")
+
+
+def _check_members(members: str | None) -> None:
+    """--members matches at least two policy files (checked before any of them loads)."""
+    import glob
+
+    if members is None:
+        return
+    paths = sorted(glob.glob(members))
+    if len(paths) < 2:
+        fail(f"--members {members!r} matches {len(paths)} policy file(s); an ensemble needs at least 2")
+
+
+def _check_perturbations(settings: list[str]) -> None:
+    """The --perturb settings parse and name known perturbation fields with valid values, before a model loads
+    (the world they apply to is known only after)."""
+    if not settings:
+        return
+    try:
+        load_config(None, perturbation=_perturbation_overrides(settings))
+    except ConfigError as exc:
+        fail(str(exc))
+
+
+def _note_other_world(trained: Any, env_config: EnvConfig, label: str) -> None:
+    """One line when a policy plays outside the world it was trained in (`trained`: the env config its file
+    records): another scenario, walls it never saw (or none of those it learned with), another human model. The
+    numbers then measure how the policy generalises, which a user may not have meant to measure."""
+    from socnav.sim.walls import has_walls
+
+    try:
+        world = load_config(trained)
+    except ConfigError:  # validated when the policy loaded; a note is not worth an error
+        return
+
+    def walls(config: EnvConfig) -> str:
+        return "walls" if has_walls(config) else "no walls"
+
+    changes = []
+    if world.scenario != env_config.scenario:
+        changes.append(f"scenario {world.scenario} -> {env_config.scenario}")
+    if has_walls(world) != has_walls(env_config):
+        changes.append(f"{walls(world)} -> {walls(env_config)}")
+    elif has_walls(world) and (world.obstacles, world.map) != (env_config.obstacles, env_config.map):
+        changes.append("other walls")
+    if (world.humans.model, world.humans.mix) != (env_config.humans.model, env_config.humans.mix):
+        changes.append(f"humans {world.humans.model} -> {env_config.humans.model}")
+    if changes:
+        console.print(f"note: {escape(label)} runs outside the world it was trained in ({escape('; '.join(changes))}"
+                      "): the results measure how it generalises", highlight=False)
 
 
 def _check_out_writable(option: str, path: Path, directory: bool = True) -> None:
@@ -451,12 +534,12 @@ def _explain_rounding(asked: int, algo: str, overrides: dict[str, Any], n_envs: 
 
 
 def _single_agent_env_config(scenario: str | None, config_file: Path | None, n_humans: int | None,
-                             max_humans: int | None = None) -> EnvConfig:
+                             max_humans: int | None = None, humans: str | None = None) -> EnvConfig:
     """`_env_config` for animate / calibrate: without --config, position swap with one human unless given."""
     if config_file is None:
         scenario = "position_swap" if scenario is None else scenario
         n_humans = 1 if n_humans is None else n_humans
-    return _env_config(scenario, config_file, n_humans, max_humans)
+    return _env_config(scenario, config_file, n_humans, max_humans, humans=humans)
 
 
 def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
@@ -474,10 +557,11 @@ def _check_observation_size(policies: list[Any], env_config: EnvConfig) -> None:
 
 
 def _model_world(model: str | None, scenario: str | None, config: Path | None, n_humans: int | None,
-                 max_humans: int | None, default: Callable[[], EnvConfig]) -> EnvConfig:
+                 max_humans: int | None, default: Callable[[], EnvConfig], humans: str | None = None) -> EnvConfig:
     """The world a command plays: with --model and without --config, the world the model was trained in (as
-    `evaluate` does; --scenario, --n-humans, --max-humans change it), else `default()`. Prints which world."""
-    if model is None or config is not None:
+    `evaluate` does; --scenario, --n-humans, --max-humans, --humans change it), else `default()`. Prints which
+    world, and a note when the model plays outside its training world."""
+    if model is None or config is not None:  # (with --config the user chose the world: no note)
         env_config = default()
         origin = f"--config {config}" if config is not None else "defaults"
     else:
@@ -485,13 +569,19 @@ def _model_world(model: str | None, scenario: str | None, config: Path | None, n
 
         policy = _load_learned_policy(model)
         base, origin = training_world(policy, scenario, n_humans, max_humans)
+        origin += ", changed by the options" if humans is not None and "changed" not in origin else ""
         env_config = _env_config(scenario, None, n_humans, max_humans, base=base,
-                                 observes=policy.observation_space["humans"].shape[0])
+                                 observes=policy.observation_space["humans"].shape[0], humans=humans)
     console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
+    if model is not None and config is None:
+        _note_other_world(policy.socnav_metadata["env_config"], env_config, _model_label(model))
     return env_config
 
 
 def _load_learned_policy(model: str) -> Any:
+    if _is_navigator_file(model):  # else "corrupted or not a zip archive" for a valid export
+        fail(f"--model {model} is an exported navigator (ONNX): socnav evaluate scores it; this command needs the "
+             "policy file it was exported from (socnav train's model.zip, or pretrained)")
     import torch
 
     from socnav.rl.persistence import PolicyLoadError, load_policy
@@ -556,12 +646,16 @@ def evaluate(
                                                              "Return) | all | NAME,... (docs/metrics.md); other than "
                                                              "default, the records also hold every metric's "
                                                              "per-episode column"),
+    humans: str | None = humans_option(),
+    force: bool = force_option("the --out records file"),
 ) -> None:
     """Evaluate a controller: Goal %, Collision %, Time-out %, PV, nav time, Return (--metrics: more); records to
     a file."""
     from socnav.controllers import CONTROLLERS, make_controller
+    from socnav.envs.rollout import RolloutInterrupted
     from socnav.io import TABLE_FORMATS, write_table_atomic
 
+    # Every option is checked before a model loads (18-24 s for the shipped one on a loaded machine).
     chosen = _chosen_metrics(metrics)
     controller = policy if policy is not None else controller
     if model is None and controller not in CONTROLLERS:
@@ -571,9 +665,22 @@ def evaluate(
     if safety is not None and model is None and members is None:
         fail("--safety needs a learned policy: --model PATH (or --model pretrained), or --estimator ensemble "
              "--members GLOB")
-    actor: Any = None if model is None else _load_learned_policy(model)
-    env_config = _evaluation_world(actor, scenario, config, n_humans, max_humans, perturb)
+    exported = model is not None and _is_navigator_file(model)
+    if exported and (safety is not None or stochastic):
+        fail(f"--model {model} is an exported navigator: evaluate scores its policy's deterministic action alone; "
+             f"for {'--safety' if safety is not None else '--stochastic'} evaluate the policy file it was exported "
+             "from (model.zip or pretrained)")
+    if safety is not None:
+        _check_safety_options(safety, sensing, estimator, model, members)
+    _check_perturbations(perturb)
+    _check_human_model(humans)
+    if out is not None:
+        _check_out_file("--out", out, force=force)
+    actor: Any = None if model is None else _load_navigator(model) if exported else _load_learned_policy(model)
+    env_config = _evaluation_world(actor, scenario, config, n_humans, max_humans, perturb, humans)
     name = _model_label(model) if model is not None else controller
+    if model is not None and config is None:
+        _note_other_world(actor.socnav_metadata["env_config"], env_config, name)
     observer = None
     if safety is not None:
         from socnav.safety import FallbackCounter
@@ -585,11 +692,12 @@ def evaluate(
         _check_observation_size([actor], env_config)
     else:
         actor = make_controller(controller, env_config)
-    out = out or _default_records_path(name, env_config, seed, episodes,
-                                       {"stochastic": stochastic, "k": k, "estimator": estimator,
-                                        "members": members, "sensing": sensing,
-                                        **({"metrics": chosen} if chosen is not None else {})})
-    _check_out_file("--out", out)
+    if out is None:  # the command's own directory (runs/evaluate) is created, a --out directory never is
+        out = _default_records_path(name, env_config, seed, episodes,
+                                    {"stochastic": stochastic, "k": k, "estimator": estimator,
+                                     "members": members, "sensing": sensing,
+                                     **({"metrics": chosen} if chosen is not None else {})})
+        _check_out_file("--out", out, force=force, create_parent=True)
     if stochastic:
         import torch
 
@@ -597,8 +705,11 @@ def evaluate(
         # order in which the batch draws them), unlike the deterministic mean action.
         torch.manual_seed(seed)
     _check_n_envs(min(n_envs, episodes), env_config)  # a rollout never steps more environments than episodes
-    records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
-                        deterministic=not stochastic, observer=observer)
+    try:
+        records = _evaluate(actor, env_config, episodes, seed, n_envs, f"{name} / {env_config.scenario}",
+                            deterministic=not stochastic, observer=observer)
+    except RolloutInterrupted as stopped:
+        _save_interrupted_records(stopped, env_config, chosen, observer, out)
     records, summary = _evaluation_summary(records, env_config, chosen, observer)
     try:
         write_table_atomic(records, out)
@@ -610,6 +721,91 @@ def evaluate(
     else:
         console.print(metrics_table([(name, summary)], title))
     console.print(f"per-episode records: {escape(str(out))}", highlight=False)
+
+
+def _save_interrupted_records(stopped: RolloutInterrupted, env_config: EnvConfig, chosen: list[str] | None,
+                              observer: Any, out: Path) -> NoReturn:
+    """Ctrl-C during `evaluate`: the episodes finished by then are written to `out` (atomically: a second Ctrl-C
+    leaves the file whole or absent), said in one line; exit code 130."""
+    from socnav.io import write_table_atomic
+
+    finished = len(stopped.records)
+    if not finished:
+        console.print("[yellow]interrupted[/] before any episode finished: nothing written", highlight=False)
+        raise typer.Exit(code=130)
+    records, _ = _evaluation_summary(stopped.records, env_config, chosen, observer)
+    try:
+        write_table_atomic(records, out)
+    except OSError as exc:
+        fail(f"interrupted; --out {out}: cannot write the {finished:,} finished episodes ({exc.strerror or exc})",
+             code=130)
+    console.print(f"[yellow]interrupted[/]: wrote the {finished:,} finished episodes (of {stopped.asked:,}) to "
+                  f"{escape(str(out))}", highlight=False)
+    raise typer.Exit(code=130)
+
+
+def _is_navigator_file(model: str) -> bool:
+    """Whether --model names an exported navigator (`socnav export`'s ONNX file) rather than a policy file."""
+    return Path(model).suffix.lower() == ".onnx"
+
+
+class _ExportedActor:
+    """An exported navigator's policy as `evaluate` plays it: the deterministic action of its ONNX graph for the
+    whole batch (`socnav.runtime.ExportedPolicy.predict`, what the torch policy it came from gives), with what
+    `evaluate` reads of a loaded policy file: the world it was trained in and the rows it observes."""
+
+    def __init__(self, network: Any) -> None:
+        from types import SimpleNamespace
+
+        from socnav.envs.spaces import HUMAN_FEATURE_NAMES
+
+        record = network.record
+        self.network = network
+        self.socnav_metadata = {"algo": record.policy.algo, "env_config": record.env_config.model_dump(mode="json")}
+        self.observation_space = {"humans": SimpleNamespace(shape=(network.max_humans, len(HUMAN_FEATURE_NAMES)))}
+
+    def predict(self, observation: dict[str, Any], state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[Any, Any]:
+        return self.network.predict(observation, state, episode_start, deterministic)
+
+
+def _load_navigator(model: str) -> _ExportedActor:
+    """The policy of the navigator file `model` (torch-free, onnxruntime), or a one-line error."""
+    import importlib.util
+
+    from socnav.extras import install_hint
+
+    if importlib.util.find_spec("onnxruntime") is None:
+        fail(f"--model {model} is an exported navigator; running it needs onnxruntime: {install_hint('runtime')}")
+    from socnav.runtime import ExportedPolicy, NavigatorLoadError
+
+    try:
+        return _ExportedActor(ExportedPolicy.load(model))
+    except NavigatorLoadError as exc:
+        fail(str(exc))
+
+
+def _check_safety_options(safety: str, sensing: str | None, estimator: str | None, model: str | None,
+                          members: str | None) -> None:
+    """--safety and the options that go with it, checked before any model loads: the thresholds file or preset,
+    --sensing, --estimator (by default the one the thresholds were made for) and what it needs."""
+    from socnav.safety.assembly import default_estimator_kind
+
+    _load_thresholds_option(safety, sensing)
+    _check_estimator_options(estimator or default_estimator_kind(safety), model, members)
+
+
+def _check_estimator_options(kind: str, model: str | None, members: str | None) -> None:
+    """--estimator `kind` is known and has what it estimates with (--model for mc, --members for ensemble), checked
+    before any model loads (`_estimator_policies` loads them)."""
+    from socnav.uncertainty import ESTIMATOR_KINDS
+
+    _check_choice("--estimator", kind, ESTIMATOR_KINDS)
+    if kind == "mc" and model is None:
+        fail("--estimator mc needs --model PATH (or --model pretrained)")
+    if kind == "ensemble" and members is None:
+        fail("--estimator ensemble needs --members GLOB, e.g. 'runs/ensemble-quick/units/*/model.zip'")
+    _check_members(members)
 
 
 def _chosen_metrics(metrics: str) -> list[str] | None:
@@ -625,7 +821,7 @@ def _chosen_metrics(metrics: str) -> list[str] | None:
 
 
 def _evaluation_world(actor: Any, scenario: str | None, config: Path | None, n_humans: int | None,
-                      max_humans: int | None, perturb: list[str]) -> EnvConfig:
+                      max_humans: int | None, perturb: list[str], humans: str | None = None) -> EnvConfig:
     """The world `evaluate` plays, printed: a learned `actor` without --config plays the world it was trained in
     (the world options change it), anything else --config's or the defaults; then the --perturb settings."""
     base: Path | dict[str, Any] | None = config
@@ -634,9 +830,10 @@ def _evaluation_world(actor: Any, scenario: str | None, config: Path | None, n_h
         from socnav.rl.persistence import training_world
 
         base, origin = training_world(actor, scenario, n_humans, max_humans)
+        origin += ", changed by the options" if humans is not None and "changed" not in origin else ""
     observes = None if actor is None else actor.observation_space["humans"].shape[0]
     env_config = _perturbed_config(_env_config(scenario, config, n_humans, max_humans, base=base,
-                                               observes=observes), perturb)
+                                               observes=observes, humans=humans), perturb)
     console.print(f"world: {escape(describe_world(env_config))} ({escape(origin)})", highlight=False)
     return env_config
 
@@ -679,22 +876,25 @@ def _all_metrics_table(summary: dict[str, Any], chosen: list[str], title: str) -
 
 
 def _load_thresholds_option(safety: str, sensing: str | None = None) -> Any:
-    """`--safety mc | ensemble | FILE` (with `--sensing perceived | true` if given) as `Thresholds`, or a clear
-    error."""
-    from socnav.safety import SENSING_CHOICES, Thresholds, ThresholdsError, load_thresholds
+    """`--safety mc | ensemble | FILE` (with `--sensing perceived | true` if given) as `Thresholds` or, for a
+    trigger file (socnav.safety.triggers), a `TriggerSpec`; or a clear error."""
+    from socnav.safety import SENSING_CHOICES, Thresholds, ThresholdsError
+    from socnav.safety.triggers import TriggerError, TriggerSpec, load_safety
 
     if Path(safety).is_dir():
-        fail(f"--safety {safety} is a directory; name a thresholds file (.yaml or .json, from socnav calibrate) or a "
-             "preset: mc, ensemble")
+        fail(f"--safety {safety} is a directory; name a thresholds or trigger file (.yaml or .json, from socnav "
+             "calibrate) or a preset: mc, ensemble")
     try:
-        thresholds = load_thresholds(safety)
-    except (ThresholdsError, OSError) as exc:
+        decision = load_safety(safety)
+    except (ThresholdsError, TriggerError, OSError) as exc:
         fail(f"--safety: {exc}")
     if sensing is None:
-        return thresholds
+        return decision
     if sensing not in SENSING_CHOICES:
         fail(f"--sensing {sensing!r} is not known; allowed: {', '.join(SENSING_CHOICES)}")
-    return Thresholds.create(thresholds.model_dump(), sensing=sensing)
+    if isinstance(decision, TriggerSpec):
+        return TriggerSpec.create(decision.model_dump(), sensing=sensing)
+    return Thresholds.create(decision.model_dump(), sensing=sensing)
 
 
 def _perturbed_config(env_config: EnvConfig, settings: list[str]) -> EnvConfig:
@@ -794,6 +994,12 @@ def _perturbation_overrides(settings: list[str]) -> dict[str, Any]:
     return perturbation
 
 
+#: The default files of `animate` and `calibrate`: their directories are the commands' own, created when missing
+#: (a --out directory that does not exist is refused: a typo).
+ANIMATION_OUT = Path("runs") / "animate" / "episode.gif"
+THRESHOLDS_OUT = Path("runs") / "calibration" / "thresholds.yaml"
+
+
 @app.command()
 def animate(
     model: str | None = model_option(ACTING_MODEL_HELP),
@@ -808,7 +1014,9 @@ def animate(
     safety: str | None = safety_option("thresholds (mc | ensemble | FILE): wrap the policy in SafePolicy"),
     sensing: str | None = sensing_option(),
     seed: int = seed_option("episode seed"),
-    out: Path = typer.Option(Path("runs") / "animate" / "episode.gif", help="output .gif or .mp4"),
+    out: Path = typer.Option(ANIMATION_OUT, help="output .gif or .mp4"),
+    humans: str | None = humans_option(),
+    force: bool = force_option("the --out animation"),
 ) -> None:
     """Animate one episode with the windowed uncertainties drawn live (and the safety fallback coloured)."""
     from socnav.experiments.animate import animate_episode
@@ -820,10 +1028,17 @@ def animate(
         check_animation_path(out)  # before the episode is played: .mp4 without the [video] extra
     except ImportError as exc:
         fail(f"--out {out}: {exc}")
-    _check_out_file("--out", out)
+    _check_out_file("--out", out, force=force, create_parent=out == ANIMATION_OUT)
+    # Every option is checked before a model loads.
+    _check_estimator_options(estimator, model, members)
+    if safety is not None:
+        _load_thresholds_option(safety, sensing)
+    _check_perturbations(perturb)
+    _check_human_model(humans)
     env_config = _perturbed_config(_model_world(
         model, scenario, config, n_humans, max_humans,
-        default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans)), perturb)
+        default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans, humans),
+        humans=humans), perturb)
     # Without a safety layer the bars are only drawn when there is an uncertainty to draw: a model without dropout
     # has no MC-dropout samples (all zero bars would say "certain").
     policy, uncertainty = _estimator(estimator, model, members, k, env_config, required=safety is not None)
@@ -834,6 +1049,11 @@ def animate(
     fallback = "" if safety is None else f", safety fallback on {summary['fallback_steps']} steps"
     console.print(f"{summary.get('outcome', 'running')} after {summary.get('length', '?')} steps{fallback}: "
                   f"{escape(str(path))}", highlight=False)
+
+
+def _calibration_report_path(out: Path) -> Path:
+    """The report `save_calibration` writes next to the thresholds file `out` (every candidate and its scores)."""
+    return out.with_suffix(".report.json")
 
 
 #: Fewer calibration collisions than this and `socnav calibrate` warns that the prevented share is rough.
@@ -879,7 +1099,9 @@ def calibrate(
                                                     "noisy observation) | true (the simulator's state)"),
     confidence: float = typer.Option(0.95, min=0.5, max=0.999, help="the budget must hold at this one-sided "
                                                                      "confidence (0.5: the point estimate)"),
-    out: Path = typer.Option(Path("runs") / "calibration" / "thresholds.yaml", help="threshold file (.yaml/.json)"),
+    out: Path = typer.Option(THRESHOLDS_OUT, help="threshold file (.yaml/.json)"),
+    humans: str | None = humans_option(),
+    force: bool = force_option("the --out threshold file (and its report)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
     from socnav.safety import PROXIMITY_VARIANTS, calibrate_thresholds, save_calibration
@@ -891,9 +1113,14 @@ def calibrate(
         fail(f"--sensing {sensing!r} is not known; allowed: perceived, true")
     if out.is_dir() or out.suffix not in (".yaml", ".yml", ".json"):
         fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
-    _check_out_file("--out", out)
+    _check_out_file("--out", out, force=force, create_parent=out == THRESHOLDS_OUT)
+    _check_out_file("--out", _calibration_report_path(out), force=force, create_parent=out == THRESHOLDS_OUT)
+    _check_estimator_options(estimator, model, members)  # before a model loads
+    _check_human_model(humans)
     env_config = _model_world(model, scenario, config, n_humans, max_humans,
-                              default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans))
+                              default=lambda: _single_agent_env_config(scenario, config, n_humans, max_humans,
+                                                                       humans),
+                              humans=humans)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
     with _progress() as progress:
         task = progress.add_task("calibration episodes (collect, then replay each candidate)", total=None)
@@ -922,6 +1149,7 @@ def convert(
     model: str = typer.Argument(..., help="socnav policy file (from socnav train), or 'pretrained'"),
     to_sb3: Path = typer.Option(..., "--to-sb3", help="write a Stable-Baselines3 model zip here "
                                                        "(ODVPPO.load reads it)"),
+    force: bool = force_option("the --to-sb3 file"),
 ) -> None:
     """Turn a socnav policy file into a full Stable-Baselines3 model (for fine-tuning with model.learn)."""
     from socnav.rl.convert import to_sb3 as convert_to_sb3
@@ -929,7 +1157,7 @@ def convert(
 
     if to_sb3.suffix != ".zip":
         fail(f"--to-sb3 must be a .zip path, got {to_sb3.name!r}")
-    _check_out_file("--to-sb3", to_sb3)
+    _check_out_file("--to-sb3", to_sb3, force=force)
     try:
         sb3_model = convert_to_sb3(model, n_envs=1)
     except PolicyLoadError as exc:
@@ -1017,6 +1245,7 @@ def export(
                                                                      "policy's; 0 would disable the uncertainty)"),
     window: str = typer.Option("4", min=1, max=10_000, metavar="INTEGER", help="uncertainty window in steps"),
     value: bool = typer.Option(False, "--value", help="also export the critic (output 'value')"),
+    force: bool = force_option("the --out navigator file"),
 ) -> None:
     """Export a policy, its MC-dropout settings and safety thresholds as ONNX for the torch-free socnav.runtime."""
     import importlib.util
@@ -1027,17 +1256,21 @@ def export(
     if missing:
         fail(f"socnav export needs {' and '.join(missing)}: {install_hint('export')}")
     from socnav.export import ExportError, check_settings, export_onnx
-    from socnav.safety import ThresholdsError
+    from socnav.safety import ThresholdsError, load_thresholds
 
     try:
         k_value, p_test_value, window_value = check_settings(
             k, p_test, window, names={"k": "--k", "p_test": "--p-test", "window": "--window"})
     except ExportError as exc:
         fail(str(exc))
-    _check_out_file("--out", out)
+    _check_out_file("--out", out, force=force)
     if Path(thresholds).is_dir():
         fail(f"--thresholds {thresholds} is a directory; name a thresholds file (from socnav calibrate) or a preset: "
              "mc, ensemble")
+    try:  # before the policy loads
+        load_thresholds(thresholds)
+    except (ThresholdsError, OSError) as exc:
+        fail(f"--thresholds: {exc}")
 
     policy = _load_learned_policy(model)
     try:
@@ -1046,6 +1279,34 @@ def export(
     except (ExportError, ThresholdsError, OSError) as exc:
         fail(str(exc))
     console.print(f"navigator: {path}  (run it with socnav.runtime.SafeNavigator.load({str(path)!r}))")
+
+
+@app.command()
+def plot(
+    run_dir: Path = typer.Argument(..., help="training run directory (socnav train --out), holding curve.csv"),
+    out: Path | None = typer.Option(None, help="the PNG to write (default RUN_DIR/curve.png)"),
+    force: bool = force_option("the --out picture"),
+) -> None:
+    """Draw a training run's curve (return, goal and collision rates against timesteps) as a PNG."""
+    if run_dir.exists() and not run_dir.is_dir():
+        fail(f"{run_dir} is a file; name a training run directory (the --out of socnav train)")
+    if not run_dir.is_dir():
+        fail(f"no such run directory: {run_dir}")
+    if not (run_dir / "curve.csv").is_file():
+        fail(f"{run_dir} has no curve.csv: not a socnav train run directory, or its first rollout has not finished")
+    out = run_dir / "curve.png" if out is None else out
+    if out.suffix.lower() != ".png":
+        fail(f"--out must end in .png, got {out.name!r}")
+    _check_out_file("--out", out, force=force)
+    from socnav.viz.curves import TrainingCurveError, plot_training_curve  # matplotlib: loaded only here
+
+    try:
+        path = plot_training_curve(run_dir, out)
+    except TrainingCurveError as exc:
+        fail(str(exc))
+    except OSError as exc:  # a full disk, a directory gone meanwhile
+        fail(f"--out {out}: cannot write the picture ({exc.strerror or exc})")
+    console.print(f"training curve: {escape(str(path))}", highlight=False)
 
 
 add_experiment_commands(app)  # socnav run / report / tune, listed after the commands above

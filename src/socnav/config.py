@@ -29,11 +29,15 @@ class ConfigError(ValueError):
 
 # ---------------------------------------------------------------------------------------------------- YAML input
 
-#: socnav's config, experiment, preset and threshold files are a few KB: these limits leave ample room while
-#: bounding what a crafted file can make the reader build (a 409-byte "billion laughs" alias bomb expands to
-#: ~10^9 values, whose repr in an error message alone took ~1 GB).
+#: socnav's config, experiment, preset, threshold and map files are a few KB (a polygon map at its vertex bound
+#: ~200 KB): these limits leave ample room while bounding what a crafted file can make the reader build (a 409-byte
+#: "billion laughs" alias bomb expands to ~10^9 values, whose repr in an error message alone took ~1 GB). The values
+#: are counted as the document is composed, before any Python object is built (docs/limits.md).
 YAML_MAX_BYTES = 1 << 20
 YAML_MAX_NODES = 100_000
+#: Nesting of sequences and mappings (socnav's own files nest 5 deep): checked before the composer recurses, so a
+#: document nested thousands of levels deep is one line, never a RecursionError.
+YAML_MAX_DEPTH = 64
 
 
 class YAMLTooLargeError(yaml.YAMLError):
@@ -75,18 +79,43 @@ def _expanded_size(root: yaml.Node) -> int:
 
 
 class _BoundedLoader(yaml.SafeLoader):
-    """`yaml.SafeLoader` that checks the expanded size of a document before constructing any Python object."""
+    """`yaml.SafeLoader` that bounds a document while composing it -- nesting depth (`YAML_MAX_DEPTH`, before
+    recursing) and values written (`YAML_MAX_NODES`, as they are composed) -- and checks its size with aliases
+    expanded before constructing any Python object."""
+
+    def __init__(self, stream: Any) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._composed = 0
 
     def compose_document(self) -> yaml.Node | None:
+        self._depth = self._composed = 0
         node = super().compose_document()
         if node is not None:
             _expanded_size(node)
         return node
 
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        if not self.check_event(yaml.AliasEvent):  # an alias adds no node (its expansion is checked at the end)
+            self._composed += 1
+            if self._composed > YAML_MAX_NODES:
+                raise YAMLTooLargeError(f"it holds more than {YAML_MAX_NODES:,} values")
+        if self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent):
+            self._depth += 1
+            if self._depth > YAML_MAX_DEPTH:
+                raise YAMLTooLargeError(f"it is nested too deeply: more than {YAML_MAX_DEPTH} levels of lists or "
+                                        "mappings inside each other")
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
+        return super().compose_node(parent, index)
+
 
 def safe_load_yaml(text: str) -> Any:
     """`yaml.safe_load` for untrusted input: at most `YAML_MAX_BYTES` characters, at most `YAML_MAX_NODES` values
-    with aliases expanded, no recursive anchors, nesting within Python's recursion limit.
+    (counted as written while composing, then with aliases expanded), no recursive anchors, nesting at most
+    `YAML_MAX_DEPTH` deep; every bound is checked before a Python object is built.
 
     :raises YAMLTooLargeError: (a `yaml.YAMLError`) when a bound is exceeded; other `yaml.YAMLError` for bad YAML.
     """
@@ -100,10 +129,30 @@ def safe_load_yaml(text: str) -> Any:
 
 def _read_bounded_text(path: Path) -> str:
     """The text of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
+    from socnav.io import UntrustedInputError, read_bounded
+
     size = path.stat().st_size
     if size > YAML_MAX_BYTES:
         raise YAMLTooLargeError(f"{size:,} bytes; socnav reads files of at most {YAML_MAX_BYTES:,}")
-    return path.read_text()
+    try:  # within the bound whatever the size reported (a file still growing, /proc)
+        return read_bounded(path, YAML_MAX_BYTES).decode()
+    except UntrustedInputError as exc:
+        raise YAMLTooLargeError(str(exc)) from None
+
+
+def file_size_problem(path: str | Path, limit: int) -> str | None:
+    """'is N bytes, more than the M bytes socnav reads from such a file' when the regular file `path` is larger than
+    `limit` (from its size, before anything is read), else None (missing or not regular files are the reader's)."""
+    import os
+    import stat
+
+    try:
+        status = os.stat(path)
+    except OSError:
+        return None
+    if stat.S_ISREG(status.st_mode) and status.st_size > limit:
+        return f"is {status.st_size:,} bytes, more than the {limit:,} bytes socnav reads from such a file"
+    return None
 
 
 def read_yaml_file(path: Path) -> Any:
@@ -128,6 +177,9 @@ def read_mapping_file(path: str | Path, what: str, error: type[Exception] = Conf
         raise error(f"{what} file {path} is a directory, not a file")
     if not path.exists():
         raise error(f"{what} file not found: {path}")
+    too_large = file_size_problem(path, YAML_MAX_BYTES)  # from the size: a sparse 1 TB file costs nothing
+    if too_large:
+        raise error(f"{what} file {path} {too_large}")
     try:
         # Read within the limit whatever the filesystem reports (a /proc file claims 0 bytes), never a device or pipe.
         raw = read_bounded(path, YAML_MAX_BYTES)
@@ -553,6 +605,7 @@ class ReplayConfig(_Strict):
             except OSError as exc:
                 raise ValueError(f"trajectory file {shown} cannot be read: {exc.strerror or exc}") from None
             checked.append(str(path.resolve()))
+        replay.check_total_size(checked)  # all of them together (`MAX_TOTAL_BYTES`), from their sizes
         return checked
 
 
@@ -779,6 +832,21 @@ class EnvConfig(_Strict):
         if self.scenario == "replay" and self.perturbation.human_model not in (None, "replay"):
             raise ValueError("perturbation.human_model: the replay scenario's humans are recorded, they cannot walk "
                              f"by {self.perturbation.human_model!r}")
+        return self
+
+    @model_validator(mode="after")
+    def _replay_positions_are_bounded(self) -> EnvConfig:
+        # The positions the recorded tracks give at this time_step are counted (not interpolated) here, so that a
+        # short file spanning frames 0 ... 10^9 is refused as the config is read rather than when a world is built.
+        if self.humans.model == "replay" and self.humans.replay.files:
+            from socnav.sim.humans import replay  # lazily: socnav.sim imports this module
+
+            try:
+                replay.check_positions(self.humans.replay, self.time_step)
+            except OSError as exc:
+                raise ValueError(f"humans.replay.files: a trajectory file cannot be read: {exc}") from None
+            except replay.TrajectoryFileError as exc:
+                raise ValueError(f"humans.replay.files: {exc}") from None
         return self
 
     @model_validator(mode="after")

@@ -266,8 +266,9 @@ class UntrustedInputError(ValueError):
 
 
 def read_bounded(path: str | Path, max_bytes: int, follow_links: bool = True) -> bytes:
-    """The bytes of the regular file `path`, at most `max_bytes` of them: the limit is enforced while reading, so a
-    file whose size the filesystem does not report (``/proc``, a file still growing) cannot make us read more.
+    """The bytes of the regular file `path`, at most `max_bytes` of them: a file whose size is larger is refused
+    before anything is read, and the limit is enforced while reading too, so a file whose size the filesystem does
+    not report (``/proc``, a file still growing) cannot make us read more.
 
     :param follow_links: False refuses a symbolic link at `path` (a run directory's own files).
     :raises UntrustedInputError: larger than `max_bytes`, a directory, a device, a pipe or a link not followed.
@@ -283,12 +284,17 @@ def read_bounded(path: str | Path, max_bytes: int, follow_links: bool = True) ->
         if exc.errno == errno.ELOOP:
             raise UntrustedInputError(f"{path} is a symbolic link; {_LINK_ADVICE}") from None
         raise
-    mode = os.fstat(descriptor).st_mode
+    status = os.fstat(descriptor)
+    mode = status.st_mode
     if not stat.S_ISREG(mode):
         os.close(descriptor)
         if stat.S_ISDIR(mode):
             raise UntrustedInputError(f"{path} is a directory, not a file")
         raise UntrustedInputError(f"{path} is not a regular file (a device, pipe or socket)")
+    if status.st_size > max_bytes:  # from its size, before reading: a 2 GB file costs nothing to refuse
+        os.close(descriptor)
+        raise UntrustedInputError(f"{path} is larger than {max_bytes:,} bytes, the most socnav reads from such a file "
+                                  f"(it has {status.st_size:,})")
     with os.fdopen(descriptor, "rb") as stream:
         data = stream.read(max_bytes + 1)
     if len(data) > max_bytes:

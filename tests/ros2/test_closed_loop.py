@@ -81,13 +81,11 @@ def mismatches(records: pd.DataFrame, reference: pd.DataFrame) -> list[str]:
     if len(records) != len(reference):
         return [f"{len(records)} episodes != {len(reference)}"]
     found = []
-    for (_, ros), (_, ours) in zip(records.iterrows(), reference.iterrows()):
+    for (_, ros), (_, ours) in zip(records.iterrows(), reference.iterrows(), strict=True):
         for column in EPISODE_COLUMNS:
             a, b = ros[column], ours[column]
-            if isinstance(b, float):
-                same = (math.isnan(a) and math.isnan(b)) or abs(a - b) <= FLOAT_TOLERANCE
-            else:
-                same = a == b
+            same = ((math.isnan(a) and math.isnan(b)) or abs(a - b) <= FLOAT_TOLERANCE) if isinstance(b, float) \
+                else a == b
             if not same:
                 found.append(f"seed {ours['seed']}: {column} {a!r} != {b!r}")
     return found

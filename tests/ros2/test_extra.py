@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 from typer.testing import CliRunner
 
 from socnav.ros2.environment import MESSAGE_PACKAGES, Ros2Unavailable, require_rclpy

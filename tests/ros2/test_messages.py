@@ -159,6 +159,40 @@ def test_bad_clouds_are_refused(messages, change, match):
         messages.cloud_to_humans(cloud, "odom", 0.3)
 
 
+def test_an_empty_cloud_is_no_humans(messages):
+    cloud = messages.humans_to_cloud(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 7, "odom")
+    humans = messages.cloud_to_humans(cloud, "odom", 0.3)
+    assert humans.positions.shape == (0, 2) and humans.radii.shape == (0,) and humans.stamp_ns == 7
+
+
+def _empty(height: int, width: int, data: bytes, fields: bool = True, point_step: int = 40):
+    """A cloud of ``height * width`` = 0 points as a broken tracker (or an attacker) might send it."""
+    from sensor_msgs.msg import PointCloud2
+
+    from socnav.ros2 import messages
+
+    cloud = messages.humans_to_cloud(np.zeros((1, 2)), np.zeros((1, 2)), np.full(1, 0.3), 0, "odom")
+    cloud.height, cloud.width, cloud.data, cloud.point_step = height, width, data, point_step
+    cloud.row_step = width * point_step
+    if not fields:
+        cloud = PointCloud2(height=height, width=width, data=data)
+        cloud.header.frame_id = "odom"
+    return cloud
+
+
+@pytest.mark.parametrize("cloud,match", [
+    (lambda: _empty(0, 1, b"\0" * 40), "data has 40 bytes; row_step 40 x height 0 = 0"),
+    (lambda: _empty(1, 0, b"\0" * 40), "data has 40 bytes; row_step 0 x height 1 = 0"),
+    (lambda: _empty(0, 0, b"", fields=False), r"lacks fields \['x', 'y', 'vx', 'vy'\]"),
+    (lambda: _empty(0, 1, b"", point_step=0), "does not fit in point_step 0"),
+])
+def test_a_malformed_cloud_of_no_points_is_refused_too(messages, cloud, match):
+    """Zero points is no excuse: the layout is checked at any point count (height 0 and 40 data bytes is not "no
+    humans", it is a broken message)."""
+    with pytest.raises(messages.MessageError, match=match):
+        messages.cloud_to_humans(cloud(), "odom", 0.3)
+
+
 @pytest.mark.parametrize("field,row", [("x", 2), ("vy", 0), ("radius", 3)])
 def test_a_nan_human_is_refused_naming_its_point(messages, field, row):
     values = {name: array.copy() for name, array in HUMANS.items()}

@@ -5,6 +5,7 @@ publishes a zero Twist, says why on /diagnostics, and drives again once good mes
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import numpy as np
@@ -155,6 +156,10 @@ def _zero_quaternion(odometry, cloud):
     odometry.pose.pose.orientation.z = odometry.pose.pose.orientation.w = 0.0
 
 
+def _no_rows(odometry, cloud):
+    cloud.height = 0  # 0 points, but 120 bytes of data: a malformed cloud, not "no humans"
+
+
 BAD_INPUTS = {
     "stale odometry and humans": (dict(stamp_ns=START_NS), "odometry is stale: 0.750 s old"),
     "odometry from the future": (dict(stamp_ns=START_NS + 10**10), "odometry is stamped"),
@@ -162,13 +167,13 @@ BAD_INPUTS = {
     "NaN human": (dict(change=_nan_human), r"humans cloud: vx, vy not finite \(NaN or inf\) at points \[1\]"),
     "humans in another frame": (dict(change=_other_frame), "humans cloud.header.frame_id is 'map'"),
     "unset orientation": (dict(change=_zero_quaternion), "not a unit quaternion"),
+    "a cloud of height 0 with data": (dict(change=_no_rows), r"humans cloud data has 120 bytes; row_step 120 x "
+                                                             r"height 0 = 0"),
 }
 
 
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_a_bad_input_stops_the_robot_and_says_why(graph, case):
-    import re
-
     settings, reason = BAD_INPUTS[case]
     graph.send_state()
     assert not _is_stop(graph.tick()[0])
@@ -181,6 +186,25 @@ def test_a_bad_input_stops_the_robot_and_says_why(graph, case):
     graph.send_state()  # good messages again: the node kept running and drives
     twist, status, _ = graph.tick()
     assert not _is_stop(twist) and status.level != status.ERROR
+
+
+def test_wall_clock_stamps_on_a_simulated_clock_are_a_clock_mismatch(graph, monkeypatch):
+    """The node on /clock (10 s), the inputs stamped with the wall clock: the diagnostic names the clock mismatch
+    and use_sim_time at every decision; the log says it once, not once per decision."""
+    import types
+
+    warnings: list[str] = []
+    logger = types.SimpleNamespace(warning=warnings.append, error=warnings.append, info=lambda *_: None)
+    monkeypatch.setattr(graph.navigator, "get_logger", lambda: logger)
+    for _ in range(6):
+        graph.send_state(stamp_ns=time.time_ns())
+        twist, status, _ = graph.tick()
+        assert _is_stop(twist) and status.level == status.ERROR
+        expected = (r"stopped: odometry stamp is \d+ s ahead of the node clock: a clock mismatch; the node uses "
+                    r"simulated time \(use_sim_time\) but the publisher does not: start the navigator without "
+                    r"--use-sim-time, or stamp the messages with /clock")
+        assert re.fullmatch(expected, status.message), status.message
+    assert [line for line in warnings if "clock mismatch" in line] == [graph.diagnostics[-6].status[0].message]
 
 
 def test_stale_humans_alone_stop_the_robot(graph):
@@ -229,7 +253,7 @@ def test_a_new_goal_starts_a_new_task(graph):
     decisions = [navigator.act({**ROBOT, "v_pref": 0.9, "goal": goal}, HUMANS) for goal in ([0, 4], [0, 4])]
     navigator.reset()
     decisions.append(navigator.act({**ROBOT, "v_pref": 0.9, "goal": [1.0, 4.0]}, HUMANS))
-    for values, decision in zip((first, second, third), decisions):
+    for values, decision in zip((first, second, third), decisions, strict=True):
         assert float(values["u_feat"]) == pytest.approx(decision.windowed["u_feat"], rel=1e-9)
 
 
@@ -243,7 +267,7 @@ def test_parameters_are_checked(graph, ros_context):
     assert graph.navigator.set_parameters([Parameter("preferred_speed", value=0.6)])[0].successful
     assert graph.navigator.settings["preferred_speed"] == 0.6
     assert not graph.navigator.set_parameters([Parameter("odom_frame", value="map")])[0].successful  # read-only
-    with pytest.raises(NavigatorSetupError, match="parameter max_input_age must be > 0, got -1.0"):
+    with pytest.raises(NavigatorSetupError, match=r"parameter max_input_age must be > 0, got -1\.0"):
         Graph(ros_context, graph.navigator.navigator.network.path, max_input_age=-1.0)
 
 

@@ -120,7 +120,7 @@ def test_proximity_only_hands_over_however_certain_the_policy_is():
 
 def test_safe_policy_without_estimator_only_for_a_rule_that_reads_no_uncertainty():
     cfg = load_config(RISKY)
-    with pytest.raises(ValueError, match=r"only a rule that reads no uncertainty .* conditions='paper'"):
+    with pytest.raises(ValueError, match=r"only a trigger that reads no uncertainty .* conditions='paper'"):
         SafePolicy(StraightController(cfg), None, Thresholds.create(BASE), cfg)
     with pytest.raises(ValueError, match="conditions='uncertainty-only'"):
         SafePolicy(StraightController(cfg), None, Thresholds.create(BASE, conditions="uncertainty-only"), cfg)

@@ -154,11 +154,11 @@ def test_a_bad_file_names_the_file_and_the_line(tmp_path, content, expected):
 
 
 def test_file_size_bound(tmp_path, monkeypatch):
-    # A sparse file one byte over the bound (1 GiB): refused from its size, nothing read.
+    # A sparse file one byte over the bound (64 MiB): refused from its size, nothing read.
     sparse = tmp_path / "huge.txt"
     with open(sparse, "wb") as stream:
         stream.truncate(replay.MAX_FILE_BYTES + 1)
-    assert replay.MAX_FILE_BYTES == 1 << 30
+    assert replay.MAX_FILE_BYTES == 64 << 20
     with pytest.raises(ConfigError) as error:
         load_config(replay_config([sparse]))
     assert f"has {replay.MAX_FILE_BYTES + 1:,} bytes; socnav reads trajectory files of at most" in str(error.value)

@@ -15,14 +15,19 @@ W = H = 480
 EXTENT = 8.5
 
 
-def to_pixel(x: float, y: float, left: int = 0, size: int = H, extent: float = EXTENT) -> tuple[int, int]:
-    """(row, col) of scene point (x, y) in a square scene of `size` px starting `left` px from the image's edge."""
+def to_pixel(x: float, y: float, left: float = 0, size: float = H, extent: float = EXTENT,
+             top: float = 0) -> tuple[int, int]:
+    """(row, col) of scene point (x, y) in a square scene of `size` px starting `left` px from the image's left
+    edge and `top` px from its top."""
     scale = size / (2 * extent)
-    return int((extent - y) * scale), left + int((x + extent) * scale)
+    return int(top + (extent - y) * scale), int(left + (x + extent) * scale)
 
 
-#: An annotated 720 x 480 frame: the scene axes take the left 70 % (504 px); the square scene is centred in them.
-ANNOTATED_LEFT = (504 - 480) // 2
+def annotated_pixel(renderer: SceneRenderer, x: float, y: float) -> tuple[int, int]:
+    """(row, col) of scene point (x, y) in an annotated frame: the scene is the square between the bands above and
+    below it, centred in the left 70 % of the image (`SceneRenderer.scene_box`)."""
+    left, top, size, _ = renderer.scene_box()
+    return to_pixel(x, y, left=left, size=size, top=top)
 
 
 def fraction(img: np.ndarray, rc: tuple[int, int], color: str, half: int = 3, tol: int = 12) -> float:
@@ -63,10 +68,14 @@ def test_annotated_frames_carry_a_legend_and_a_metre_scale(annotated):
                   "trail"):
         assert any(words in label for label in labels), (words, labels)
     assert any(text.get_text().startswith("2 m") for text in annotated.ax.texts)
-    # The scene keeps its geometry: 480 px square on the left, the robot where the hand computation puts it.
+    # The scene is a square between the bands, centred in the left 70 %; a human is where the hand computation
+    # puts it.
     image = annotated.render(frame())
     assert image.shape == (480, 720, 3)
-    assert fraction(image, to_pixel(5.0, 0.0, left=ANNOTATED_LEFT), HUMAN_COLOR) > 0.5
+    left, top, width, height = annotated.scene_box()
+    assert width == pytest.approx(height) and 380 < height < 480 and top > 20 and top + height < 460
+    assert left + width / 2 == pytest.approx(0.7 * 720 / 2, abs=1)
+    assert fraction(image, annotated_pixel(annotated, 5.0, 0.0), HUMAN_COLOR) > 0.5
 
 
 def test_title_and_outcome_are_drawn(annotated):
@@ -75,9 +84,11 @@ def test_title_and_outcome_are_drawn(annotated):
     top = slice(0, 25), slice(100, 380)
     assert (np.abs(titled[top].astype(int) - plain[top].astype(int)).max(axis=-1) > 60).sum() > 50
     ended = annotated.render(frame(outcome="COLLISION"))
-    scene = slice(0, 480), slice(ANNOTATED_LEFT, ANNOTATED_LEFT + 480)
-    dark = lambda img: (img[scene].max(axis=-1) < 60).sum()  # noqa: E731 - black text pixels
-    assert dark(ended) > dark(plain) + 500  # large type
+    dark = lambda img: (img.max(axis=-1) < 60).sum()  # noqa: E731 - black text pixels
+    assert dark(ended) > dark(plain) + 300  # large type
+    outcome = annotated.outcome_text.get_window_extent(annotated.canvas.get_renderer())
+    title = annotated.title_text.get_window_extent(annotated.canvas.get_renderer())
+    assert outcome.height > 1.5 * title.height / 2  # taller than a line of the (two-line) title
 
 
 @pytest.mark.parametrize("robot_y", [0.0, 3.0, 6.5, -3.0, -6.5])
@@ -89,7 +100,7 @@ def test_outcome_banner_leaves_the_robot_visible(annotated, robot_y):
     changed = np.abs(ended.astype(int) - plain.astype(int)).max(axis=-1) > 30
     assert changed.sum() > 500  # the banner is there
     for x in (0.0, 0.6):  # the robot and the human it touches
-        row, col = to_pixel(x, robot_y, left=ANNOTATED_LEFT)
+        row, col = annotated_pixel(annotated, x, robot_y)
         assert not changed[row - 12: row + 13, col - 12: col + 13].any(), (x, robot_y)
 
 

@@ -1,13 +1,18 @@
 """Batched evaluation rollouts: N episodes of any policy with `predict`, episode k seeded with `seed + k`.
 
-Each episode's seed is fixed by its index, so the records do not depend on how many environments run at once. The
-records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, every metric's per-episode column
+Each episode's seed is fixed by its index, so the world of every episode does not depend on how many environments
+run at once, nor do the records of a policy that decides each environment alone. A policy whose decision reads the
+batch (the safety layer with MC dropout: its masks come from one stream drawn across the batch, and torch's batched
+float32 forward pass changes in the last digits with the batch shape) can play an episode differently with another
+``n_envs``: compare such policies at the same ``n_envs``. The records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, every metric's per-episode column
 (`socnav.sim.metrics.METRIC_RECORD_COLUMNS`); `summarize` aggregates them with the metrics registry.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+import sys
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from typing import Any, Protocol, cast
 
 import numpy as np
@@ -22,6 +27,22 @@ EPISODE_COLUMNS = (
     "episode", "seed", "outcome", "return", "length", "duration", "path_length", "time_to_goal", "min_gap",
     "intrusion_steps", "intrusion_events", "disturbance",
 )
+
+
+class RolloutInterrupted(KeyboardInterrupt):
+    """Ctrl-C during `rollout_episodes`: a KeyboardInterrupt (code catching that still does) that also carries the
+    records of the episodes finished before it, in the layout `rollout_episodes` returns (`records`), and how many
+    episodes were asked (`asked`)."""
+
+    def __init__(self, records: pd.DataFrame, asked: int) -> None:
+        super().__init__(f"interrupted after {len(records):,} of {asked:,} episodes")
+        self.records = records
+        self.asked = asked
+
+
+#: `rollout_episodes(progress=...)`: a callable ``progress(n)``, True (a progress bar), False (none) or None (a bar
+#: when called from your own code in a terminal or a notebook; none inside socnav, whose callers show their own).
+Progress = Callable[[int], None] | bool | None
 
 
 class Policy(Protocol):
@@ -60,7 +81,7 @@ def rollout_episodes(
     seed: int = 0,
     n_envs: int = 16,
     deterministic: bool = True,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress = None,
     observer: StepObserver | None = None,
     metrics: bool = True,
 ) -> pd.DataFrame:
@@ -69,14 +90,71 @@ def rollout_episodes(
     The records' columns: `EPISODE_COLUMNS`, then with `metrics` (the world accumulating every metric of
     `socnav.sim.metrics` per step; it changes no other column) `METRIC_RECORD_COLUMNS`.
 
-    `progress(n)` is called with the number of episodes finished at each step that finishes some. Policies and
+    `progress(n)` is called with the number of episodes finished at each step that finishes some; ``progress=True``
+    shows a progress bar (tqdm, on stderr), False none, and None (the default) shows one when called from your own
+    code with a terminal or in a notebook: a long rollout is never silent there, and socnav's own callers (the
+    CLI, training, experiments) are left to show their own. Policies and
     observers with an `on_episode_start(envs)` method are told when environments start new episodes (stateful
     policies such as `socnav.safety.SafePolicy` keep per-environment windows). A policy whose
     `needs_true_observation` is True (a `SafePolicy` with `sensing: true`) is also given each step's noise-free
     observation through its `sense` method before `predict`; `predict` itself gets the (noisy) observation.
+
+    :raises RolloutInterrupted: Ctrl-C (a KeyboardInterrupt); it carries the records of the episodes finished by
+        then.
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    show = _show_progress(progress, sys._getframe(1).f_globals.get("__name__", ""))
+    records: list[dict[str, Any]] = []
+    with _progress_bar(n_episodes, show) as bar:
+        try:
+            _rollout(policy, config, n_episodes, seed, n_envs, deterministic, progress if callable(progress) else bar,
+                     observer, metrics, records)
+        except KeyboardInterrupt:
+            raise RolloutInterrupted(_records_frame(records, metrics), n_episodes) from None
+    return _records_frame(records, metrics)
+
+
+def _records_frame(records: list[dict[str, Any]], metrics: bool) -> pd.DataFrame:
+    """The records as `rollout_episodes` returns them: its columns, sorted by episode."""
+    columns = [*EPISODE_COLUMNS, *(METRIC_RECORD_COLUMNS if metrics else ())]
+    return pd.DataFrame.from_records(records, columns=columns).sort_values("episode", ignore_index=True)
+
+
+def _show_progress(progress: Progress, caller: str) -> bool:
+    """Whether `rollout_episodes` draws its own bar: when asked (True), and by default (None) for a caller outside
+    socnav (whose own callers report progress their way, or run in worker processes) with a terminal or a
+    notebook."""
+    if progress is None:
+        if caller == "socnav" or caller.startswith("socnav."):
+            return False
+        return _in_notebook() or sys.stderr.isatty()
+    return progress is True
+
+
+def _in_notebook() -> bool:
+    """Whether this runs in a Jupyter kernel (no terminal, yet someone watches)."""
+    shell = getattr(sys.modules.get("IPython"), "get_ipython", lambda: None)()
+    return type(shell).__name__ == "ZMQInteractiveShell"
+
+
+@contextmanager
+def _progress_bar(total: int, show: bool) -> Iterator[Callable[[int], None] | None]:
+    """A tqdm bar of `total` episodes while the block runs (yields its ``advance(n)``), or nothing (yields None)."""
+    if not show:
+        yield None
+        return
+    from tqdm.auto import tqdm  # a widget in a notebook, text on a terminal
+
+    with tqdm(total=total, unit="episode", desc="episodes", dynamic_ncols=True) as bar:
+        yield bar.update
+
+
+def _rollout(policy: Policy, config: ConfigLike, n_episodes: int, seed: int, n_envs: int, deterministic: bool,
+             progress: Callable[[int], None] | None, observer: StepObserver | None, metrics: bool,
+             records: list[dict[str, Any]]) -> None:
+    """The episodes of `rollout_episodes`, appended to `records` as each finishes (an interruption keeps the
+    finished ones)."""
     env_config = load_config(config)
     n_envs = check_env_count(max(1, min(n_envs, n_episodes)), env_config)
     world = CrowdWorld(env_config, n_envs, metrics=metrics)
@@ -89,7 +167,6 @@ def rollout_episodes(
     for listener in listeners:
         listener(np.arange(n_envs))
     next_episode = n_envs
-    records: list[dict[str, Any]] = []
     while len(records) < n_episodes:
         observation = world.observe()
         if sensor is not None:  # a separate safety sensor: only the safety layer reads the true state
@@ -116,8 +193,6 @@ def rollout_episodes(
                 listener(done)
         if len(finished) and progress is not None:
             progress(len(finished))
-    columns = [*EPISODE_COLUMNS, *(METRIC_RECORD_COLUMNS if metrics else ())]
-    return pd.DataFrame.from_records(records, columns=columns).sort_values("episode", ignore_index=True)
 
 
 def summarize(records: pd.DataFrame, pv_per: int = PV_PER,

@@ -17,6 +17,8 @@ from socnav.experiments.cli_options import (
     config_option,
     eval_episodes_option,
     eval_every_option,
+    force_option,
+    humans_option,
     n_envs_option,
     n_humans_option,
     scenario_option,
@@ -105,7 +107,7 @@ def run(
     dry_run: bool = typer.Option(False, "--dry-run", help="validate and list the units and their state; run nothing"),
 ) -> None:
     """Run an experiment: train and evaluate every unit not yet done; resumable, failures reported per unit."""
-    from socnav.experiments.runner import RunnerError, run_experiment, unit_states
+    from socnav.experiments.runner import RunnerError, check_run_dir, run_experiment, unit_states
     from socnav.experiments.spec import ExperimentError, load_experiment, plan_units
 
     if backend not in ("local", "ray"):
@@ -123,6 +125,10 @@ def run(
     console.print(f"experiment [bold]{resolved.name}[/] (budget {resolved.budget or 'as written'}): {len(units)} "
                   f"units ({n_train} trainings of {resolved.grid.timesteps:,} steps) -> {root}", highlight=False)
     if dry_run:
+        try:  # what the real run would refuse, refused here too (nothing is written)
+            check_run_dir(root, resolved)
+        except RunnerError as exc:
+            fail(str(exc))
         states = unit_states(root, units) if root.exists() else {u.id: "pending" for u in units}
         for unit in units:
             console.print(f"  {states[unit.id]:8s} {unit.id}", highlight=False)
@@ -164,13 +170,23 @@ def run(
 def report(
     results_dir: Path = typer.Argument(..., help="run directory written by `socnav run`"),
     out: Path | None = typer.Option(None, help="report directory (default RESULTS_DIR/report)"),
+    force: bool = force_option("an earlier report in the --out directory"),
 ) -> None:
     """Tables (Markdown + CSV), figures (PNG + SVG) and report.md from an experiment's run directory."""
     from socnav.experiments.report import build_report
     from socnav.experiments.runner import RunnerError
+    from socnav.io import OutputPathError, check_output_file
 
     if not results_dir.is_dir():
         fail(f"no such run directory: {results_dir}")
+    target = results_dir / "report" if out is None else out
+    if target.exists() and not target.is_dir():
+        fail(f"--out {target} is an existing file; name a directory for the report")
+    if target.is_dir():  # an earlier report (report.md, its tables and figures) is replaced only when told
+        try:
+            check_output_file(target / "report.md", what="--out", force=force)
+        except OutputPathError as exc:
+            fail(str(exc))
     try:
         page = build_report(results_dir, out)
     except (RunnerError, ValueError) as exc:
@@ -205,6 +221,8 @@ def tune(
     timeout: float | None = typer.Option(None, min=1, help="stop starting trials after this many seconds"),
     write_preset: Path | None = typer.Option(None, "--write-preset", help="write the best values as a "
                                                                             "preset YAML here"),
+    humans: str | None = humans_option(),
+    force: bool = force_option("the --write-preset file"),
 ) -> None:
     """Optuna search of PPO hyperparameters with median pruning; prints the best values, writes a preset YAML."""
     from rich.table import Table
@@ -220,9 +238,23 @@ def tune(
 
     if metric not in METRICS:
         fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")
+    if write_preset is not None:  # checked now, not after hours of trials
+        from socnav.io import OutputPathError, check_output_file
+
+        try:
+            check_output_file(write_preset, what="--write-preset", force=force)
+        except OutputPathError as exc:
+            fail(str(exc))
     overrides: dict[str, Any] = {"scenario": scenario}
     if n_humans is not None:
         overrides["n_humans"] = n_humans
+    if humans is not None:
+        from socnav.config import unknown_name_message
+        from socnav.sim.humans import human_model_names
+
+        if humans not in human_model_names():
+            fail(f"--humans: {unknown_name_message('human model', humans, human_model_names())}")
+        overrides["humans"] = {"model": humans, "mix": None}
     try:
         env_config = load_config(config, **overrides)
     except ConfigError as exc:

@@ -21,6 +21,7 @@ from socnav.sim.scenarios import scenario_names
 __all__ = [
     "ACTING_MODEL_HELP",
     "LAYER_SENSING_HELP",
+    "MAX_MC_SAMPLES",
     "SCENARIOS",
     "SINGLE_AGENT_MAX_HUMANS_HELP",
     "SINGLE_AGENT_N_HUMANS_HELP",
@@ -31,6 +32,8 @@ __all__ = [
     "estimator_option",
     "eval_episodes_option",
     "eval_every_option",
+    "force_option",
+    "humans_option",
     "max_humans_option",
     "mc_samples_option",
     "members_option",
@@ -44,6 +47,12 @@ __all__ = [
     "sensing_option",
     "timesteps_option",
 ]
+
+#: The most MC-dropout samples per decision a command takes (--k): the exported navigator's bound,
+#: `socnav.runtime.format.MAX_K` (tested equal). Not imported from there: `socnav.runtime` loads onnxruntime, an
+#: optional extra, and `socnav --help` must stay fast. 1,000 samples of the shipped policy in a batch of 32
+#: environments already take about 4 MB a step; a million took 3.9 GB.
+MAX_MC_SAMPLES = 1000
 
 #: The scenario names, as the help of --scenario lists them.
 SCENARIOS = ", ".join(scenario_names())
@@ -79,6 +88,14 @@ def n_humans_option(help: str = "humans per episode (default: the scenario's)") 
 def max_humans_option(help: str) -> Any:
     """--max-humans: observation rows, >= 1 (None: the config's default, 10)."""
     return typer.Option(None, min=1, help=help)
+
+
+def humans_option() -> Any:
+    """--humans: how the humans walk, the env config's ``humans.model`` (a `socnav.sim.humans` registry name; None:
+    the world's own). Checked by the command, with did-you-mean, before any model loads."""
+    return typer.Option(None, "--humans", metavar="MODEL",
+                        help="human model (humans.model): orca | social_force | a registered one "
+                             "(default: the world's)")
 
 
 def perturb_option() -> Any:
@@ -122,6 +139,12 @@ def n_envs_option(default: int, help: str = "environments stepped together") -> 
     return typer.Option(default, min=1, help=help)
 
 
+# ---- outputs -----------------------------------------------------------------------------------------------------
+def force_option(what: str = "the output file") -> Any:
+    """--force: replace an existing output (without it a command refuses to overwrite one)."""
+    return typer.Option(False, "--force", help=f"replace {what} if it exists")
+
+
 # ---- policies, uncertainty and the safety layer -----------------------------------------------------------------
 def model_option(help: str) -> Any:
     """--model: a trained policy file or 'pretrained' (None: the command runs without one)."""
@@ -139,8 +162,8 @@ def members_option() -> Any:
 
 
 def mc_samples_option(help: str = "MC-dropout samples") -> Any:
-    """--k: MC-dropout samples per decision (default 20), >= 2."""
-    return typer.Option(20, min=2, help=help)
+    """--k: MC-dropout samples per decision (default 20), in [2, MAX_MC_SAMPLES] as `socnav export --k`."""
+    return typer.Option(20, min=2, max=MAX_MC_SAMPLES, help=help)
 
 
 def safety_option(help: str) -> Any:

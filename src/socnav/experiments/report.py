@@ -10,7 +10,8 @@ directory and returns its Markdown. This module holds the table1 kind's sections
 Table 1 metrics, per (training scenario, algorithm, evaluation scenario), each the mean over seeds of the per-seed
 value computed from that seed's test episodes:
 Goal %, Col. %, TO %  -- share of episodes ending at the goal / in a collision / in a time-out;
-PV                    -- proxemic-violation events (entering a human's personal space) per 200 episodes;
+PV                    -- personal-space violations (intrusion events: entering a human's personal space) per 200
+                         episodes;
 Return                -- mean over seeds of the per-seed mean episode return, +- the standard deviation over all
                          test episodes of all seeds (population std, ddof=0: the spread a user sees per episode).
 The CSV adds ``return_seed_std`` (std over seeds of the per-seed mean return) and the seed / episode counts.
@@ -40,8 +41,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-# The sections of the `uncertainty` kind register on import.
-from socnav.experiments import uncertainty_report  # noqa: F401
+# The sections of the `uncertainty` and `safety_benchmark` kinds register on import.
+from socnav.experiments import safety_benchmark_units, uncertainty_report  # noqa: F401
 from socnav.experiments.labels import algo_label, preferred_then_seen, scenario_label
 from socnav.experiments.paper_tables import PAPER_BUDGET, paper_table1
 from socnav.experiments.registry import SECTIONS, ReportContext, register_section
@@ -55,7 +56,7 @@ if TYPE_CHECKING:
 __all__ = [
     "aggregate_frame", "build_report", "claims_frame", "comparison_frame", "paired_policy_strata", "plot_aggregate",
     "plot_training_curves", "policy_strata", "table1_ci_frame", "table1_ci_markdown", "table1_frame",
-    "table1_markdown", "table1_seed_frame", "training_curve_frame", "training_run_frame",
+    "table1_markdown", "table1_seed_frame", "training_curve_frame", "training_curves_figure", "training_run_frame",
 ]
 
 ID_COLUMNS = ["train_scenario", "algo", "eval_scenario"]
@@ -211,8 +212,8 @@ def table1_section(context: ReportContext) -> str:
         f"Every policy ({seeds} seed(s) per training scenario and algorithm) evaluated on {episodes} test episodes "
         f"(seeds {experiment['evaluation']['seed']}..{experiment['evaluation']['seed'] + episodes - 1}) in every "
         "evaluation scenario; values are means over seeds. Goal, Return: higher is better; Col., TO (time-out), "
-        f"PV (proxemic-violation events per {PV_PER} episodes): lower is better. Return: mean ± standard deviation "
-        "over all test episodes. Bold: best per column within a training scenario.",
+        f"PV (personal-space violations: intrusion events per {PV_PER} episodes): lower is better. Return: mean ± "
+        "standard deviation over all test episodes. Bold: best per column within a training scenario.",
         "",
         markdown,
         "",
@@ -525,10 +526,17 @@ def training_curve_frame(curves: pd.DataFrame, value: str = "ep_rew_mean") -> pd
     return pd.concat(rows, ignore_index=True)[columns] if rows else pd.DataFrame(columns=columns)
 
 
-def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[str] | None = None,
-                         scenarios: list[str] | None = None, ylabel: str = "training reward (episode mean)"
-                         ) -> list[Path]:
-    """One panel per training scenario, one line per algorithm (mean over seeds, band mean ± std); PNG and SVG."""
+#: Each algorithm's mark on the training curves (in the order of the algorithms): a curve of one point (a run that
+#: logged once) shows as its mark, and the lines stay apart in grey print.
+CURVE_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+#: Up to this many points a curve marks every point; above, about this many evenly spaced ones.
+CURVE_MARKED_POINTS = 12
+
+
+def training_curves_figure(frame: pd.DataFrame, algorithms: list[str] | None = None,
+                           scenarios: list[str] | None = None, ylabel: str = "training reward (episode mean)") -> Any:
+    """The figure `plot_training_curves` writes: one panel per training scenario, one line per algorithm (mean over
+    seeds, with its own mark; band mean ± std, an error bar where the curve is one point)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -538,6 +546,7 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
     scenarios = preferred_then_seen(frame["train_scenario"], scenarios or []) or ["(no finished training)"]
     algorithms = preferred_then_seen(frame["algo"], algorithms or [])
     colors = {algo: plt.get_cmap("tab10")(index % 10) for index, algo in enumerate(algorithms)}
+    markers = {algo: CURVE_MARKERS[index % len(CURVE_MARKERS)] for index, algo in enumerate(algorithms)}
     figure, axes = plt.subplots(1, len(scenarios), figsize=(4.6 * len(scenarios), 3.6), squeeze=False)
     for axis, scenario in zip(axes[0], scenarios, strict=True):
         for algo in algorithms:
@@ -545,8 +554,13 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
             if data.empty:
                 continue
             x, mean, std = (data[c].to_numpy(float) for c in ("timesteps", "mean", "std"))
-            axis.plot(x, mean, color=colors[algo], label=algo_label(algo), linewidth=1.6)
-            axis.fill_between(x, mean - std, mean + std, color=colors[algo], alpha=0.2, linewidth=0)
+            every = max(1, round(len(x) / CURVE_MARKED_POINTS)) if len(x) > CURVE_MARKED_POINTS else 1
+            axis.plot(x, mean, color=colors[algo], label=algo_label(algo), linewidth=1.6, marker=markers[algo],
+                      markersize=5 if len(x) > 1 else 7, markevery=every)
+            if len(x) > 1:
+                axis.fill_between(x, mean - std, mean + std, color=colors[algo], alpha=0.2, linewidth=0)
+            else:  # a band of one point is invisible: its spread as an error bar
+                axis.errorbar(x, mean, yerr=std, fmt="none", ecolor=colors[algo], alpha=0.5, capsize=3)
         axis.set_title(scenario_label(scenario))
         axis.set_xlabel("timesteps")
         axis.xaxis.set_major_formatter(FuncFormatter(_steps_label))
@@ -559,10 +573,20 @@ def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[s
             if label not in labels:
                 handles.append(handle)
                 labels.append(label)
+    # as many legend columns as the figure's width holds (about 2 inches each), in as many rows as needed
+    columns = max(1, min(len(labels), 5, int(4.6 * len(scenarios) / 2.0)))
+    rows = -(-len(labels) // columns)
     if handles:
-        figure.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), frameon=False)
-    figure.tight_layout(rect=(0, 0.1 if handles else 0, 1, 1))
-    return save_figure(figure, out_base)
+        figure.legend(handles, labels, loc="lower center", ncol=columns, frameon=False)
+    figure.tight_layout(rect=(0, 0.03 + 0.075 * rows if handles else 0, 1, 1))
+    return figure
+
+
+def plot_training_curves(frame: pd.DataFrame, out_base: Path, algorithms: list[str] | None = None,
+                         scenarios: list[str] | None = None, ylabel: str = "training reward (episode mean)"
+                         ) -> list[Path]:
+    """One panel per training scenario, one line per algorithm (`training_curves_figure`); PNG and SVG."""
+    return save_figure(training_curves_figure(frame, algorithms, scenarios, ylabel), out_base)
 
 
 def _steps_label(value: float, _position: Any = None) -> str:

@@ -40,7 +40,7 @@ from socnav.config import YAML_MAX_BYTES
 
 # The executors of the `uncertainty` kind register on import: here, so that every process running units (pool and
 # Ray workers too) knows them.
-from socnav.experiments import uncertainty_units  # noqa: F401
+from socnav.experiments import safety_benchmark_units, uncertainty_units  # noqa: F401
 from socnav.experiments.registry import (
     EXECUTORS,
     PROGRESS_FILE,
@@ -70,7 +70,8 @@ from socnav.io import (
 )
 
 __all__ = [
-    "RunSummary", "RunnerError", "UnitOutcome", "execute_unit", "mark_done", "prepare_run_dir", "prepare_unit_dir",
+    "RunSummary", "RunnerError", "UnitOutcome", "check_run_dir", "execute_unit", "mark_done", "prepare_run_dir",
+    "prepare_unit_dir",
     "read_plan", "run_experiment", "unit_lock_path", "unit_state", "unit_states",
 ]
 
@@ -318,6 +319,18 @@ def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = No
 
     units = plan_units(experiment)
     root.mkdir(parents=True, exist_ok=True)
+    _check_same_experiment(root, experiment)
+    if source is not None:
+        # within the limit load_experiment read it with (a path such as /proc reports no size)
+        write_text_atomic(root / "experiment.yaml", read_bounded(source, YAML_MAX_BYTES).decode())
+    write_text_atomic(root / "resolved.json", json.dumps(
+        {"experiment": experiment.to_json(), "socnav_version": socnav.__version__}, indent=2, sort_keys=True))
+    write_text_atomic(root / "units.json", json.dumps([unit.to_json() for unit in units], indent=2))
+    return units
+
+
+def _check_same_experiment(root: Path, experiment: Experiment) -> None:
+    """:raises RunnerError: `root` holds the plan of another experiment or budget."""
     existing = _read_json(root / "resolved.json", PLAN_MAX_BYTES)
     recorded = existing.get("experiment") if isinstance(existing, dict) else None
     if isinstance(recorded, dict):
@@ -328,13 +341,31 @@ def prepare_run_dir(root: Path, experiment: Experiment, source: Path | None = No
                 f"{root} holds experiment {before[0]!r} with budget {before[1]!r}, not {now[0]!r} with budget "
                 f"{now[1]!r}; choose another --out (units of a different budget would overwrite its results)"
             )
-    if source is not None:
-        # within the limit load_experiment read it with (a path such as /proc reports no size)
-        write_text_atomic(root / "experiment.yaml", read_bounded(source, YAML_MAX_BYTES).decode())
-    write_text_atomic(root / "resolved.json", json.dumps(
-        {"experiment": experiment.to_json(), "socnav_version": socnav.__version__}, indent=2, sort_keys=True))
-    write_text_atomic(root / "units.json", json.dumps([unit.to_json() for unit in units], indent=2))
-    return units
+
+
+def check_run_dir(root: str | Path, experiment: Experiment) -> None:
+    """What `run_experiment` would refuse about the run directory `root`, checked without writing anything (``socnav
+    run --dry-run``, so that it never lists units the real run then refuses): a file where the directory goes, a
+    directory that cannot be created, a linked or held ``.lock``, another experiment or budget in it.
+
+    :raises RunnerError: as `run_experiment` would, with its message.
+    """
+    root = Path(root).resolve()
+    existing = next((path for path in (root, *root.parents) if path.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise RunnerError(f"cannot create the run directory {root}: {existing} is a file, not a directory")
+    if existing is not None and existing != root and not os.access(existing, os.W_OK | os.X_OK):
+        raise RunnerError(f"cannot create the run directory {root}: {existing} is not writable")
+    if not root.is_dir():
+        return  # a new run directory: nothing in it to refuse
+    lock = root / ".lock"
+    if lock.is_symlink():
+        raise RunnerError(f"{lock} is a symbolic link; socnav never follows a link inside a run directory (remove it)")
+    if lock.is_file():  # opened without creating anything: it exists
+        with file_lock(lock, blocking=False) as locked:
+            if not locked:
+                raise RunnerError(f"another socnav run is working in {root} (its .lock is held)")
+    _check_same_experiment(root, experiment)
 
 
 def read_plan(root: Path) -> tuple[dict[str, Any], list[Unit]]:

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, cast
 
-from pydantic import Field, StrictInt, ValidationError, field_validator, model_validator
+from pydantic import Field, StrictInt, ValidationError, field_validator, model_serializer, model_validator
 
 from socnav.config import (
     ConfigError,
@@ -299,6 +299,32 @@ class Safety(StrictModel):
     tradeoff_repeats: StrictInt | None = Field(
         None, ge=1, le=MAX_SAMPLES, description="the first repeats the rules of those budgets are evaluated on "
                                                 "(null: every repeat); the curve uses the repeats all its points share")
+    triggers: list[str] = Field(default_factory=list,
+                                description="kind safety_benchmark: the rows (registered triggers, and "
+                                            "risk-model+uncertainty); [] for every built-in row")
+
+    @field_validator("triggers")
+    @classmethod
+    def check_triggers(cls, value: list[str]) -> list[str]:
+        """Registered trigger names (or ``risk-model+uncertainty``), each once."""
+        from socnav.safety.triggers import TriggerError, trigger_class, trigger_names
+
+        for name in value:
+            if name not in (*trigger_names(), "risk-model+uncertainty"):
+                try:
+                    trigger_class(name)
+                except TriggerError as exc:
+                    raise ValueError(str(exc)) from None
+        if len(set(value)) != len(value):
+            raise ValueError(f"lists a trigger twice: {value}")
+        return value
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        if not data.get("triggers"):  # only the benchmark reads it: Table 3's run files stay as they were
+            data.pop("triggers", None)
+        return data
 
     @field_validator("perturbations")
     @classmethod
@@ -319,7 +345,8 @@ class Safety(StrictModel):
 
     @field_validator("tradeoff_budgets")
     @classmethod
-    def _budgets(cls, value: list[float]) -> list[float]:
+    def check_budgets(cls, value: list[float]) -> list[float]:
+        """Budgets in (0, 1], increasing, each once."""
         if any(not 0.0 < budget <= 1.0 for budget in value):
             raise ValueError(f"each budget must lie in (0, 1] (a share of unperturbed steps), got {value}")
         if sorted(set(value)) != list(value):
@@ -382,6 +409,18 @@ class Budget(StrictModel):
                                            description="evaluation.seed: episode k uses seed + k")
     mc_seed: StrictInt | None = Field(None, ge=0, le=TRAIN_SEED_LIMIT,
                                          description="study.mc_seed and safety.mc_seed (one of the seeds trained)")
+    tradeoff_budgets: list[float] | None = Field(None, description="safety.tradeoff_budgets")
+    triggers: list[str] | None = Field(None, description="safety.triggers")
+
+    @field_validator("tradeoff_budgets")
+    @classmethod
+    def _budget_list(cls, value: list[float] | None) -> list[float] | None:
+        return None if value is None else Safety.check_budgets(value)
+
+    @field_validator("triggers")
+    @classmethod
+    def _trigger_list(cls, value: list[str] | None) -> list[str] | None:
+        return None if value is None else Safety.check_triggers(value)
 
     @field_validator("study_perturbations", "safety_perturbations")
     @classmethod
@@ -596,7 +635,9 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
         safety_update = {key: value for key, value in (("perturbations", chosen.safety_perturbations),
                                                        ("repeats", chosen.repeats),
                                                        ("calibration_episodes", chosen.calibration_episodes),
-                                                       ("mc_seed", chosen.mc_seed))
+                                                       ("mc_seed", chosen.mc_seed),
+                                                       ("tradeoff_budgets", chosen.tradeoff_budgets),
+                                                       ("triggers", chosen.triggers))
                          if value is not None}
         update["safety"] = experiment.safety.model_copy(update=safety_update)
     return experiment.model_copy(update=update)
@@ -819,6 +860,29 @@ def _plan_safety(experiment: Experiment, safety: Safety, common: dict[str, Any],
     if not ablated:
         return units + evaluations  # the configured order
     return sorted(units, key=_relative_cost, reverse=True) + sorted(evaluations, key=_relative_cost, reverse=True)
+
+
+@register_planner("safety_benchmark")
+def plan_safety_benchmark(experiment: Experiment) -> list[Unit]:
+    """The safety-layer benchmark (`socnav.experiments.safety_benchmark`): train the policies of `grid` (one
+    scenario, one algorithm), then one benchmark unit per training seed, in which that seed's policy acts and its
+    MC dropout estimates the uncertainty: every trigger of `safety.triggers` calibrated at every budget of
+    `safety.tradeoff_budgets` (or `safety.false_activation_budget`) on the calibration episodes, then played on the
+    held-out worlds (`safety.perturbations` and the benchmark's shifts)."""
+    grid, evaluation, safety = experiment.grid, experiment.evaluation, experiment.safety
+    if safety is None or len(grid.train_scenarios) != 1 or len(grid.algorithms) != 1:
+        raise ExperimentError(f"experiment {experiment.name!r}: kind safety_benchmark needs a `safety` block and "
+                              "trains one algorithm on one scenario")
+    scenario, algo = grid.train_scenarios[0], grid.algorithms[0]
+    trains = [_train_unit(experiment, scenario, algo, seed) for seed in grid.seeds]  # type: ignore[union-attr]
+    budgets = list(safety.tradeoff_budgets) or [safety.false_activation_budget]
+    benchmarks = [Unit(f"benchmark/seed{train.params['seed']}", "safety_benchmark", {
+        "env": experiment.env_config(scenario), "train_seed": train.params["seed"], "budgets": budgets,
+        "calibration_episodes": safety.calibration_episodes, "episodes": evaluation.episodes,
+        "seed": evaluation.seed, "n_envs": evaluation.n_envs, "perturbations": safety.perturbations,
+        "sensing": safety.sensing[0], "k": safety.k, "window": safety.window, "triggers": list(safety.triggers),
+    }, deps=(train.id,)) for train in trains]
+    return [*trains, *benchmarks]
 
 
 def _relative_cost(unit: Unit) -> float:

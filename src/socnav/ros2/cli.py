@@ -7,8 +7,11 @@ remapping and node name works as with ``ros2 run``; the command's own options ta
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import typer
@@ -35,9 +38,47 @@ def _rclpy() -> Any:
         fail(str(exc))
 
 
+class _Signals:
+    """The signals received (``received``), and whether ROS 2 is up to stop the process on them (``ros_up``)."""
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self.ros_up = False
+
+    def handle(self, number: int, _frame: FrameType | None) -> None:
+        self.received.append(number)
+        if not self.ros_up or len(self.received) > 1:
+            raise KeyboardInterrupt
+
+
+@contextmanager
+def _first_signal_shuts_ros_down() -> Iterator[_Signals]:
+    """While ROS 2 is up (``ros_up``, set by the caller once ``rclpy.init`` returned), the first Ctrl-C or SIGTERM
+    only shuts it down; a second one, or one while ROS 2 is not up, raises KeyboardInterrupt.
+
+    rclpy's own handler (installed by ``rclpy.init``, for SIGINT and SIGTERM) shuts the context down from another
+    thread, which ends the spin, and then calls the handler that was there before it. Python's default SIGINT
+    handler would then raise KeyboardInterrupt at an arbitrary point of the main thread (inside a callback, between
+    two publishes, in the clean-up): a race that could end in a traceback. Installed before ``rclpy.init``, this one
+    is the handler rclpy calls, so nothing is raised while the spin ends by itself."""
+    signals = _Signals()
+    previous = {number: signal.signal(number, signals.handle) for number in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield signals
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
 def _spin(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Callable[[Any], None]) -> None:
     """Start ROS 2 with ``arguments``, build the node (its setup errors: one line, exit 2), run it until it is done
-    or interrupted (Ctrl-C, SIGTERM: a clean exit 0), and shut ROS 2 down."""
+    or interrupted (the first Ctrl-C or SIGTERM: a clean exit 0), and shut ROS 2 down."""
+    with _first_signal_shuts_ros_down() as signals:
+        _spin_ros(rclpy, arguments, build, run, signals)
+
+
+def _spin_ros(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Callable[[Any], None],
+              signals: _Signals) -> None:
     from rclpy.exceptions import ParameterException, ROSInterruptException
     from rclpy.executors import ExternalShutdownException
 
@@ -48,6 +89,7 @@ def _spin(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Calla
     from socnav.safety import ThresholdsError
 
     rclpy.init(args=["socnav", *arguments])
+    signals.ros_up = True
     node = None
     try:
         try:
@@ -55,23 +97,30 @@ def _spin(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: Calla
         except (NavigatorSetupError, NavigatorLoadError, ThresholdsError, RecordingError, ParameterException,
                 ValueError) as exc:
             fail(" ".join(str(exc).split()))
+        except RuntimeError:  # RCLError: a signal shut the context down while the node was being built
+            if rclpy.ok():
+                raise
         try:
-            run(node)
+            if node is not None:
+                run(node)
         except SimulatorError as exc:
-            fail(str(exc), code=1)
+            if rclpy.ok():
+                fail(str(exc), code=1)
         except (KeyboardInterrupt, ExternalShutdownException, ROSInterruptException):
-            console.print("interrupted: shutting down", highlight=False)
+            pass
         except RuntimeError:
             # rclpy's own SIGINT/SIGTERM handler shuts the context down; an executor then building its wait set
             # raises RCLError (a RuntimeError) "the given context is not valid": that too is the interruption.
             if rclpy.ok():
                 raise
+        if signals.received or not rclpy.ok():  # a spin ends by itself when a signal shut the context down
             console.print("interrupted: shutting down", highlight=False)
     finally:
         if node is not None:
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+        signals.ros_up = False
 
 
 @app.command(context_settings=_ROS_ARGUMENTS)
@@ -143,13 +192,15 @@ def sim(
     seed: int = typer.Option(0, min=0, help="episode k uses seed + k"),
     out: Path | None = typer.Option(None, help="per-episode records, .csv or .parquet (default: "
                                                   "runs/ros2/<scenario>_seed<seed>_<episodes>ep.csv)"),
-    record: Path | None = typer.Option(None, help="also record every message to this .mcap file"),
+    record: Path | None = typer.Option(None, help="also record every message to this .mcap file (a new file in an "
+                                                     "existing directory, or an existing one with --force)"),
     lockstep: bool = typer.Option(False, "--lockstep", help="wait for the navigator's command at every step "
                                                             "(run the navigator with --lockstep)"),
     real_time_factor: float = typer.Option(1.0, min=1e-3, max=1e3, help="simulated seconds per wall second"),
+    force: bool = typer.Option(False, "--force", help="replace an existing --record file"),
 ) -> None:
     """Run the crowd simulator node: odometry, humans, goal and /clock out; cmd_vel in; episode records written."""
-    from socnav.io import TABLE_FORMATS
+    from socnav.io import TABLE_FORMATS, OutputPathError, check_output_file
 
     if model is not None and config is not None:
         fail("--model and --config both name the world: give one of them")
@@ -157,11 +208,17 @@ def sim(
         fail(f"--out must end in one of {', '.join(TABLE_FORMATS)}, got {out.name!r}")
     if record is not None and record.suffix != ".mcap":
         fail(f"--record must end in .mcap, got {record.name!r}")
+    if record is not None:
+        # Before anything starts: opening a FIFO blocks until a reader comes (and rclpy's signal handling retries the
+        # open after each signal), a link into /proc is no recording.
+        try:
+            check_output_file(record, what="--record", force=force, create_parent=False)
+        except OutputPathError as exc:
+            fail(str(exc))
     env_config = _world(scenario, model, config, n_humans)
     out = out or Path("runs") / "ros2" / f"{env_config.scenario}_seed{seed}_{episodes}ep.csv"
-    for option, path in (("--out", out), ("--record", record)):
-        if path is not None and path.is_dir():
-            fail(f"{option} {path} is a directory; name a file")
+    if out.is_dir():
+        fail(f"--out {out} is a directory; name a file")
     rclpy = _rclpy()
     out.parent.mkdir(parents=True, exist_ok=True)
     from socnav.envs.rollout import summarize

@@ -150,9 +150,11 @@ class TrackedHumans:
         return {"positions": self.positions, "velocities": self.velocities, "radii": self.radii}
 
 
-def _cloud_field(cloud: PointCloud2, fields: dict[str, Any], name: str, data: bytes) -> np.ndarray:
-    """One scalar field of every point, as float64 (n,), read in place with the cloud's strides."""
-    field = fields[name]
+def _field_dtype(cloud: PointCloud2, field: Any) -> np.dtype:
+    """The NumPy dtype of one scalar field (FLOAT32 or FLOAT64, the cloud's byte order), checked to fit in a point.
+
+    :raises MessageError: another datatype, a count other than 1, or an offset outside ``point_step``."""
+    name = field.name
     if field.datatype not in _FLOAT_TYPES:
         raise MessageError(f"humans cloud field {name!r} has datatype {field.datatype}; allowed: FLOAT32 (7), "
                            "FLOAT64 (8)")
@@ -162,6 +164,11 @@ def _cloud_field(cloud: PointCloud2, fields: dict[str, Any], name: str, data: by
     if field.offset < 0 or field.offset + dtype.itemsize > cloud.point_step:
         raise MessageError(f"humans cloud field {name!r} (offset {field.offset}, {dtype.itemsize} bytes) does not fit "
                            f"in point_step {cloud.point_step}")
+    return dtype
+
+
+def _cloud_field(cloud: PointCloud2, field: Any, dtype: np.dtype, data: bytes) -> np.ndarray:
+    """One scalar field of every point, as float64 (n,), read in place with the cloud's strides."""
     values = np.ndarray((cloud.height, cloud.width), dtype=dtype, buffer=data, offset=field.offset,
                         strides=(cloud.row_step, cloud.point_step))
     return values.astype(np.float64).reshape(-1)
@@ -171,17 +178,17 @@ def cloud_to_humans(cloud: PointCloud2, frame: str, default_radius: float) -> Tr
     """The humans of a PointCloud2 (fields :data:`HUMAN_FIELDS`; without ``radius``, every human has
     ``default_radius``), in ``frame``.
 
-    :raises MessageError: another frame, a missing or non-float field, a layout that does not match the data,
-        more than :data:`MAX_TRACKED_HUMANS` points, a NaN / inf, or a negative radius.
+    :raises MessageError: another frame, a missing or non-float field, a layout that does not match the data (at
+        any point count, 0 included), more than :data:`MAX_TRACKED_HUMANS` points, a NaN / inf, or a negative
+        radius.
     """
     _check_frame("humans cloud", "header.frame_id", cloud.header.frame_id, frame)
     count = cloud.height * cloud.width
     stamp = stamp_to_ns(cloud.header.stamp)
-    if count == 0:
-        empty = np.zeros((0, 2))
-        return TrackedHumans(empty, empty.copy(), np.zeros(0), stamp)
     if count > MAX_TRACKED_HUMANS:
         raise MessageError(f"humans cloud has {count} points; at most {MAX_TRACKED_HUMANS} are accepted")
+    # Every check below holds for an empty cloud too: "no humans" is a well-formed cloud of 0 points (what
+    # `humans_to_cloud` writes), not whatever arrives with height or width 0 -- a malformed one stops the robot.
     fields: dict[str, Any] = {}
     for field in cloud.fields:
         if field.name in fields:
@@ -191,6 +198,7 @@ def cloud_to_humans(cloud: PointCloud2, frame: str, default_radius: float) -> Tr
     if missing:
         raise MessageError(f"humans cloud lacks fields {missing}; it needs x, y, vx, vy (and optionally radius), got "
                            f"{sorted(fields)}")
+    dtypes = {name: _field_dtype(cloud, fields[name]) for name in HUMAN_FIELDS if name in fields}
     data = bytes(cloud.data)
     if cloud.point_step <= 0 or cloud.row_step < cloud.width * cloud.point_step:
         raise MessageError(f"humans cloud layout is inconsistent: point_step {cloud.point_step}, row_step "
@@ -198,7 +206,10 @@ def cloud_to_humans(cloud: PointCloud2, frame: str, default_radius: float) -> Tr
     if len(data) != cloud.row_step * cloud.height:
         raise MessageError(f"humans cloud data has {len(data)} bytes; row_step {cloud.row_step} x height "
                            f"{cloud.height} = {cloud.row_step * cloud.height}")
-    values = {name: _cloud_field(cloud, fields, name, data) for name in HUMAN_FIELDS if name in fields}
+    if count == 0:
+        empty = np.zeros((0, 2))
+        return TrackedHumans(empty, empty.copy(), np.zeros(0), stamp)
+    values = {name: _cloud_field(cloud, fields[name], dtype, data) for name, dtype in dtypes.items()}
     radii = values.get("radius", np.full(count, float(default_radius)))
     positions = np.column_stack([values["x"], values["y"]])
     velocities = np.column_stack([values["vx"], values["vy"]])

@@ -10,7 +10,15 @@ Each decision (every ``1 / rate`` s of the node's clock — simulated time with 
 3. the command goes out on ``cmd_vel``; the decision's state on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray),
    ``~/fallback`` (std_msgs/Bool), ``~/uncertainty`` (std_msgs/Float64MultiArray: :data:`UNCERTAINTY_NAMES`),
    ``~/latency`` (std_msgs/Float64: seconds from the triggering callback to the command's publication) and
-   ``~/markers`` (visualization_msgs/MarkerArray).
+   ``~/markers`` (visualization_msgs/MarkerArray: the ``marker_humans`` humans nearest the robot, not the whole
+   crowd, so that the cost of the markers is bounded whatever the size of an accepted cloud: 10,000 humans' markers
+   took 2 s a decision).
+
+The command goes out first; the state after it, bounded in size (a fixed number of values and markers), so that no
+input the node accepts slows its decisions. A stamp farther from the node's clock than :data:`CLOCK_MISMATCH_S` is
+reported as a clock mismatch naming ``use_sim_time``, not as stale input. A stop's cause is logged once when it
+starts, and again at most every :data:`REPEAT_LOG_S` s while it lasts (the diagnostics carry every decision's).
+After the context is shut down (Ctrl-C, SIGTERM) the node publishes nothing more.
 
 Whenever step 1 fails, or `act` refuses its input, the node publishes a zero Twist (the robot stops) and says why on
 ``/diagnostics`` (level ERROR for a missing, stale or invalid input; OK for "no goal yet" and "goal reached"). No
@@ -60,6 +68,13 @@ DEFAULT_NODE_NAME = "socnav_navigator"
 UNCERTAINTY_NAMES = ("u_ep_speed", "u_ep_heading", "u_al_speed", "u_al_heading", "u_feat")
 #: Lock-step: how often (wall clock) a decision waiting for ``cmd_vel``'s first subscriber is retried.
 _PENDING_RETRY_S = 0.01
+#: Seconds between an input's stamp and the node's clock beyond which no latency explains it: two clocks (wall time
+#: and a simulator's /clock, two machines' clocks) -- reported as a clock mismatch naming ``use_sim_time``.
+CLOCK_MISMATCH_S = 3600.0
+#: Wall seconds between two log lines of one ongoing stop's cause (the first is logged at once).
+REPEAT_LOG_S = 60.0
+#: Default of parameter ``marker_humans``: how many of the nearest humans get a marker.
+MARKER_HUMANS = 50
 _NS = 1_000_000_000
 
 
@@ -91,6 +106,8 @@ class Outcome:
     fault: str | None = None
     humans: int = 0
     goal_distance: float = math.nan
+    #: What the stop's log line is keyed on: the cause without its changing numbers (None: the message itself).
+    cause: str | None = None
 
 
 def _descriptor(description: str, read_only: bool = True) -> ParameterDescriptor:
@@ -151,6 +168,10 @@ class NavigatorNode(Node):
             declare(name, default, _descriptor(description, read_only=False))
         self.settings = {name: float(self.get_parameter(name).value) for name in dynamic}
         self.publish_markers = bool(declare("markers", True, _descriptor("publish ~/markers for RViz")).value)
+        self.marker_humans = declare("marker_humans", MARKER_HUMANS, _descriptor(
+            "markers are drawn for this many humans, the nearest to the robot (bounds the markers' cost)")).value
+        if isinstance(self.marker_humans, bool) or not isinstance(self.marker_humans, int) or self.marker_humans < 0:
+            raise NavigatorSetupError(f"parameter marker_humans must be an integer >= 0, got {self.marker_humans!r}")
         for name, value in [("rate", self.rate), *self.settings.items()]:
             problem = self._problem(name, value)
             if problem:
@@ -160,7 +181,8 @@ class NavigatorNode(Node):
         self.odometry, self.humans, self.goal = _Latest(), _Latest(), _Latest()
         self._last_decided_stamp: int | None = None
         self._pending_trigger: float | None = None  # lock-step: a decision waiting for cmd_vel's first subscriber
-        self._last_report = ""
+        self._logged_cause: str | None = None  # the stop cause last logged, and when (time.monotonic)
+        self._logged_at = -math.inf
         self.decisions = 0
         # Lock-step loses no message (the simulator waits for each command); on a robot, best effort also accepts
         # sensor drivers' best-effort publishers.
@@ -240,6 +262,8 @@ class NavigatorNode(Node):
             self._decide_if_complete()
 
     def _decide_if_complete(self) -> None:
+        if not self.context.ok():  # shut down (signal): the graph queries below would raise
+            return
         stamps = {self.odometry.stamp_ns, self.humans.stamp_ns, self.goal.stamp_ns}
         if len(stamps) != 1 or self._pending_trigger is None:
             return
@@ -264,41 +288,70 @@ class NavigatorNode(Node):
 
     # ------------------------------------------------------------------------------------------------- decision
 
-    def _input_problem(self, latest: _Latest, what: str, now_ns: int) -> str | None:
+    def _input_problem(self, latest: _Latest, what: str, now_ns: int) -> tuple[str, str] | None:
+        """Why ``latest`` cannot be used now, and that reason's cause without numbers (for the log); None: it can."""
         if latest.error is not None:
-            return latest.error
+            return latest.error, latest.error
         if latest.value is None or latest.stamp_ns is None:  # a parsed value always has its stamp
-            return f"no {what} received yet"
+            return f"no {what} received yet", f"no {what}"
         age = (now_ns - latest.stamp_ns) / _NS
         limit = self.settings["max_input_age"]
+        if abs(age) > CLOCK_MISMATCH_S:
+            return self._clock_mismatch(what, age, now_ns), f"{what}: clock mismatch"
         if age > limit:
-            return f"{what} is stale: {age:.3f} s old (max_input_age {limit:g} s)"
+            return f"{what} is stale: {age:.3f} s old (max_input_age {limit:g} s)", f"{what}: stale"
         if -age > limit:
             return (f"{what} is stamped {-age:.3f} s in the future (max_input_age {limit:g} s): does it use the node's "
-                    "clock (use_sim_time)?")
+                    "clock (use_sim_time)?", f"{what}: in the future")
         return None
 
+    def _clock_mismatch(self, what: str, age: float, now_ns: int) -> str:
+        """The diagnostic of a stamp ``age`` s (more than :data:`CLOCK_MISMATCH_S`) from the node's clock: the
+        likely cause, for the clock the node is on."""
+        sim_time = bool(self.get_parameter("use_sim_time").value)
+        where = f"{abs(age):.0f} s {'behind' if age > 0 else 'ahead of'} the node clock"
+        if sim_time and now_ns == 0:
+            hint = "the node uses simulated time (use_sim_time) and no /clock came yet: is the simulator publishing it?"
+        elif sim_time:
+            hint = ("the node uses simulated time (use_sim_time) but the publisher does not: start the navigator "
+                    "without --use-sim-time, or stamp the messages with /clock")
+        elif age > 0:
+            hint = ("is the publisher on simulated time (e.g. socnav ros2 sim, publishing /clock)? start the navigator "
+                    "with --use-sim-time (use_sim_time:=true)")
+        else:
+            hint = "the publisher's clock is far ahead of this machine's: do both use the same clock (use_sim_time)?"
+        return f"{what} stamp is {where}: a clock mismatch; {hint}"
+
     def _decide(self, started: float) -> None:
-        """One decision from the latest inputs; publishes the command and the decision's state. Never raises."""
+        """One decision from the latest inputs; publishes the command and the decision's state. Raises only if the
+        command cannot be published while ROS 2 is up; publishes nothing once the context is shut down."""
+        if not self.context.ok():  # Ctrl-C / SIGTERM: rclpy shut the context down; a publish would raise RCLError
+            return
         try:
             outcome = self._outcome(self.get_clock().now().nanoseconds)
         except Exception as exc:
             outcome = Outcome(0.0, 0.0, True, DiagnosticStatus.ERROR,
                               f"stopped: internal error ({type(exc).__name__}: {exc})")
-        self.cmd_vel.publish(command_to_twist(outcome.speed, outcome.turn, self.time_step))
+        try:
+            self.cmd_vel.publish(command_to_twist(outcome.speed, outcome.turn, self.time_step))
+        except RuntimeError:  # RCLError: the context was shut down (signal) since the check above
+            if self.context.ok():
+                raise
+            return
         latency = time.perf_counter() - started
         self.decisions += 1
         try:
             self._publish_state(outcome, latency)
         except Exception as exc:
-            self.get_logger().error(f"could not publish the decision's state: {type(exc).__name__}: {exc}")
+            if self.context.ok():  # otherwise: shut down meanwhile, nothing to say
+                self.get_logger().error(f"could not publish the decision's state: {type(exc).__name__}: {exc}")
 
     def _outcome(self, now_ns: int) -> Outcome:
         stop = DiagnosticStatus.ERROR
         for latest, what in ((self.odometry, "odometry"), (self.humans, "humans")):
             problem = self._input_problem(latest, what, now_ns)
             if problem:
-                return Outcome(0.0, 0.0, True, stop, f"stopped: {problem}")
+                return Outcome(0.0, 0.0, True, stop, f"stopped: {problem[0]}", cause=problem[1])
         if self.goal.error is not None:
             return Outcome(0.0, 0.0, True, stop, f"stopped: {self.goal.error}")
         if self.goal.value is None:
@@ -328,11 +381,19 @@ class NavigatorNode(Node):
 
     # ------------------------------------------------------------------------------------------------- reports
 
+    def _log_stop(self, outcome: Outcome) -> None:
+        """Log a stop's message when its cause starts, then at most every REPEAT_LOG_S s while it lasts: a cause
+        whose numbers change every decision (an age, a distance) is still one cause, not one line per decision."""
+        cause = (outcome.cause or outcome.message) if outcome.stopped else None
+        now = time.monotonic()
+        if cause is not None and (cause != self._logged_cause or now - self._logged_at >= REPEAT_LOG_S):
+            self.get_logger().warning(outcome.message)
+            self._logged_at = now
+        self._logged_cause = cause
+
     def _publish_state(self, outcome: Outcome, latency: float) -> None:
         stamp = self.get_clock().now().to_msg()
-        if outcome.message != self._last_report and outcome.stopped:
-            self.get_logger().warning(outcome.message)
-        self._last_report = outcome.message
+        self._log_stop(outcome)
         values = {"stopped": outcome.stopped, "fallback": outcome.fallback, "speed": outcome.speed,
                   "turn_rate": outcome.turn / self.time_step, "latency_s": latency, "humans": outcome.humans,
                   "goal_distance": outcome.goal_distance, "fault": outcome.fault or "", **outcome.windowed}
@@ -352,8 +413,9 @@ class NavigatorNode(Node):
             self.markers.publish(self._marker_array(outcome, stamp))
 
     def _marker_array(self, outcome: Outcome, stamp: Any) -> MarkerArray:
-        """Humans (grey cylinders), goal (green disc), robot (blue: policy, orange: fallback, red: stopped) and a
-        text with the windowed uncertainties, in the odometry frame; a DELETEALL first drops humans no longer seen."""
+        """The ``marker_humans`` humans nearest the robot (grey cylinders), goal (green disc), robot (blue: policy,
+        orange: fallback, red: stopped) and a text with the windowed uncertainties, in the odometry frame; a DELETEALL
+        first drops humans no longer seen."""
         markers = [Marker(action=Marker.DELETEALL)]
 
         def marker(namespace: str, ident: int, kind: int, x: float, y: float, diameter: float, height: float,
@@ -368,15 +430,18 @@ class NavigatorNode(Node):
             return item
 
         humans: TrackedHumans | None = self.humans.value
+        robot: RobotOdometry | None = self.odometry.value
+        drawn = np.zeros(0, dtype=int)
         if humans is not None:
-            for index, (position, radius) in enumerate(zip(humans.positions, humans.radii, strict=True)):
+            drawn = self._drawn_humans(humans, robot)
+            for index, slot in enumerate(drawn):
+                position, radius = humans.positions[slot], humans.radii[slot]
                 markers.append(marker("humans", index, Marker.CYLINDER, position[0], position[1], 2 * radius, 1.7,
                                       (0.6, 0.6, 0.6, 0.8)))
         goal = self.goal.value
         if goal is not None:
             markers.append(marker("goal", 0, Marker.CYLINDER, goal[0], goal[1], 2 * self.settings["goal_tolerance"],
                                   0.02, (0.1, 0.8, 0.2, 0.8)))
-        robot: RobotOdometry | None = self.odometry.value
         if robot is not None:
             color = (0.9, 0.1, 0.1, 0.9) if outcome.stopped else (1.0, 0.55, 0.0, 0.9) if outcome.fallback \
                 else (0.2, 0.4, 1.0, 0.9)
@@ -388,5 +453,17 @@ class NavigatorNode(Node):
             text.text = (outcome.message if outcome.stopped else
                          f"{'FALLBACK' if outcome.fallback else 'policy'}  u_ep {outcome.windowed['u_ep_heading']:.3f}"
                          f"  u_feat {outcome.windowed['u_feat']:.3f}")
+            if humans is not None and len(drawn) < len(humans.radii):
+                text.text += f"  ({len(drawn)} nearest of {len(humans.radii)} humans drawn)"
             markers.append(text)
         return MarkerArray(markers=markers)
+
+    def _drawn_humans(self, humans: TrackedHumans, robot: RobotOdometry | None) -> np.ndarray:
+        """The indices of the humans that get a marker: the ``marker_humans`` nearest the robot (the first ones
+        while its position is unknown), nearest first."""
+        count, limit = len(humans.radii), self.marker_humans
+        if count <= limit or robot is None:
+            return np.arange(min(count, limit))
+        distance = np.hypot(*(humans.positions - robot.position).T)
+        nearest = np.argpartition(distance, limit - 1)[:limit] if limit else np.zeros(0, dtype=int)
+        return nearest[np.argsort(distance[nearest], kind="stable")]

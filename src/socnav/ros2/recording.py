@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 import sys
 import sysconfig
 from pathlib import Path
@@ -85,24 +86,43 @@ class McapRecorder:
 
     :param path: the ``.mcap`` file (replaced). Close it with :meth:`close` (or use it as a context manager): the
         file's summary is written then.
+    :raises RecordingError: ``path`` is not a regular file or a new file in a writable directory (a FIFO, a device,
+        a link into /proc, a directory), or cannot be opened.
     """
 
     def __init__(self, path: str | Path) -> None:
         from mcap.writer import Writer
         from rclpy.serialization import serialize_message
 
+        from socnav.io import OutputPathError, check_output_file
+
         self.path = Path(path)
         self._serialize = serialize_message
         try:
-            self._stream: BinaryIO = self.path.open("wb")
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
+            check_output_file(self.path, what="recording", force=True)
+        except OutputPathError as exc:
+            raise RecordingError(str(exc)) from None
+        self._stream: BinaryIO = self._open(self.path)
         self._writer = Writer(self._stream)
         self._writer.start(profile="ros2", library="socnav")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._sequence = 0
         self.messages = 0
+
+    @staticmethod
+    def _open(path: Path) -> BinaryIO:
+        """``path`` opened for writing, truncated, if it is a regular file (or new) when opened: non-blocking, so
+        that a FIFO put there since it was checked fails at once instead of waiting for a reader."""
+        try:
+            descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK, 0o666)
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot write the recording ({exc.strerror or exc})") from None
+        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+            os.close(descriptor)
+            raise RecordingError(f"{path} is not a regular file; give a new file for the recording")
+        os.set_blocking(descriptor, True)
+        return os.fdopen(descriptor, "wb")
 
     def channel(self, topic: str, type_name: str) -> int:
         """The channel of ``topic`` carrying ``type_name`` (``package/msg/Type``), registered on first use."""

@@ -39,7 +39,7 @@ from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.client import Client
-from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -67,6 +67,8 @@ DEFAULT_NODE_NAME = "socnav_sim"
 _NS = 1_000_000_000
 #: seconds a lock-step simulator waits for a command before it sends the step's messages again (same stamp)
 RESEND_PERIOD = 1.0
+#: wall seconds between two "still waiting" lines while the simulator waits for the navigator or its command
+WAIT_REPORT_PERIOD = 10.0
 #: Navigator topics recorded besides the simulator's own (relative to the navigator node's name).
 _NAVIGATOR_TOPICS = (("fallback", "std_msgs/msg/Bool"), ("uncertainty", "std_msgs/msg/Float64MultiArray"),
                      ("latency", "std_msgs/msg/Float64"), ("markers", "visualization_msgs/msg/MarkerArray"))
@@ -187,10 +189,14 @@ class SimulatorNode(Node):
             return pd.DataFrame(columns=list(EPISODE_COLUMNS))
         return pd.DataFrame.from_records(self.records)
 
-    def _spin_until(self, executor: Executor, done: Any, timeout: float, what: str, resend: Any = None) -> None:
-        """Spin until `done()`; `resend()`, if given, every RESEND_PERIOD s while waiting."""
-        deadline = time.monotonic() + timeout
-        next_resend = time.monotonic() + RESEND_PERIOD
+    def _spin_until(self, executor: Executor, done: Any, timeout: float, what: str, resend: Any = None,
+                    waiting: Any = None) -> None:
+        """Spin until `done()`; `resend()`, if given, every RESEND_PERIOD s while waiting; `waiting(seconds)`, if
+        given, returns a line logged every WAIT_REPORT_PERIOD s while waiting (so a wait is never silent)."""
+        started = time.monotonic()
+        deadline = started + timeout
+        next_resend = started + RESEND_PERIOD
+        next_report = started + WAIT_REPORT_PERIOD
         while not done():
             now = time.monotonic()
             if now > deadline:
@@ -198,19 +204,40 @@ class SimulatorNode(Node):
             if resend is not None and now >= next_resend:
                 resend()
                 next_resend = now + RESEND_PERIOD
+            if waiting is not None and now >= next_report:
+                self.get_logger().warning(waiting(now - started))
+                next_report = now + WAIT_REPORT_PERIOD
             executor.spin_once(timeout_sec=0.01)
+
+    def _navigator_missing(self) -> list[str]:
+        """What the graph still lacks of a navigator: a subscriber on odometry, humans, goal, a publisher on
+        cmd_vel, the navigator node's parameter service (empty: it is there)."""
+        missing = [f"a subscriber on {publisher.topic_name}" for publisher in (self.odometry, self.humans, self.goal)
+                   if publisher.get_subscription_count() == 0]
+        if self.count_publishers(self.cmd_vel_topic) == 0:
+            missing.append(f"a publisher on {self.cmd_vel_topic}")
+        if self._navigator_parameters is not None and not self._navigator_parameters.service_is_ready():
+            missing.append(f"the parameter service of node {self.navigator_node}")
+        return missing
 
     def _wait_for_navigator(self, executor: Executor) -> None:
         """Until the navigator subscribes to odometry, humans and goal and publishes on cmd_vel (and its
-        parameter service is up): nothing published before that would reach it."""
-        def ready() -> bool:
-            return (all(p.get_subscription_count() > 0 for p in (self.odometry, self.humans, self.goal))
-                    and self.count_publishers(self.cmd_vel_topic) > 0
-                    and (self._navigator_parameters is None or self._navigator_parameters.service_is_ready()))
-        self._spin_until(executor, ready, self.wait_timeout,
+        parameter service is up): nothing published before that would reach it. Says so at once, and every
+        WAIT_REPORT_PERIOD s, naming what is missing."""
+        if self._navigator_missing():
+            self.get_logger().info(
+                f"waiting for a navigator (up to {self.wait_timeout:g} s, parameter wait_timeout): one that subscribes "
+                f"to {self.odometry.topic_name}, {self.humans.topic_name} and {self.goal.topic_name} and publishes "
+                f"{self.cmd_vel_topic}"
+                + (f", node {self.navigator_node}" if self._navigator_parameters else "")
+                + f", e.g. socnav ros2 navigator --model FILE --use-sim-time{' --lockstep' if self.lockstep else ''}")
+        self._spin_until(executor, lambda: not self._navigator_missing(), self.wait_timeout,
                          f"no navigator subscribed to {self.odometry.topic_name}, {self.humans.topic_name} and "
                          f"{self.goal.topic_name} and published on {self.cmd_vel_topic}"
-                         + (f" (with node {self.navigator_node})" if self._navigator_parameters else ""))
+                         + (f" (with node {self.navigator_node})" if self._navigator_parameters else ""),
+                         waiting=lambda seconds: f"still waiting for a navigator after {seconds:.0f} s; missing: "
+                                                 f"{', '.join(self._navigator_missing())}")
+        self.get_logger().info("navigator found: starting")
 
     def _begin_episode(self, executor: Executor) -> None:
         """Start the next episode (seed ``seed + k``), tell the navigator its robot, publish its first state."""
@@ -252,7 +279,10 @@ class SimulatorNode(Node):
         self._spin_until(executor, lambda: self.commands_received > answered, self.wait_timeout,
                          f"no command on {self.cmd_vel_topic} for step {self.world.steps[0]} of episode "
                          f"{self.episode} (is the navigator running with lockstep:=true?)",
-                         resend=self._resend_state)
+                         resend=self._resend_state,
+                         waiting=lambda seconds: f"still waiting for the command of step {self.world.steps[0]} of "
+                                                 f"episode {self.episode} on {self.cmd_vel_topic} after "
+                                                 f"{seconds:.0f} s (is the navigator running with lockstep:=true?)")
         command = self._command
         assert command is not None  # `_on_cmd_vel` set it: it counted the command just received
         return command
@@ -305,6 +335,10 @@ class SimulatorNode(Node):
     # ------------------------------------------------------------------------------------------------- output
 
     def _publish(self, publisher: Any, message: Any, record: bool = True) -> None:
+        """Publish (and record) one message; once a signal shut the context down, end the run instead (a publish
+        would raise RCLError "publisher's context is invalid")."""
+        if not self.context.ok():
+            raise ExternalShutdownException()
         publisher.publish(message)
         if self.recorder is not None and record:
             self.recorder.write(publisher.topic_name, message, self.now_ns)

@@ -15,7 +15,8 @@ Outputs: ``h`` (N, H) the LSTM state before dropout, ``mean`` (N, 2), ``log_std`
 
 The metadata (ONNX ``metadata_props`` key :data:`METADATA_KEY`, JSON) also carries the observation layout, the
 action limits, the env config, ``p_test``, ``K``, the feature range, the safety thresholds and the socnav version;
-in a world with walls also ``walls``, their polygons in the map frame (RVO2's orientation), the map the cautious
+in a world with walls also ``walls``, their polygons in the map frame (RVO2's orientation; metres, every coordinate
+finite and within :data:`socnav.sim.maps.MAX_COORDINATE`, also checked at export), the map the cautious
 fallback keeps off (a ``map`` file is stored as its polygons, without its path: the env config's ``map`` is null).
 :class:`NavigatorMetadata` is its schema, with the bounds and the consistency rules the runtime relies on.
 
@@ -43,7 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from socnav.config import EnvConfig, short_repr
 from socnav.envs.spaces import ACTION_NAMES, HUMAN_FEATURE_NAMES, ROBOT_FEATURE_NAMES
 from socnav.safety.rule import Thresholds
-from socnav.sim.maps import MAX_TOTAL_VERTICES, validate_polygons
+from socnav.sim.maps import MAX_COORDINATE, MAX_TOTAL_VERTICES, validate_polygons
 from socnav.sim.scenarios import get_scenario
 from socnav.sim.walls import SCAN_KEY, world_polygons
 
@@ -344,7 +345,8 @@ class SafetyRecord(_Record):
         return value
 
 
-#: One polygon: [x, y] vertices (checked by `socnav.sim.maps.validate_polygons`).
+#: One polygon: [x, y] vertices (checked by `socnav.sim.maps.validate_polygons`: finite, within
+#: `socnav.sim.maps.MAX_COORDINATE` metres of the map frame's origin, the polygon and vertex-count rules).
 Vertex = Annotated[list[float], Field(min_length=2, max_length=2)]
 Polygon = Annotated[list[Vertex], Field(max_length=MAX_TOTAL_VERTICES)]
 
@@ -366,13 +368,14 @@ class NavigatorMetadata(_Record):
     feature_range: FeatureRange
     safety: SafetyRecord
     walls: list[Polygon] | None = Field(None, min_length=1, max_length=MAX_TOTAL_VERTICES,
-                                           description="the world's walls, polygons in the map frame")
+                                           description="the world's walls, polygons in the map frame (metres, "
+                                           f"every coordinate within +-{MAX_COORDINATE:g})")
 
     @field_validator("walls")
     @classmethod
     def _valid_walls(cls, value: list[list[list[float]]] | None) -> list[list[list[float]]] | None:
-        if value is not None:
-            validate_polygons(value, name="walls")  # a MapError (ValueError) names the polygon and the rule
+        if value is not None:  # a MapError (ValueError) names the polygon and the rule, e.g. a vertex of 1e308 m:
+            validate_polygons(value, name="walls")  # beyond MAX_COORDINATE, refused before any geometry
         return value
 
     @model_validator(mode="after")

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from socnav.safety.rule import Thresholds
 from socnav.safety.safe_policy import SafePolicy
+from socnav.safety.triggers import TriggerSpec, load_safety
 
 if TYPE_CHECKING:
     from socnav.config import ConfigLike
@@ -75,14 +76,17 @@ def make_safety_estimator(kind: str, policy: Any, members: Sequence[Any] = (),
     return make_estimator("ensemble", list(members))
 
 
-def assemble_safe_policy(policy: Any, thresholds: Thresholds | str | Mapping[str, Any], env_config: ConfigLike,
+def assemble_safe_policy(policy: Any, thresholds: Thresholds | TriggerSpec | str | Mapping[str, Any],
+                         env_config: ConfigLike,
                          estimator: str = "mc", members: Sequence[Any] = (), k: int = 20) -> SafePolicy:
     """`policy` wrapped in the safety layer: the collision rule with `thresholds` reads the uncertainty of the
     `estimator` (:func:`make_safety_estimator`), and the cautious controller acts where the rule fires.
 
     :param policy: the policy that acts (e.g. `socnav.rl.persistence.load_policy`'s); with ``ensemble``, often the
         first member.
-    :param thresholds: `Thresholds`, a preset name (``mc``, ``ensemble``), a `socnav calibrate` file or a mapping.
+    :param thresholds: `Thresholds`, a preset name (``mc``, ``ensemble``), a `socnav calibrate` file or a mapping,
+        or a trigger (`socnav.safety.triggers.TriggerSpec`, or its file); a trigger that reads no uncertainty
+        gets no estimator.
     :param env_config: the world the layer acts in (its cautious controller's radii and speeds).
     :param estimator: ``mc`` or ``ensemble``.
     :param members: the ensemble's policies (``ensemble`` only).
@@ -90,5 +94,8 @@ def assemble_safe_policy(policy: Any, thresholds: Thresholds | str | Mapping[str
     :raises SafetyAssemblyError: as :func:`make_safety_estimator`.
     :raises socnav.safety.ThresholdsError: invalid `thresholds`.
     """
-    uncertainty = make_safety_estimator(estimator, policy, members, k)
-    return SafePolicy(policy, uncertainty, thresholds, env_config)
+    decision = load_safety(thresholds)
+    # a trigger that reads no uncertainty (proximity-only, time to collision, ...) gets no estimator: its cost is
+    # K forward passes per step for MC dropout
+    uncertainty = make_safety_estimator(estimator, policy, members, k) if decision.uses_uncertainty else None
+    return SafePolicy(policy, uncertainty, decision, env_config)

@@ -41,17 +41,20 @@ from socnav.safety.rule import (
     RuleConditions,
     Thresholds,
     held_fallback,
-    load_thresholds,
     nearest_human,
-    rule_conditions,
 )
+from socnav.safety.triggers import RuleTrigger, TriggerInputs, TriggerSpec, load_safety, make_trigger
 
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["FallbackCounter", "SafePolicy", "fallback_percent", "no_uncertainty"]
+__all__ = ["BRAKE_ACTION", "FALLBACKS", "FallbackCounter", "SafePolicy", "fallback_percent", "no_uncertainty"]
 
 SPEED, HEADING = 0, 1
+#: What drives where the trigger fires: the paper's cautious ORCA controller, or a brake (stop at once, keep the
+#: heading: the action (-1, 0), speed 0), the fallback that takes full responsibility for not moving into anyone.
+FALLBACKS = ("cautious", "brake")
+BRAKE_ACTION = np.array([-1.0, 0.0], dtype=np.float32)
 
 
 def no_uncertainty(observation: Mapping[str, np.ndarray]) -> Any:
@@ -74,6 +77,7 @@ class SafePolicy:
     :param window: uncertainty window ``w`` in steps (paper: 4).
     :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
     :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
+    :param fallback: ``cautious`` (the paper's ORCA controller) or ``brake`` (:data:`BRAKE_ACTION`).
 
     After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on),
     ``last_conditions`` (:class:`RuleConditions`), ``last_uncertainty`` (dict of windowed (B,) arrays
@@ -86,11 +90,12 @@ class SafePolicy:
         self,
         policy: Any,
         estimator: Any,
-        thresholds: Thresholds | str | Mapping[str, Any],
+        thresholds: Thresholds | TriggerSpec | str | Mapping[str, Any],
         config: ConfigLike = None,
         window: int = 4,
         n_envs: int | None = None,
         radius_scale: float = CAUTIOUS_RADIUS_SCALE,
+        fallback: str = "cautious",
     ):
         if int(window) < 1:
             raise ValueError(f"window must be >= 1, got {window}")
@@ -98,13 +103,19 @@ class SafePolicy:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
         self.policy = policy
         self.estimator = estimator
-        self.thresholds = load_thresholds(thresholds)
+        self.thresholds: Thresholds | TriggerSpec = load_safety(thresholds)
         if estimator is None and self.thresholds.uses_uncertainty:
-            raise ValueError(f"estimator=None: only a rule that reads no uncertainty (thresholds.conditions="
-                             f"'proximity-only') runs without an estimator; these thresholds have conditions="
-                             f"{self.thresholds.conditions!r}")
+            what = (f"trigger {self.thresholds.trigger!r} reads it" if isinstance(self.thresholds, TriggerSpec)
+                    else f"these thresholds, with conditions={self.thresholds.conditions!r}, read it")
+            raise ValueError(f"estimator=None: only a trigger that reads no uncertainty (e.g. thresholds.conditions="
+                             f"'proximity-only', time-to-collision) runs without an estimator; {what}")
+        self.trigger = make_trigger(self.thresholds)
+        self.last_inputs: TriggerInputs | None = None
         self.config = load_config(config)
         self.window = int(window)
+        if fallback not in FALLBACKS:
+            raise ValueError(f"unknown fallback {fallback!r}; allowed: {', '.join(FALLBACKS)}")
+        self.fallback = fallback
         self.cautious = CautiousController(self.config, radius_scale=radius_scale)
         self.n_envs: int | None = None
         self.last_fallback = np.zeros(0, dtype=bool)
@@ -127,6 +138,7 @@ class SafePolicy:
         self._previous_gap = np.full(n_envs, np.nan)
         self.episode_fallbacks = np.zeros(n_envs, dtype=np.int64)
         self._hold_left = np.zeros(n_envs, dtype=np.int64)  # held fallback steps still owed (hold_steps)
+        self.trigger.allocate(n_envs)
 
     def _index(self, envs: Any) -> np.ndarray:
         assert self.n_envs is not None
@@ -154,6 +166,7 @@ class SafePolicy:
         self._previous_gap[index] = np.nan
         self.episode_fallbacks[index] = 0
         self._hold_left[index] = 0
+        self.trigger.reset(index)
 
     def _push(self, values: np.ndarray) -> np.ndarray:
         assert self.n_envs is not None  # allocated by the first predict
@@ -231,15 +244,22 @@ class SafePolicy:
 
         nearest = nearest_human(sensed)
         previous_gap = self._previous_gap.copy()
-        conditions = rule_conditions(windowed[:, 1], windowed[:, 4], nearest.gap,
-                                     nearest.speed(self.thresholds.proximity), previous_gap, self.thresholds)
+        self.last_inputs = TriggerInputs(observation=sensed, actions=actions.copy(),
+                                         uncertainty=self.last_uncertainty, nearest=nearest, previous_gap=previous_gap,
+                                         time_step=self.config.time_step,
+                                         max_heading_change=self.config.max_heading_change)
+        fires = self.trigger.fires(self.last_inputs)
+        conditions = self.trigger.last_conditions if isinstance(self.trigger, RuleTrigger) else None
         # No human this step: nothing to compare with next step either.
         self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)
-        fallback, self._hold_left = held_fallback(conditions.p_col, self._hold_left, self.thresholds.hold_steps)
+        fallback, self._hold_left = held_fallback(fires, self._hold_left, self.thresholds.hold_steps)
         if fallback.any():
             chosen = np.flatnonzero(fallback)
-            cautious, _ = self.cautious.predict({key: value[chosen] for key, value in sensed.items()})
-            actions[chosen] = cautious
+            if self.fallback == "brake":
+                actions[chosen] = BRAKE_ACTION
+            else:
+                cautious, _ = self.cautious.predict({key: value[chosen] for key, value in sensed.items()})
+                actions[chosen] = cautious
         self.episode_fallbacks += fallback
         self.last_fallback, self.last_conditions, self.last_nearest = fallback, conditions, nearest
         self.last_previous_gap = previous_gap

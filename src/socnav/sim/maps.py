@@ -10,6 +10,8 @@ this module returns is a float64 (k, 2) array of distinct consecutive vertices, 
 from __future__ import annotations
 
 import math
+import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -23,8 +25,11 @@ from shapely.geometry.polygon import orient
 from shapely.validation import explain_validity
 
 __all__ = [
+    "MAX_COORDINATE",
     "MAX_GRID_CELLS",
     "MAX_GRID_CORNERS",
+    "MAX_IMAGE_BYTES",
+    "MAX_MAP_BYTES",
     "MAX_POLYGON_VERTICES",
     "MAX_TOTAL_VERTICES",
     "MapError",
@@ -45,6 +50,16 @@ MAX_GRID_CELLS = 2048 * 2048
 #: A grid whose occupied cells have more boundary corners than this is refused before the (slow) cell union: the
 #: half-cell simplification removes the corners of shallow staircases, but not 16 times the vertex bound.
 MAX_GRID_CORNERS = 16 * MAX_TOTAL_VERTICES
+#: The largest map YAML read (refused from its size, before reading): a polygon map at `MAX_TOTAL_VERTICES` is
+#: ~200 KB. Its YAML is also bounded in nesting and values (`socnav.config.safe_load_yaml`).
+MAX_MAP_BYTES = 1 << 20
+#: The largest occupancy-grid image file read (refused from its size, before PIL opens it): a 2048 x 2048 RGBA
+#: image is 16 MB uncompressed. Its pixel count (`MAX_GRID_CELLS`) is read from the header before decoding.
+MAX_IMAGE_BYTES = 64 << 20
+#: Every wall vertex lies within this many metres of the map frame's origin in x and y (1000 km: a crowd scene is
+#: tens of metres, a UTM-referenced building map would be re-centred first). Beyond it a coordinate is a mistake
+#: or an attack, and its squares overflow the float32 kernels.
+MAX_COORDINATE = 1e6
 
 _GRID_KEYS = {"image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh"}
 _GRID_MODES = ("trinary", "scale")  # "raw" (pixel values are occupancy values) is refused
@@ -62,13 +77,21 @@ def validate_polygons(polygons: Sequence[Any], name: str = "obstacles") -> list[
     """Check a list of polygons and return them as float64 (k, 2) arrays (orientation kept: it carries meaning).
 
     Rules, each failure a `MapError` (a ValueError) naming ``{name}[i]`` and the rule: a polygon is a list of
-    [x, y] vertices with finite coordinates; a closing vertex equal to the first is dropped; at least 2 vertices
-    remain; no two consecutive vertices coincide (RVO2 divides by every edge's length); a polygon of 3 or more
-    vertices is simple (shapely `LinearRing.is_simple`: no edge crosses or touches another) with non-zero area; at
-    most `MAX_POLYGON_VERTICES` vertices per polygon and `MAX_TOTAL_VERTICES` in all. Polygons may overlap each other.
+    [x, y] vertices with finite coordinates within `MAX_COORDINATE` metres (in x and y); a closing vertex equal to
+    the first is dropped; at least 2 vertices remain; no two consecutive vertices coincide (RVO2 divides by every
+    edge's length); a polygon of 3 or more vertices is simple (shapely `LinearRing.is_simple`: no edge crosses or
+    touches another) with non-zero area; at most `MAX_POLYGON_VERTICES` vertices per polygon and
+    `MAX_TOTAL_VERTICES` in all. Polygons may overlap each other.
+    The counts are checked first, from the lists' lengths, before any array is built.
     """
     if isinstance(polygons, (str, bytes)) or not isinstance(polygons, (Sequence, np.ndarray)):
         raise MapError(f"{name}: expected a list of polygons, got {type(polygons).__name__}")
+    # Each polygon loses at most its closing repeat: more than this many written vertices is over the bound anyway.
+    written = sum(len(polygon) for polygon in polygons if isinstance(polygon, (Sequence, np.ndarray))
+                  and not isinstance(polygon, (str, bytes)))
+    if written - len(polygons) > MAX_TOTAL_VERTICES:
+        raise MapError(f"{name}: at least {written - len(polygons)} vertices in all, more than the bound of "
+                       f"{MAX_TOTAL_VERTICES}")
     checked = []
     total = 0
     for index, polygon in enumerate(polygons):
@@ -94,8 +117,16 @@ def _polygon_vertices(polygon: Any, label: str) -> np.ndarray:
         vertices = vertices.reshape(0, 2)
     if vertices.ndim != 2 or vertices.shape[1] != 2:
         raise MapError(f"{label}: expected a list of [x, y] vertices, got an array of shape {vertices.shape}")
+    if len(vertices) > MAX_POLYGON_VERTICES + 1:  # before any geometry (a closing repeat may still be dropped)
+        raise MapError(
+            f"{label}: {len(vertices)} vertices, more than the bound of {MAX_POLYGON_VERTICES} per polygon")
     if not np.isfinite(vertices).all():
         raise MapError(f"{label}: non-finite coordinate (every x and y must be a finite number)")
+    far = np.abs(vertices) > MAX_COORDINATE
+    if far.any():
+        index, axis = (int(i) for i in np.argwhere(far)[0])
+        raise MapError(f"{label}: vertex {index} has {'xy'[axis]} = {vertices[index, axis]:g} m, beyond the bound of "
+                       f"{MAX_COORDINATE:g} m from the origin")
     if len(vertices) >= 3 and np.array_equal(vertices[0], vertices[-1]):
         vertices = vertices[:-1]  # a closed ring written with its first vertex repeated
     if len(vertices) < 2:
@@ -196,14 +227,30 @@ def load_map(path: str | Path) -> list[np.ndarray]:
       occupied_thresh) or unknown, and in ``scale`` mode partly occupied -- is an obstacle, so agents keep to cells
       known to be free. ``raw`` mode is refused. See `occupancy_to_polygons` for the conversion; the area outside the
       image is free.
+
+    The map YAML is bounded before it is parsed (`MAX_MAP_BYTES` from the file's size, then nesting and values as
+    `socnav.config.safe_load_yaml` bounds them), the image before it is decoded (`MAX_IMAGE_BYTES` from the file's
+    size, `MAX_GRID_CELLS` from its header); see docs/limits.md.
     """
+    from socnav.config import file_size_problem, safe_load_yaml, yaml_problem
+    from socnav.io import UntrustedInputError, read_bounded
+
     path = Path(path)
     if not path.is_file():
         raise MapError(f"map file not found: {path}")
+    too_large = file_size_problem(path, MAX_MAP_BYTES)
+    if too_large:
+        raise MapError(f"{path}: the map YAML {too_large}")
     try:
-        document = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        document = safe_load_yaml(read_bounded(path, MAX_MAP_BYTES).decode())
+    except UntrustedInputError as error:
         raise MapError(f"{path}: cannot read the map YAML ({error})") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise MapError(f"{path}: cannot read the map YAML ({' '.join(str(error).split())})") from None
+    except yaml.YAMLError as error:
+        raise MapError(f"{path}: cannot read the map YAML: it {' '.join(yaml_problem(error).split())}") from None
+    except ValueError as error:  # a value YAML parses but Python will not build (an integer of 5,000 digits)
+        raise MapError(f"{path}: cannot read the map YAML ({' '.join(str(error).split())[:200]})") from None
     if not isinstance(document, dict):
         raise MapError(f"{path}: expected a mapping with 'obstacles' or map_server keys ('image', ...)")
     if "image" in document:
@@ -276,11 +323,31 @@ def _load_occupancy_grid(path: Path, document: dict) -> list[np.ndarray]:
 
 
 def _read_image(path: Path, image_path: Path) -> np.ndarray:
-    """The image's pixel values as float64 (rows top to bottom), colour channels averaged as map_server does."""
+    """The image's pixel values as float64 (rows top to bottom), colour channels averaged as map_server does.
+
+    Bounded before decoding: the file's size (`MAX_IMAGE_BYTES`), then its width x height from the header
+    (`MAX_GRID_CELLS`); PIL's own decompression-bomb check (far above ours) is reported the same way.
+    """
+    from socnav.config import file_size_problem
+
     if not image_path.is_file():
         raise MapError(f"{path}: image not found: {image_path}")
+    too_large = file_size_problem(image_path, MAX_IMAGE_BYTES)
+    if too_large:
+        raise MapError(f"{path}: image {image_path} {too_large}")
     try:
-        with Image.open(image_path) as opened:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our bound is far lower, checked below
+            opened = Image.open(image_path)
+    except Image.DecompressionBombError as error:  # declared over 2 x PIL's MAX_IMAGE_PIXELS
+        declared = re.search(r"\((\d+) pixels\)", str(error))
+        cells = f"{int(declared.group(1)):,} cells" if declared else "too many cells"
+        raise MapError(f"{path}: image {image_path} is {cells}, more than the bound of {MAX_GRID_CELLS} cells; crop "
+                       "it or use a coarser resolution") from None
+    except (OSError, UnidentifiedImageError, ValueError) as error:
+        raise MapError(f"{path}: cannot read image {image_path} ({error})") from None
+    try:
+        with opened:
             width, height = opened.size
             if width * height <= MAX_GRID_CELLS:
                 image: Image.Image = opened

@@ -3,9 +3,12 @@ One matplotlib figure (Agg canvas, no pyplot) is built once; per frame only the 
 
 With ``SceneRenderer(annotate=True)`` a frame explains itself: a title, a legend (robot, attentive and
 inattentive humans, personal space, goal, trail), a metre scale, the outcome in large type, and uncertainty bars
-with tick values and the threshold marked. When a frame's humans are not all ORCA humans (``SceneFrame.models``:
-social force, replayed or mixed crowds), each human carries its model's colour and mark (`MODEL_STYLES`), listed
-in a legend (the side legend, or one in the scene's lower right corner)."""
+with tick values and the threshold marked. Every annotation lies outside the scene (bands above and below it, the
+side column), so none covers a wall, a piece of furniture or an agent.
+
+When a frame's humans are not all ORCA humans (``SceneFrame.models``: social force, replayed or mixed crowds), each
+human carries its model's colour and mark (`MODEL_STYLES`), listed in a legend (the side legend, or one in the
+scene's lower right corner)."""
 
 from __future__ import annotations
 
@@ -21,6 +24,8 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Rectangle
+from matplotlib.text import Text
+from matplotlib.transforms import ScaledTranslation, Transform, blended_transform_factory
 
 # Palette. The robot colour is used by no other artist except the robot's own trail.
 ROBOT_COLOR = "#e4572e"
@@ -59,9 +64,13 @@ def model_style(name: str) -> tuple[str, str, str]:
     return colour, marker, name.replace("_", " ")
 
 
-#: Where the outcome banner goes (axes fraction): under the two-line title, or over the one-line caption, whichever
-#: band is farther from the robot, so that the end of the episode stays visible.
+#: Without annotations, where the outcome banner goes (axes fraction): under the two-line title, or over the
+#: one-line caption, whichever band is farther from the robot, so that the end of the episode stays visible.
 OUTCOME_TOP, OUTCOME_BOTTOM = 0.89, 0.07
+#: Annotated frames: the bands (points) kept free above the scene (the two-line title, the outcome) and below it
+#: (the metre scale, then the caption), and the annotations' font sizes (points).
+TOP_BAND_PT, BOTTOM_BAND_PT = 30.0, 34.0
+TEXT_PT, OUTCOME_PT, SCALE_PT = 9.0, 17.0, 8.0
 
 
 @dataclass
@@ -101,7 +110,10 @@ class SceneRenderer:
 
     - Axis limits are fixed to `[-extent, extent]` with equal aspect, so frames are comparable;
       scene point (x, y) lands at pixel column `(x + extent) / (2 * extent) * width` and row
-      `(extent - y) / (2 * extent) * height` (square image, no side panel).
+      `(extent - y) / (2 * extent) * height` (square image, no side panel, no annotations).
+    - With `annotate`, bands above (`TOP_BAND_PT`: title or time, outcome) and below (`BOTTOM_BAND_PT`: metre
+      scale, caption) the scene hold the annotations, so none covers the scene; the scene is the square left
+      between them (`scene_box`).
     - The image size never changes: when a frame has a `side_panel`, the scene is drawn in the
       left `1 - PANEL_FRACTION` of the image and the bars fill the right part. Frames with and
       without a panel can therefore be mixed in one animation.
@@ -110,13 +122,15 @@ class SceneRenderer:
     """
 
     def __init__(self, width: int = 480, height: int = 480, extent: float = 8.5, dpi: int = 80,
-                 annotate: bool = False, fallback_color: str | None = None):
+                 annotate: bool = False, fallback_color: str | None = None, clock: bool = True):
         """`annotate`: draw a legend (beside the scene, in the side-panel column, which is then always there) and a
-        metre scale; `fallback_color`: the robot's colour while a safety fallback drives, listed in the legend."""
+        metre scale; `fallback_color`: the robot's colour while a safety fallback drives, listed in the legend;
+        `clock`: draw the time (``t = 1.5 s``) when a frame has no title (False: the scene alone, e.g. for a figure
+        that says what it shows around it)."""
         if min(width, height, extent, dpi) <= 0:
             raise ValueError("width, height, extent and dpi must be positive")
         self.width, self.height, self.extent, self.dpi = int(width), int(height), float(extent), int(dpi)
-        self.annotate, self.fallback_color = bool(annotate), fallback_color
+        self.annotate, self.fallback_color, self.clock = bool(annotate), fallback_color, bool(clock)
 
         self.fig = Figure(figsize=(self.width / self.dpi, self.height / self.dpi), dpi=self.dpi, facecolor="white")
         self.canvas = FigureCanvasAgg(self.fig)
@@ -148,21 +162,35 @@ class SceneRenderer:
         self.ax.add_collection(LineCollection(grid, colors="#eeeeee", linewidths=0.6, zorder=0))
         origin: list[list[tuple[float, float]]] = [[(0, -e), (0, e)], [(-e, 0), (e, 0)]]
         self.ax.add_collection(LineCollection(origin, colors="#d8d8d8", linewidths=0.8, zorder=0))
-        self.ax.add_patch(Rectangle((-e, -e), 2 * e, 2 * e, fill=False, edgecolor="#999999", linewidth=1.0))
+        self.ax.add_patch(Rectangle((-e, -e), 2 * e, 2 * e, fill=False, edgecolor="#999999", linewidth=1.0,
+                                    clip_on=False))  # (clipped, the axes' edge would cut half of each side)
         if self.annotate:
             self._add_scale_bar()
             self._add_legend()
 
+    def _band(self, points: float) -> Transform:
+        """x in scene metres, y in the scene axes' fraction, shifted by `points` (negative: below the scene)."""
+        return blended_transform_factory(self.ax.transData, self.ax.transAxes) + ScaledTranslation(
+            0.0, points / 72.0, self.fig.dpi_scale_trans)
+
     def _add_scale_bar(self) -> None:
-        """A metre scale in the lower right corner of the scene (the grid lines are 1 m apart)."""
+        """A metre scale under the scene's right edge, outside the scene (the grid lines are 1 m apart)."""
         e = self.extent
         length = 2.0 if e >= 4 else 1.0
-        x1, y = e - 0.4, -e + 1.4  # above the caption line
-        self.ax.plot([x1 - length, x1], [y, y], color="black", linewidth=2.5, solid_capstyle="butt", zorder=5)
-        for x in (x1 - length, x1):
-            self.ax.plot([x, x], [y - 0.12, y + 0.12], color="black", linewidth=1.5, zorder=5)
-        self.ax.text(x1 - length / 2, y + 0.2, f"{length:g} m (grid 1 m)", ha="center", va="bottom", fontsize=8,
-                     zorder=5)
+        band = self._band(-9.0)
+        self.scale_bar = self.ax.plot([e - length, e], [0.0, 0.0], color="black", linewidth=2.5, marker="|",
+                                      markersize=8, markeredgewidth=1.5, solid_capstyle="butt", transform=band,
+                                      clip_on=False)[0]
+        self.scale_text = self.ax.text(e - length - 0.25, 0.0, f"{length:g} m (grid 1 m)", ha="right",
+                                       va="center", fontsize=SCALE_PT, transform=band)
+
+    def annotation_texts(self) -> list[Text]:
+        """The texts drawn on or around the scene (title or time, caption, outcome, metre scale) that the last frame
+        shows: what must not cover the scene's walls (checked in tests/viz/test_annotation_layout.py)."""
+        texts = [self.time_text, self.title_text, self.caption_text, self.outcome_text]
+        if self.annotate:
+            texts.append(self.scale_text)
+        return [text for text in texts if text.get_visible() and text.get_text()]
 
     def _add_legend(self, models: Sequence[str] = (), walls: bool = False) -> None:
         """Proxy artists for every kind of thing in the scene, in the side column (and each human model shown)."""
@@ -245,13 +273,25 @@ class SceneRenderer:
         ax.add_patch(self.robot)
         (self.heading_line,) = ax.plot([], [], color="black", linewidth=2.0, solid_capstyle="round")
         box = {"boxstyle": "round,pad=0.2", "facecolor": "white", "alpha": 0.7, "edgecolor": "none"}
-        self.time_text = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=9, bbox=box)
-        self.caption_text = ax.text(0.02, 0.02, "", transform=ax.transAxes, ha="left", va="bottom", fontsize=9,
-                                    bbox=box)
-        self.title_text = ax.text(0.5, 0.98, "", transform=ax.transAxes, ha="center", va="top", fontsize=9,
-                                  fontweight="bold", bbox=box)
-        self.outcome_text = ax.text(0.5, OUTCOME_BOTTOM, "", transform=ax.transAxes, ha="center", va="bottom",
-                                    fontsize=30, fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
+        if self.annotate:  # in the bands above and below the scene: nothing covers it
+            above, below = self._shifted(3.0), self._shifted(-19.0)  # below: under the metre scale
+            self.time_text = ax.text(0.0, 1.0, "", transform=above, ha="left", va="bottom", fontsize=TEXT_PT)
+            self.caption_text = ax.text(0.0, 0.0, "", transform=below, ha="left", va="top", fontsize=TEXT_PT)
+            self.title_text = ax.text(0.0, 1.0, "", transform=above, ha="left", va="bottom", fontsize=TEXT_PT,
+                                      fontweight="bold", linespacing=1.15)
+            right = blended_transform_factory(self.fig.transFigure, ax.transAxes) + ScaledTranslation(
+                0.0, 3.0 / 72.0, self.fig.dpi_scale_trans)
+            self.outcome_text = ax.text(0.99, 1.0, "", transform=right, ha="right", va="bottom", fontsize=OUTCOME_PT,
+                                        fontweight="bold")
+        else:
+            self.time_text = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=TEXT_PT,
+                                     bbox=box)
+            self.caption_text = ax.text(0.02, 0.02, "", transform=ax.transAxes, ha="left", va="bottom",
+                                        fontsize=TEXT_PT, bbox=box)
+            self.title_text = ax.text(0.5, 0.98, "", transform=ax.transAxes, ha="center", va="top", fontsize=TEXT_PT,
+                                      fontweight="bold", bbox=box)
+            self.outcome_text = ax.text(0.5, OUTCOME_BOTTOM, "", transform=ax.transAxes, ha="center", va="bottom",
+                                        fontsize=30, fontweight="bold", bbox={**box, "alpha": 0.85, "pad": 0.4})
         self._model_marks: dict[str, Line2D] = {}  # per human model, its marks (made when first shown)
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
@@ -264,6 +304,10 @@ class SceneRenderer:
         for artist in self._dynamic:
             artist.set_animated(True)
 
+    def _shifted(self, points: float) -> Transform:
+        """The scene axes' fraction, shifted `points` up (negative: down): for the bands around the scene."""
+        return self.ax.transAxes + ScaledTranslation(0.0, points / 72.0, self.fig.dpi_scale_trans)
+
     def _set_layout(self, layout: tuple) -> None:
         """Place the axes for this side-panel layout and rasterise the static layer.
 
@@ -275,12 +319,14 @@ class SceneRenderer:
         self._add_model_legend(models)
         ticks, marks = dict(ticks or ()), dict(marks or ())
         side = bool(panel_keys) or self.annotate
-        self.ax.set_position((0.0, 0.0, 1.0 - PANEL_FRACTION, 1.0) if side else (0.0, 0.0, 1.0, 1.0))
+        below, above = self._bands()
+        self.ax.set_position((0.0, below, 1.0 - PANEL_FRACTION if side else 1.0, 1.0 - below - above))
         self.panel_ax.set_visible(bool(panel_keys))
         self.legend_ax.set_visible(self.annotate)
-        # With a legend below them, the bars take the upper part of the column.
-        bottom = 0.4 if self.annotate else 0.05
-        self.panel_ax.set_position((1.0 - PANEL_FRACTION + 0.02, bottom, PANEL_FRACTION - 0.05, 0.95 - bottom))
+        # With a legend below them, the bars take the upper part of the column (under the top band).
+        bottom, top = (below + 0.39, 1.0 - above - 0.01) if self.annotate else (0.05, 0.95)
+        self.panel_ax.set_position((1.0 - PANEL_FRACTION + 0.02, bottom, PANEL_FRACTION - 0.05, top - bottom))
+        self.legend_ax.set_position((1.0 - PANEL_FRACTION + 0.01, below, PANEL_FRACTION - 0.02, 0.36))
         for artist in [*self.panel_ax.patches, *self.panel_ax.texts, *self.panel_ax.lines]:
             artist.remove()
         self._panel_bars, self._panel_marks = [], []
@@ -310,6 +356,14 @@ class SceneRenderer:
         self.canvas.draw()  # animated artists are skipped
         self._background = self.canvas.copy_from_bbox(self.fig.bbox)
         self._layout = layout
+
+    def _bands(self) -> tuple[float, float]:
+        """The figure fractions kept free below and above the scene: the annotated bands (none without
+        annotations, where the scene fills the image)."""
+        if not self.annotate:
+            return 0.0, 0.0
+        height_pt = self.height / self.dpi * 72.0
+        return BOTTOM_BAND_PT / height_pt, TOP_BAND_PT / height_pt
 
     # ------------------------------------------------------------------ per-frame updates
     def _update_scene(self, f: SceneFrame) -> None:
@@ -370,10 +424,10 @@ class SceneRenderer:
         self.caption_text.set_visible(bool(f.caption))
         self.title_text.set_text(f.title)
         self.title_text.set_visible(bool(f.title))
-        self.time_text.set_visible(not f.title)  # the title takes the top; a caption can carry the time
+        self.time_text.set_visible(self.clock and not f.title)  # the title takes the top; a caption can carry the time
         self.outcome_text.set_text(f.outcome)
         self.outcome_text.set_visible(bool(f.outcome))
-        if f.outcome:
+        if f.outcome and not self.annotate:  # annotated: in the band above the scene, never over it
             self._place_outcome(pos[0] if robot_on else None)
 
     @staticmethod
@@ -456,6 +510,14 @@ class SceneRenderer:
             bar.set_width(float(np.clip(value, 0.0, 1.0)) if np.isfinite(value) else 0.0)
 
     # ------------------------------------------------------------------ public API
+    def scene_box(self) -> tuple[float, float, float, float]:
+        """(left, top, width, height) in pixels of the image of the square `[-extent, extent]^2` the scene is drawn
+        in, as of the last rendered frame (rows count from the top)."""
+        if self._background is None:
+            self.canvas.draw()
+        box = self.ax.get_window_extent(self.canvas.get_renderer())
+        return box.x0, self.height - box.y1, box.width, box.height
+
     def render(self, frame: SceneFrame) -> np.ndarray:
         """Draw `frame` and return a new uint8 array of shape `(height, width, 3)`."""
         panel_keys = tuple(frame.side_panel) if frame.side_panel else None

@@ -102,5 +102,6 @@ def refine_by_rollouts(thresholds: Thresholds, table: pd.DataFrame, plain_collis
             table = pd.concat([table, round_table.assign(chosen=False)], ignore_index=True)
             break
         table = pd.concat([table.assign(chosen=False), round_table], ignore_index=True)
+        assert isinstance(choice, Thresholds)  # the rule's candidates give the rule's choice
         thresholds = choice
     return thresholds, table

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from socnav.safety.rule import Thresholds
+from socnav.safety.triggers import SafetyDecision, decision_fields, never_fires
 
 __all__ = [
     "CalibrationRun",
@@ -47,7 +48,7 @@ def _restart(estimator: Any) -> None:
         restart()
 
 
-def rollout_scores(thresholds: Thresholds | None, policy: Any, estimator: Any, runs: Sequence[CalibrationRun],
+def rollout_scores(thresholds: SafetyDecision | None, policy: Any, estimator: Any, runs: Sequence[CalibrationRun],
                    window: int = 4, n_envs: int = 40,
                    progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Collisions and fallback activations of real rollouts on ``runs``: the plain ``policy`` if ``thresholds``
@@ -133,7 +134,7 @@ def ratio_and_standard_error(counts: np.ndarray, lengths: np.ndarray) -> tuple[f
     return rate, float(np.sqrt((residual ** 2).sum() / (m * (m - 1))) / lengths.mean())
 
 
-def _check_selection(candidates: Sequence[Thresholds], runs: Sequence[CalibrationRun], confidence: float,
+def _check_selection(candidates: Sequence[SafetyDecision], runs: Sequence[CalibrationRun], confidence: float,
                      plain_collisions: Mapping[str, int] | None) -> None:
     if not candidates:
         raise ValueError("select_by_rollouts needs at least one candidate")
@@ -148,12 +149,12 @@ def _check_selection(candidates: Sequence[Thresholds], runs: Sequence[Calibratio
                              f"{sorted(expected)}: measure them on these runs")
 
 
-def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator: Any,
+def select_by_rollouts(candidates: Sequence[SafetyDecision], policy: Any, estimator: Any,
                        runs: Sequence[CalibrationRun], false_activation_budget: float = 0.05, window: int = 4,
                        n_envs: int = 40, confidence: float = 0.95,
                        progress: Callable[[int], None] | None = None,
                        plain_collisions: Mapping[str, int] | None = None,
-                       cache: dict[Thresholds, dict[str, Any]] | None = None) -> tuple[Thresholds, pd.DataFrame]:
+                       cache: dict[Any, dict[str, Any]] | None = None) -> tuple[SafetyDecision, pd.DataFrame]:
     """Stage 2: the candidate that prevents the most collisions in REAL rollouts on the calibration ``runs``, among
     those whose measured false-activation rate (unperturbed runs) is within ``false_activation_budget`` with
     ``confidence``: its one-sided upper bound (:func:`false_activation_upper`: the larger of the normal bound
@@ -194,14 +195,14 @@ def select_by_rollouts(candidates: Sequence[Thresholds], policy: Any, estimator:
             if cache is not None:
                 cache[thresholds] = scores
         per_group = {group: (plain[group] - scores["collisions"][group]) / plain[group] for group in groups}
-        rows.append({**thresholds.model_dump(), "candidate": index, "plain_collisions": sum(plain.values()),
+        rows.append({**decision_fields(thresholds), "candidate": index, "plain_collisions": sum(plain.values()),
                      "safe_collisions": sum(scores["collisions"].values()),
                      "prevented_fraction": float(np.mean(list(per_group.values()))) if groups else float("nan"),
                      "prevented_worst": float(np.min(list(per_group.values()))) if groups else float("nan"),
                      **{f"prevented_{group}": value for group, value in per_group.items()},
                      "false_activation_rate": scores["false_activation_rate"],
                      # A rule that cannot fire has no false activation to be uncertain about.
-                     "false_activation_upper": (0.0 if thresholds == Thresholds.never()
+                     "false_activation_upper": (0.0 if never_fires(thresholds)
                                                 else false_activation_upper(scores, confidence))})
     table = pd.DataFrame(rows)
     table.attrs["plain_collisions"] = plain

@@ -31,7 +31,7 @@ from socnav.safety.calibration.refinement import REFINE_PASSES, REFINE_ROUNDS, r
 from socnav.safety.calibration.rollout_selection import CalibrationRun, rollout_scores, select_by_rollouts
 from socnav.safety.rule import PROXIMITY_VARIANTS, Thresholds, check_conditions, save_thresholds
 
-__all__ = ["calibrate_budgets", "calibrate_thresholds", "save_calibration"]
+__all__ = ["calibrate_budgets", "calibrate_thresholds", "calibration_runs", "save_calibration"]
 
 
 def calibrate_thresholds(policy: Any, estimator: Any, env: dict[str, Any], episodes: int, budget: float = 0.05,
@@ -130,7 +130,7 @@ def _checked_budgets(budgets: Sequence[float], light: Sequence[float], proximity
     return checked, lighter, variants
 
 
-def _calibration_runs(env: dict[str, Any], episodes: int) -> list[CalibrationRun]:
+def calibration_runs(env: dict[str, Any], episodes: int) -> list[CalibrationRun]:
     """The unperturbed configuration and one per strength of `CALIBRATION_SET`, ``episodes`` each, on consecutive
     blocks of episode seeds from `CALIBRATION_SEED`."""
     configs = [("unperturbed", load_config(env))]
@@ -185,6 +185,7 @@ def _choose(budget: float, candidates: list[Thresholds], proxies: list[dict[str,
     thresholds, table = select_by_rollouts(candidates, r.policy, r.estimator, r.runs, budget, r.window, r.n_envs,
                                            r.confidence, progress=r.progress, plain_collisions=r.plain_collisions,
                                            cache=r.cache)
+    assert isinstance(thresholds, Thresholds)  # the rule's candidates give the rule's choice
     table = pd.concat([table, pd.DataFrame(proxies)], axis=1).assign(stage="proxy")
     if refine:
         thresholds, table = refine_by_rollouts(thresholds, table, r.plain_collisions, r.policy, r.estimator, r.runs,
@@ -226,7 +227,7 @@ def calibrate_budgets(policy: Any, estimator: Any, env: dict[str, Any], episodes
     :return: budget -> ``(thresholds, report)``, in the order of `budgets`.
     """
     budgets, lighter, variants = _checked_budgets(budgets, light, proximity, conditions)
-    runs = _calibration_runs(env, episodes)
+    runs = calibration_runs(env, episodes)
     n_envs = min(episodes, 40)
     per_pass = episodes * len(runs)
     most_candidates = len(PROXY_BUDGET_SHARES) * len(variants) * len(CALIBRATION_LEADS) * len(PROXY_HOLDS)

@@ -1,0 +1,193 @@
+"""The `safety_benchmark` experiment kind: its unit executor (one training seed's policy through the whole benchmark)
+and its report section (every layer against proximity-only, across the training seeds' acting policies)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from socnav.envs.perturbations import strength_zero
+from socnav.experiments.registry import (
+    ExecutorResult,
+    ReportContext,
+    file_digest,
+    register_executor,
+    register_section,
+    single_threaded_torch,
+    unit_dir,
+)
+from socnav.experiments.safety_benchmark import (
+    BENCHMARK_ROWS,
+    HELD_OUT_SHIFTS,
+    BenchmarkSetup,
+    run_safety_benchmark,
+    summarize_layers,
+)
+from socnav.experiments.spec import Unit
+from socnav.io import read_table, write_table_atomic, write_text_atomic
+
+__all__ = ["seed_differences", "verdicts"]
+
+SHIFT_TYPES = ("behaviour_shift",)  # perturbation types that are held-out shifts, not the paper's
+
+
+@register_executor("safety_benchmark")
+def _execute_benchmark(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
+    from socnav.rl.persistence import load_policy
+    from socnav.uncertainty import MC_SEED, MCDropoutEstimator
+
+    p = unit.params
+    single_threaded_torch()
+    train = next(dep for dep in unit.deps if dep.startswith("train/"))
+    model = unit_dir(root, train) / "model.zip"
+    policy = load_policy(model)
+    estimator = MCDropoutEstimator(policy, k=p["k"], seed=MC_SEED)
+    paper_types = {kind: [s for s in strengths if s != strength_zero(kind)]
+                   for kind, strengths in p["perturbations"].items() if kind not in SHIFT_TYPES}
+    setup = BenchmarkSetup(env=p["env"], budgets=p["budgets"], calibration_episodes=p["calibration_episodes"],
+                           risk_training_episodes=3 * p["calibration_episodes"], eval_episodes=p["episodes"],
+                           eval_seed=p["seed"], sensing=p["sensing"], window=p["window"],
+                           n_envs=min(p["n_envs"], 40), paper_types={k: v for k, v in paper_types.items() if v},
+                           shifts=HELD_OUT_SHIFTS, rows=tuple(p["triggers"]) or BENCHMARK_ROWS)
+    log_lines: list[str] = []
+
+    def log(message: str) -> None:
+        log_lines.append(message)
+        write_text_atomic(directory / "log.txt", "\n".join(log_lines) + "\n")
+
+    run_safety_benchmark(policy, estimator, setup, directory, log)
+    episodes = read_table(directory / "episodes.csv")
+    episodes.insert(0, "train_seed", p["train_seed"])
+    write_table_atomic(episodes, directory / "episodes.parquet")
+    (directory / "episodes.csv").unlink()
+    outputs = ["episodes.parquet", "summary.csv", "layers.yaml", "log.txt"]
+    outputs += sorted(path.name for path in directory.glob("*.npz"))
+    return ExecutorResult(outputs=outputs, inputs={f"{train}/model.zip": file_digest(model)})
+
+
+def seed_differences(episodes: pd.DataFrame) -> pd.DataFrame:
+    """Per training seed and layer: the collision rate over the paper's perturbation types minus proximity-only's
+    at the same budget (cautious fallback), the false activation on the unperturbed episodes, and the collision rate
+    in the unperturbed world and each shift minus proximity-only's."""
+    rows = []
+    for seed, mine in episodes.groupby("train_seed"):
+        paper = ~mine["group"].isin(["unperturbed", "shift"])
+        for (name, budget, fallback), layer in mine.groupby(["layer", "budget", "fallback"]):
+            if name == "plain":
+                continue
+            base = mine[(mine["layer"] == "proximity-only") & np.isclose(mine["budget"], budget)
+                        & (mine["fallback"] == "cautious")]
+            unperturbed = layer[layer["group"] == "unperturbed"]
+            row = {"train_seed": seed, "layer": name, "budget": budget, "fallback": fallback,
+                   "false_activation_pct": 100.0 * unperturbed["fallback_steps"].sum()
+                   / max(unperturbed["length"].sum(), 1)}
+            for label, select in [("paper_types", paper), ("unperturbed", mine["group"] == "unperturbed")] + [
+                    (world, mine["world"] == world) for world in sorted(mine.loc[mine["group"] == "shift", "world"]
+                                                                        .unique())]:
+                ours = layer.loc[select.loc[layer.index], "collided"].mean()
+                theirs = base.loc[select.loc[base.index], "collided"].mean() if len(base) else math.nan
+                row[f"collision_pct_{label}"] = 100.0 * ours
+                row[f"diff_pct_{label}"] = 100.0 * (ours - theirs)
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def verdicts(differences: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
+    """Per layer: the mean over training seeds (the clusters) of the difference in collision rate against
+    proximity-only over the paper's types, its t interval, and a verdict at the family-wise error rate: Holm over
+    the layers of each budget, one-sided (``fewer`` only when the upper end of a Holm-adjusted test is below 0)."""
+    from scipy import stats
+
+    from socnav.experiments.statistics import holm_adjust
+
+    rows = []
+    for (name, budget, fallback), group in differences.groupby(["layer", "budget", "fallback"]):
+        values = group["diff_pct_paper_types"].dropna().to_numpy()
+        n = len(values)
+        mean = float(values.mean()) if n else math.nan
+        sd = float(values.std(ddof=1)) if n > 1 else math.nan
+        half = float(stats.t.ppf(0.5 + confidence / 2, n - 1)) * sd / math.sqrt(n) if n > 1 else math.nan
+        # H0: no fewer collisions than proximity-only; H1: fewer (one-sided t over the seeds)
+        p = float(stats.t.cdf(mean / (sd / math.sqrt(n)), n - 1)) if n > 1 and sd > 0 else math.nan
+        rows.append({"layer": name, "budget": budget, "fallback": fallback, "seeds": n, "diff_pct": mean,
+                     "low": mean - half, "high": mean + half, "p_fewer": p,
+                     "unperturbed_diff_pct": float(group["diff_pct_unperturbed"].mean()),
+                     "false_activation_pct": float(group["false_activation_pct"].mean())})
+    table = pd.DataFrame(rows)
+    if table.empty:
+        return table
+    table["p_holm"] = math.nan
+    for _budget, block in table.groupby("budget"):
+        tested = block[(block["layer"] != "proximity-only") & block["p_fewer"].notna()]
+        if len(tested):
+            table.loc[tested.index, "p_holm"] = holm_adjust(tested["p_fewer"].to_numpy())
+    alpha = 1.0 - confidence
+    table["verdict"] = np.where(table["p_holm"] < alpha, "fewer collisions",
+                                np.where(table["layer"] == "proximity-only", "(the row to beat)", "not established"))
+    return table
+
+
+@register_section("safety_benchmark", "safety_benchmark")
+def _section(context: ReportContext) -> str:
+    done = context.done("safety_benchmark")
+    if not done:
+        return "## Safety-layer benchmark\n\nNo benchmark unit has finished yet.\n"
+    episodes = pd.concat([read_table(unit_dir(context.results_dir, unit) / "episodes.parquet") for unit in done],
+                         ignore_index=True)
+    pooled = summarize_layers(episodes)
+    differences = seed_differences(episodes)
+    table = verdicts(differences)
+    write_table_atomic(pooled, context.out_dir / "safety_benchmark_pooled.csv")
+    write_table_atomic(differences, context.out_dir / "safety_benchmark_seeds.csv")
+    write_table_atomic(table, context.out_dir / "safety_benchmark_verdicts.csv")
+    _tradeoff_figure(pooled, context.out_dir / "safety_benchmark_tradeoff")
+    planned = len([unit for unit in context.units if unit.kind == "safety_benchmark"])
+    lines = ["## Safety-layer benchmark", "",
+             f"{len(done)} of {planned} training seeds' acting policies; "
+             f"collisions with the plain policy over the paper's perturbation types: "
+             f"{pooled.attrs['plain_collisions_paper_types']}.", "",
+             "| layer | budget | fallback | false act. % | prevented (paper types) % | prevented (unperturbed) % | "
+             "collisions vs proximity-only, pp [95 % CI over seeds] | Holm p | verdict |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for row in pooled[pooled["layer"] != "plain"].itertuples(index=False):
+        match = table[(table["layer"] == row.layer) & np.isclose(table["budget"], row.budget)
+                      & (table["fallback"] == row.fallback)]
+        verdict = match.iloc[0] if len(match) else None
+        interval = (f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]" if verdict is not None
+                    else "")
+        lines.append(f"| {row.layer} | {row.budget:.0%} | {row.fallback} | {row.false_activation_pct:.2f} | "
+                     f"{row.prevented_paper_types_pct:.1f} | {row.prevented_unperturbed_pct:.1f} | {interval} | "
+                     f"{'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
+                     f"{'' if verdict is None else verdict.verdict} |")
+    lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
+    return "\n".join(lines)
+
+
+def _tradeoff_figure(pooled: pd.DataFrame, out_base: Path) -> list[Path]:
+    """Prevented share over the paper's types against false activation, one line per trigger (cautious fallback)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from socnav.io import save_figure
+
+    figure, axes = plt.subplots(figsize=(6.5, 4.2))
+    rows = pooled[(pooled["layer"] != "plain") & (pooled["fallback"] == "cautious")]
+    for name, group in rows.groupby("layer", sort=False):
+        group = group.sort_values("budget")
+        axes.plot(group["false_activation_pct"], group["prevented_paper_types_pct"], marker="o", label=name)
+    axes.set_xlabel("false activation (% of unperturbed steps, held out)")
+    axes.set_ylabel("collisions prevented (%, paper's types)")
+    axes.legend(fontsize=8, loc="lower right")
+    axes.grid(alpha=0.3)
+    figure.tight_layout()
+    paths = save_figure(figure, out_base)
+    plt.close(figure)
+    return paths
+
+
+
