@@ -145,13 +145,15 @@ def threshold_candidates(unperturbed_scores: np.ndarray, budget: float,
 def calibrate_trigger(spec: TriggerSpec, records: pd.DataFrame, policy: Any, estimator: Any,
                       runs: Sequence[CalibrationRun], budget: float, window: int = 4, n_envs: int = 40,
                       confidence: float = 0.95, plain_collisions: dict[str, int] | None = None,
-                      progress: Callable[[int], None] | None = None) -> tuple[TriggerSpec, pd.DataFrame]:
+                      progress: Callable[[int], None] | None = None,
+                      cache: dict[Any, dict[str, Any]] | None = None) -> tuple[TriggerSpec, pd.DataFrame]:
     """The threshold of ``spec``'s trigger for ``budget``: candidates from the unperturbed records' scores, the
-    choice by replays on ``runs`` (``threshold = inf`` -- never firing -- if none keeps the budget)."""
+    choice by replays on ``runs`` (``threshold = inf`` -- never firing -- if none keeps the budget).
+    ``plain_collisions`` and ``cache`` as in `select_by_rollouts` (measured once, replays shared by budgets)."""
     unperturbed = records.loc[~records["perturbed"].astype(bool), f"score_{spec.trigger}"].to_numpy()
     candidates = [spec.with_threshold(threshold) for threshold in threshold_candidates(unperturbed, budget)]
     chosen, table = select_by_rollouts(candidates, policy, estimator, list(runs), budget, window, n_envs,
-                                       confidence, progress, plain_collisions)
+                                       confidence, progress, plain_collisions, cache)
     if isinstance(chosen, Thresholds):  # nothing within the budget: the layer stays off
         chosen = spec.with_threshold(float("inf"))
     table.attrs["budget"] = budget
