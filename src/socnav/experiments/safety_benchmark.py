@@ -122,11 +122,11 @@ def fit_conformal_start(policy: Any, setup: BenchmarkSetup, spec: TriggerSpec) -
     calibration episodes (the bound the shield starts each episode with)."""
     from socnav.envs.rollout import rollout_episodes
     from socnav.safety.conformal import ConformalShieldTrigger
-    from socnav.safety.safe_policy import SafePolicy
+    from socnav.safety.safe_policy import SafePolicy, no_uncertainty
 
     run = calibration_runs(setup.env, setup.calibration_episodes)[0]
     errors: list[np.ndarray] = []
-    probe = SafePolicy(policy, None, Thresholds.create(Thresholds.never().model_dump(), sensing=setup.sensing),
+    probe = SafePolicy(policy, no_uncertainty, Thresholds.create(Thresholds.never().model_dump(), sensing=setup.sensing),
                        run.config, window=setup.window)
     shield = ConformalShieldTrigger(spec)
 
