@@ -156,7 +156,8 @@ def metrics_table(rows: list[tuple[str, dict[str, float]]], title: str) -> Table
     steps where the safety fallback acted when the rows have ``fallback_pct``."""
     import math
 
-    table = Table(title=title, caption=f"PV per {PV_PER} episodes; nav time of the episodes reaching the goal")
+    table = Table(title=title, caption=f"PV: personal-space violations (intrusion events) per {PV_PER} episodes; "
+                  "nav time of the episodes reaching the goal")
     fallback = any("fallback_pct" in m for _, m in rows)
     walls = any("collision_obstacle_pct" in m for _, m in rows)  # worlds with walls: wall collisions, apart
     columns = ["run", "episodes", "Goal %", "Col. %", "TO %", f"PV/{PV_PER} ep.", "nav time (s)", "Return"]
@@ -1102,11 +1103,17 @@ def calibrate(
     out: Path = typer.Option(THRESHOLDS_OUT, help="threshold file (.yaml/.json)"),
     humans: str | None = humans_option(),
     force: bool = force_option("the --out threshold file (and its report)"),
+    trigger: str = typer.Option("paper", help="what decides the hand-over: the rule (paper | proximity-only | "
+                                              "uncertainty-only) or a score trigger (time-to-collision | closing-gap "
+                                              "| predicted-clearance | conformal | risk-model | "
+                                              "risk-model+uncertainty; docs/uncertainty-safety.md)"),
 ) -> None:
     """Choose the safety thresholds on calibration episodes (perturbations and seeds disjoint from evaluation)."""
     from socnav.safety import PROXIMITY_VARIANTS, calibrate_thresholds, save_calibration
+    from socnav.safety.rule import RULE_CONDITIONS
 
     false_activation_budget = budget if budget is not None else false_activation_budget
+    _check_trigger_name(trigger)
     if proximity != "both" and proximity not in PROXIMITY_VARIANTS:
         fail(f"--proximity {proximity!r} is not known; allowed: both, {', '.join(PROXIMITY_VARIANTS)}")
     if sensing not in ("perceived", "true"):
@@ -1115,6 +1122,11 @@ def calibrate(
         fail(f"--out must be a .yaml or .json file path, got {str(out)!r}")
     _check_out_file("--out", out, force=force, create_parent=out == THRESHOLDS_OUT)
     _check_out_file("--out", _calibration_report_path(out), force=force, create_parent=out == THRESHOLDS_OUT)
+    if trigger.startswith("risk-model"):
+        from socnav.safety.calibration.trigger_search import risk_model_path
+
+        _check_out_file("--out", risk_model_path(out.parent, trigger, f"{out.stem}."), force=force,
+                        create_parent=out == THRESHOLDS_OUT)
     _check_estimator_options(estimator, model, members)  # before a model loads
     _check_human_model(humans)
     env_config = _model_world(model, scenario, config, n_humans, max_humans,
@@ -1122,12 +1134,17 @@ def calibrate(
                                                                        humans),
                               humans=humans)
     policy, uncertainty = _estimator(estimator, model, members, k, env_config)
+    if trigger not in RULE_CONDITIONS:
+        _calibrate_score_trigger(trigger, policy, uncertainty, env_config, episodes, false_activation_budget,
+                                 sensing, confidence, out)
+        return
     with _progress() as progress:
         task = progress.add_task("calibration episodes (collect, then replay each candidate)", total=None)
         thresholds, report = calibrate_thresholds(
-            policy, uncertainty, env_config.model_dump(mode="json"), episodes, false_activation_budget, proximity,
-            confidence=confidence, progress=lambda done, total: progress.update(task, completed=done, total=total),
-            sensing=sensing)
+            policy, None if trigger == "proximity-only" else uncertainty, env_config.model_dump(mode="json"), episodes,
+            false_activation_budget, proximity, confidence=confidence,
+            progress=lambda done, total: progress.update(task, completed=done, total=total), sensing=sensing,
+            conditions=trigger)
     report_path = save_calibration(thresholds, report, out)
     console.print(calibration_table(thresholds, report, f"calibrated thresholds ({estimator}, false-activation "
                                                         f"budget {false_activation_budget:.0%})"))
@@ -1142,6 +1159,48 @@ def calibrate(
     if "note" in report:
         console.print(escape(report["note"]), highlight=False)
     console.print(f"thresholds: {out}  (use with --safety {out})")
+
+
+def _check_trigger_name(trigger: str) -> None:
+    """`--trigger`: a registered trigger or ``risk-model+uncertainty`` (did-you-mean otherwise)."""
+    from socnav.safety.triggers import TriggerError, trigger_class, trigger_names
+
+    if trigger in (*trigger_names(), "risk-model+uncertainty"):
+        return
+    try:
+        trigger_class(trigger)
+    except TriggerError as exc:
+        fail(f"--trigger: {exc}")
+
+
+def _calibrate_score_trigger(trigger: str, policy: Any, uncertainty: Any, env_config: EnvConfig, episodes: int,
+                             budget: float, sensing: str, confidence: float, out: Path) -> None:
+    """`calibrate --trigger NAME` of a score trigger: prepared (the conformal bound fitted, the risk model trained
+    on its own seeds), its threshold chosen by replays, written to `out` (with the risk model beside it)."""
+    from socnav.safety.calibration.trigger_search import calibrate_score_triggers, prepare_triggers
+    from socnav.safety.triggers import save_trigger_spec
+
+    env = env_config.model_dump(mode="json")
+    n_envs = min(episodes, 40)
+    notes: list[str] = []
+    with console.status("calibration episodes (prepare, record, then replay each candidate)") as status:
+        def log(message: str) -> None:
+            notes.append(message)
+            status.update(message)
+
+        specs = prepare_triggers([trigger], policy, uncertainty, env, episodes, 3 * episodes, sensing, 4, n_envs,
+                                 out.parent, log, prefix=f"{out.stem}.")
+        if trigger not in specs:
+            fail(f"--trigger {trigger}: {notes[-1]}")
+        chosen = calibrate_score_triggers(specs, policy, uncertainty, env, episodes, [budget], sensing, 4, n_envs,
+                                          confidence, log)[trigger][budget]
+    save_trigger_spec(chosen, out, extra={"false_activation_budget": budget, "confidence": confidence,
+                                          "episodes_per_configuration": episodes})
+    state = "never fires: no threshold kept the budget" if chosen.threshold == float("inf") else (
+        f"threshold {chosen.threshold:.4g}")
+    console.print(f"{trigger}: {state} (false-activation budget {budget:.0%} at {confidence:.0%} confidence)",
+                  highlight=False)
+    console.print(f"trigger: {out}  (use with --safety {out})", highlight=False)
 
 
 @app.command()

@@ -30,16 +30,15 @@ import pandas as pd
 from socnav.config import load_config
 from socnav.envs.perturbations import CALIBRATION_SEED, perturbed_config
 from socnav.io import write_table_atomic, write_text_atomic
-from socnav.safety.calibration.rollout_selection import CalibrationRun, rollout_scores
 from socnav.safety.calibration.trigger_search import (
+    ANALYTIC_TRIGGERS,
     RISK_TRAINING_SEED,
-    calibrate_trigger,
-    collect_trigger_records,
-    collision_labels,
+    calibrate_score_triggers,
+    prepare_triggers,
 )
-from socnav.safety.calibration.workflow import calibrate_budgets, calibration_runs
-from socnav.safety.rule import RULE_CONDITIONS, Thresholds
-from socnav.safety.triggers import SafetyDecision, TriggerSpec, decision_fields
+from socnav.safety.calibration.workflow import calibrate_budgets
+from socnav.safety.rule import RULE_CONDITIONS
+from socnav.safety.triggers import SafetyDecision, decision_fields
 
 __all__ = [
     "ANALYTIC_TRIGGERS",
@@ -54,7 +53,6 @@ __all__ = [
     "summarize_layers",
 ]
 
-ANALYTIC_TRIGGERS = ("time-to-collision", "closing-gap", "predicted-clearance", "conformal")
 #: The paper's perturbation types at strengths the calibration (socnav.envs.perturbations.CALIBRATION_SET) never
 #: plays.
 PAPER_TYPES: dict[str, list[float]] = {"observation_noise": [1.0, 2.0], "heading_noise": [1.0, 2.0],
@@ -65,7 +63,6 @@ HELD_OUT_SHIFTS: dict[str, dict[str, Any]] = {"behaviour_shift": {"perturbation"
 #: The benchmark's rows: the rule and its proximity-only ablation, the analytic triggers, the risk model without and
 #: with the uncertainty inputs (its ablation).
 BENCHMARK_ROWS = ("paper", "proximity-only", *ANALYTIC_TRIGGERS, "risk-model", "risk-model+uncertainty")
-RISK_HORIZON_STEPS = 4
 FULL_SEARCH_BUDGET = 0.05  # 1 s at the default 0.25 s step: "a collision within the next second"
 
 
@@ -109,67 +106,6 @@ class Layer:
     fallback: str = "cautious"
 
 
-def _training_runs(setup: BenchmarkSetup) -> list[CalibrationRun]:
-    """The calibration configurations on their own seed range, for the risk model to learn from."""
-    runs = calibration_runs(setup.env, setup.risk_training_episodes)
-    return [CalibrationRun(run.config, run.perturbed, run.n_episodes,
-                           RISK_TRAINING_SEED + index * setup.risk_training_episodes, run.group)
-            for index, run in enumerate(runs)]
-
-
-def fit_conformal_start(policy: Any, setup: BenchmarkSetup, spec: TriggerSpec) -> TriggerSpec:
-    """``spec`` with ``initial_quantile`` the ``1 - alpha`` quantile of the forecast errors on the unperturbed
-    calibration episodes (the bound the shield starts each episode with)."""
-    from socnav.envs.rollout import rollout_episodes
-    from socnav.safety.conformal import ConformalShieldTrigger
-    from socnav.safety.safe_policy import SafePolicy, no_uncertainty
-
-    run = calibration_runs(setup.env, setup.calibration_episodes)[0]
-    errors: list[np.ndarray] = []
-    probe = SafePolicy(policy, no_uncertainty, Thresholds.create(Thresholds.never().model_dump(), sensing=setup.sensing),
-                       run.config, window=setup.window)
-    shield = ConformalShieldTrigger(spec)
-
-    class _Errors:
-        def on_episode_start(self, envs: np.ndarray) -> None:
-            if not hasattr(shield, "_quantile"):
-                shield.allocate(len(envs))
-            shield.reset(np.asarray(envs))
-
-        def on_step(self, observation: Any, actions: Any, result: Any, episodes: np.ndarray) -> None:
-            assert probe.last_inputs is not None
-            shield.score(probe.last_inputs)
-            errors.append(shield.last_errors[episodes >= 0])
-
-    rollout_episodes(probe, run.config, run.n_episodes, seed=run.seed, n_envs=setup.n_envs, observer=_Errors(),
-                     metrics=False)
-    values = np.concatenate(errors)
-    values = values[np.isfinite(values)]
-    start = float(np.quantile(values, 1.0 - shield.params.alpha)) if len(values) else 0.0
-    return TriggerSpec.create(spec.model_dump(), params={**spec.params, "initial_quantile": round(start, 4)})
-
-
-def train_risk_models(policy: Any, estimator: Any, setup: BenchmarkSetup, out: Path) -> dict[str, TriggerSpec]:
-    """The risk model without and with the uncertainty inputs (the ablation), trained on the risk-training
-    seeds; returns name -> spec (threshold inf: calibrated later)."""
-    from socnav.safety.risk_model import save_risk_model, train_risk_model
-
-    records, features = collect_trigger_records(policy, estimator, _training_runs(setup), [], setup.window,
-                                                setup.n_envs, setup.sensing, features=True, uncertainty=True)
-    assert features is not None
-    labels = collision_labels(records, RISK_HORIZON_STEPS)
-    episodes = records["episode"].to_numpy()
-    specs = {}
-    geometry = features.shape[1] - 5
-    for name, columns, with_uncertainty in (("risk-model", slice(0, geometry), False),
-                                            ("risk-model+uncertainty", slice(None), True)):
-        model = train_risk_model(features[:, columns], labels, episodes, with_uncertainty, RISK_HORIZON_STEPS)
-        path = save_risk_model(model, out / f"{name}.npz")
-        specs[name] = TriggerSpec.create(trigger="risk-model", threshold=math.inf, model=str(path),
-                                         sensing=setup.sensing)
-    return specs
-
-
 def calibrate_layers(policy: Any, estimator: Any, setup: BenchmarkSetup, out: Path,
                      log: Callable[[str], None] = print) -> list[Layer]:
     """Every trigger calibrated at every budget of ``setup`` on the calibration episodes (the rule's two rows by
@@ -184,30 +120,14 @@ def calibrate_layers(policy: Any, estimator: Any, setup: BenchmarkSetup, out: Pa
                                        setup.calibration_episodes, setup.budgets, sensing=setup.sensing,
                                        conditions=conditions, window=setup.window, light=light)
         layers += [Layer(conditions, thresholds, budget) for budget, (thresholds, _report) in per_budget.items()]
-    specs = {name: TriggerSpec.create(trigger=name, threshold=math.inf, sensing=setup.sensing)
-             for name in setup.rows if name not in RULE_CONDITIONS and not name.startswith("risk-model")}
-    if "conformal" in specs:
-        specs["conformal"] = fit_conformal_start(policy, setup, specs["conformal"])
-    if any(name.startswith("risk-model") for name in setup.rows):
-        log("training the risk models")
-        risk = train_risk_models(policy, estimator, setup, out)
-        specs.update({name: spec for name, spec in risk.items() if name in setup.rows})
-    runs = calibration_runs(setup.env, setup.calibration_episodes)
-    plain = rollout_scores(None, policy, None, runs, setup.window, setup.n_envs)["collisions"]
-    analytic = [spec for name, spec in specs.items() if name in ANALYTIC_TRIGGERS]
-    records, _ = collect_trigger_records(policy, None, runs, analytic, setup.window, setup.n_envs, setup.sensing)
-    for name, spec in specs.items():
-        if name not in ANALYTIC_TRIGGERS:  # the risk model's two rows share a trigger name: one column at a time
-            one, _ = collect_trigger_records(policy, estimator if spec.uses_uncertainty else None, runs, [spec],
-                                             setup.window, setup.n_envs, setup.sensing)
-            records[f"score_{spec.trigger}"] = one[f"score_{spec.trigger}"].to_numpy()
-        replayed: dict[Any, dict[str, Any]] = {}  # a threshold proposed at two budgets is replayed once
-        for budget in setup.budgets:
-            log(f"calibrating {name} at {budget:.0%}")
-            chosen, _table = calibrate_trigger(spec, records, policy, estimator if spec.uses_uncertainty else None,
-                                               runs, budget, setup.window, setup.n_envs, plain_collisions=plain,
-                                               cache=replayed)
-            layers.append(Layer(name, chosen, budget))
+    scored = [row for row in setup.rows if row not in RULE_CONDITIONS]
+    if scored:
+        specs = prepare_triggers(scored, policy, estimator, setup.env, setup.calibration_episodes,
+                                 setup.risk_training_episodes, setup.sensing, setup.window, setup.n_envs, out, log)
+        chosen = calibrate_score_triggers(specs, policy, estimator, setup.env, setup.calibration_episodes,
+                                          setup.budgets, setup.sensing, setup.window, setup.n_envs, log=log)
+        layers += [Layer(name, spec, budget) for name, per_budget in chosen.items()
+                   for budget, spec in per_budget.items()]
     return layers
 
 

@@ -29,7 +29,7 @@ from socnav.experiments.safety_benchmark import (
 from socnav.experiments.spec import Unit
 from socnav.io import read_table, write_table_atomic, write_text_atomic
 
-__all__ = ["seed_differences", "verdicts"]
+__all__ = ["benchmark_markdown", "seed_differences", "verdicts"]
 
 SHIFT_TYPES = ("behaviour_shift",)  # perturbation types that are held-out shifts, not the paper's
 
@@ -137,33 +137,78 @@ def _section(context: ReportContext) -> str:
         return "## Safety-layer benchmark\n\nNo benchmark unit has finished yet.\n"
     episodes = pd.concat([read_table(unit_dir(context.results_dir, unit) / "episodes.parquet") for unit in done],
                          ignore_index=True)
-    pooled = summarize_layers(episodes)
-    differences = seed_differences(episodes)
-    table = verdicts(differences)
-    write_table_atomic(pooled, context.out_dir / "safety_benchmark_pooled.csv")
-    write_table_atomic(differences, context.out_dir / "safety_benchmark_seeds.csv")
-    write_table_atomic(table, context.out_dir / "safety_benchmark_verdicts.csv")
-    _tradeoff_figure(pooled, context.out_dir / "safety_benchmark_tradeoff")
     planned = len([unit for unit in context.units if unit.kind == "safety_benchmark"])
-    lines = ["## Safety-layer benchmark", "",
-             f"{len(done)} of {planned} training seeds' acting policies; "
-             f"collisions with the plain policy over the paper's perturbation types: "
-             f"{pooled.attrs['plain_collisions_paper_types']}.", "",
-             "| layer | budget | fallback | false act. % | prevented (paper types) % | prevented (unperturbed) % | "
-             "collisions vs proximity-only, pp [95 % CI over seeds] | Holm p | verdict |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    return benchmark_markdown(episodes, context.out_dir, f"{len(done)} of {planned} training seeds' acting policies")
+
+
+def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, level: str = "##") -> str:
+    """The benchmark's table (one row per layer) and trade-off figure, written to ``out_dir`` with its CSV files.
+
+    With two or more training seeds, the verdict against proximity-only treats the seeds as the clusters
+    (:func:`verdicts`); with one, it pairs the episodes (the exact McNemar test of `summarize_layers`), Holm-adjusted
+    over the layers of each budget and fallback, one-sided for fewer collisions."""
+    pooled = summarize_layers(episodes)
+    seeds = episodes["train_seed"].nunique() if "train_seed" in episodes else 1
+    write_table_atomic(pooled, out_dir / "safety_benchmark_pooled.csv")
+    if seeds >= 2:
+        differences = seed_differences(episodes)
+        table = verdicts(differences)
+        write_table_atomic(differences, out_dir / "safety_benchmark_seeds.csv")
+    else:
+        table = _episode_verdicts(pooled)
+    write_table_atomic(table, out_dir / "safety_benchmark_verdicts.csv")
+    _tradeoff_figure(pooled, out_dir / "safety_benchmark_tradeoff")
+    unit = "seeds" if seeds >= 2 else "episodes"
+    shown = ("prevented_paper_types_pct", "prevented_unperturbed_pct")
+    shift_columns = [c.removeprefix("prevented_").removesuffix("_pct") for c in pooled.columns
+                     if c.startswith("prevented_") and c not in shown]
+    lines = [f"{level} Safety-layer benchmark", "",
+             f"{policies}; collisions of the plain policy over the paper's perturbation types: "
+             f"{pooled.attrs['plain_collisions_paper_types']}. Prevented: share of the plain policy's collisions "
+             "that the layer prevents on the same episodes (negative: it causes more); false activation: share of "
+             "held-out unperturbed steps on which the fallback drove; the difference in collision rate against "
+             f"proximity-only at the same budget (percentage points; 95 % interval over the {unit}), and its "
+             "Holm-adjusted one-sided p for fewer collisions.", "",
+             "| layer | budget | fallback | false act. % | prevented, paper's types % | unperturbed % | "
+             + " | ".join(f"{name} %" for name in shift_columns)
+             + " | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
+             "|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|"]
     for row in pooled[pooled["layer"] != "plain"].itertuples(index=False):
         match = table[(table["layer"] == row.layer) & np.isclose(table["budget"], row.budget)
                       & (table["fallback"] == row.fallback)]
         verdict = match.iloc[0] if len(match) else None
-        interval = (f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]" if verdict is not None
-                    else "")
+        interval = ("" if verdict is None or not np.isfinite(verdict.diff_pct) else
+                    f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]")
+        shifts = " | ".join(f"{getattr(row, f'prevented_{name}_pct'):.0f}" for name in shift_columns)
         lines.append(f"| {row.layer} | {row.budget:.0%} | {row.fallback} | {row.false_activation_pct:.2f} | "
-                     f"{row.prevented_paper_types_pct:.1f} | {row.prevented_unperturbed_pct:.1f} | {interval} | "
-                     f"{'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
+                     f"{row.prevented_paper_types_pct:.1f} | {row.prevented_unperturbed_pct:.0f} | {shifts} | "
+                     f"{interval} | {'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
                      f"{'' if verdict is None else verdict.verdict} |")
     lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
     return "\n".join(lines)
+
+
+def _episode_verdicts(pooled: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
+    """One acting policy: the paired episode differences of `summarize_layers` as verdicts (McNemar, one-sided for
+    fewer collisions: half the two-sided p when the difference is negative), Holm over the layers of each budget
+    and fallback."""
+    from socnav.experiments.statistics import holm_adjust
+
+    rows = pooled[pooled["layer"] != "plain"].copy()
+    table = pd.DataFrame({"layer": rows["layer"], "budget": rows["budget"], "fallback": rows["fallback"],
+                          "diff_pct": 100.0 * rows["vs_proximity_difference"],
+                          "low": 100.0 * rows["vs_proximity_low"], "high": 100.0 * rows["vs_proximity_high"],
+                          "p_fewer": np.where(rows["vs_proximity_difference"] < 0, rows["vs_proximity_p"] / 2,
+                                              1.0 - rows["vs_proximity_p"] / 2)})
+    table["p_holm"] = math.nan
+    for _key, block in table.groupby(["budget", "fallback"]):
+        tested = block[~((block["layer"] == "proximity-only") & (block["fallback"] == "cautious"))]
+        if len(tested):
+            table.loc[tested.index, "p_holm"] = holm_adjust(tested["p_fewer"].to_numpy())
+    table["verdict"] = np.where(table["p_holm"] < 1.0 - confidence, "fewer collisions",
+                                np.where((table["layer"] == "proximity-only") & (table["fallback"] == "cautious"),
+                                         "(the row to beat)", "not established"))
+    return table.reset_index(drop=True)
 
 
 def _tradeoff_figure(pooled: pd.DataFrame, out_base: Path) -> list[Path]:

@@ -45,10 +45,10 @@ from socnav.safety.rule import (
     RuleConditions,
     Thresholds,
     held_fallback,
-    load_thresholds,
     nearest_human,
     rule_conditions,
 )
+from socnav.safety.triggers import RuleTrigger, TriggerInputs, TriggerSpec, load_safety, make_trigger
 from socnav.sim.maps import validate_polygons
 from socnav.sim.observation import observe_robot, robot_command
 from socnav.sim.walls import POSE_KEY, SCAN_KEY
@@ -292,7 +292,14 @@ class SafeNavigator:
         record = network.record  # validated at load: env config, thresholds, window, radius scale
         self.network = network
         self.config = record.env_config
-        self.thresholds = record.safety.thresholds if thresholds is None else load_thresholds(thresholds)
+        decision = record.safety.thresholds if thresholds is None else load_safety(thresholds)
+        #: the rule's thresholds, or a score trigger's spec (`socnav.safety.triggers`): what decides the hand-over
+        self.thresholds: Thresholds | TriggerSpec = decision
+        self.trigger = make_trigger(decision)
+        self.trigger.allocate(1)
+        # the rule's conditions are reported with every decision; a score trigger is shown beside the paper's rule
+        self._rule = decision if isinstance(decision, Thresholds) else Thresholds.create(
+            record.safety.thresholds.model_dump(), sensing=decision.sensing)
         if k is None:
             self.k = network.k
         elif isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or not 2 <= k <= MAX_K:
@@ -357,6 +364,7 @@ class SafeNavigator:
         self._window.reset()
         self._previous_gap[:] = np.nan
         self._hold_left[:] = 0
+        self.trigger.reset(np.zeros(1, dtype=np.int64))
 
     @property
     def scan_beams(self) -> int | None:
@@ -435,22 +443,27 @@ class SafeNavigator:
             action, estimate, usable = _STOP_ACTION.copy(), Uncertainty(nan, nan, nan, np.full(1, np.nan)), False
         fault = None if usable else (NON_FINITE_OUTPUT if observed else NON_FINITE_OBSERVATION)
         nearest = nearest_human(observation)
-        speed_term = nearest.speed(self.thresholds.proximity)
+        speed_term = nearest.speed(self._rule.proximity)
         if fault is None:
             windowed = self._window.update(estimate)
-            conditions = rule_conditions(windowed.u_ep_heading, windowed.u_feat, nearest.gap, speed_term,
-                                         self._previous_gap, self.thresholds)
             (u_ep_speed, u_ep_heading), (u_al_speed, u_al_heading) = (windowed.u_ep[0].tolist(),
                                                                       windowed.u_al[0].tolist())
             values = {"u_ep_speed": u_ep_speed, "u_ep_heading": u_ep_heading, "u_al_speed": u_al_speed,
                       "u_al_heading": u_al_heading, "u_feat": float(windowed.u_feat[0])}
-            fire = conditions.p_col
+            inputs = TriggerInputs(observation=observation, actions=np.asarray(action, np.float32).reshape(1, 2),
+                                   uncertainty={key: np.array([value]) for key, value in values.items()},
+                                   nearest=nearest, previous_gap=self._previous_gap.copy(),
+                                   time_step=self.config.time_step, max_heading_change=self.config.max_heading_change)
+            fire = self.trigger.fires(inputs)
+            conditions = (self.trigger.last_conditions if isinstance(self.trigger, RuleTrigger)
+                          else rule_conditions(windowed.u_ep_heading, windowed.u_feat, nearest.gap, speed_term,
+                                               self._previous_gap, self._rule))
         else:
             # A NaN would stay in the window for `window` steps and make every uncertainty comparison False (the
             # rule blind): the window is not fed. The uncertainty is unknown, read as high in the conditions, and
             # the fallback takes over now, held as if the rule had fired.
             conditions = rule_conditions(math.inf, math.inf, nearest.gap, speed_term, self._previous_gap,
-                                         self.thresholds)
+                                         self._rule)
             values = dict.fromkeys(("u_ep_speed", "u_ep_heading", "u_al_speed", "u_al_heading", "u_feat"), math.nan)
             fire = np.ones(1, dtype=bool)
         self._previous_gap = np.where(nearest.present, nearest.gap, np.nan)  # no human: nothing to compare next

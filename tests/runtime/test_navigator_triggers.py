@@ -1,0 +1,70 @@
+"""SafeNavigator with a score trigger decides as the torch SafePolicy with the same trigger, step for step: the
+analytic time to collision, the stateful conformal shield, and a risk model that reads the uncertainty."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import socnav
+from socnav.runtime import DropoutStream, SafeNavigator
+from socnav.safety.risk_model import GEOMETRY_FEATURES, UNCERTAINTY_FEATURES, save_risk_model, train_risk_model
+from socnav.safety.triggers import TriggerSpec, load_safety, save_trigger_spec
+
+
+def _state(world, env: int = 0) -> tuple[dict, dict]:
+    """The robot's and the humans' state of one simulated environment, as a robot's tracker would give them."""
+    humans = np.flatnonzero(world.active[env, 1:]) + 1
+    robot = {"position": world.positions[env, 0], "velocity": world.velocities[env, 0],
+             "heading": world.heading[env], "goal": world.goals[env, 0], "v_pref": world.preferred_speeds[env, 0],
+             "radius": world.radii[env, 0]}
+    return robot, {"positions": world.positions[env, humans], "velocities": world.velocities[env, humans],
+                   "radii": world.radii[env, humans]}
+
+
+def _risk_model_file(tmp_path):
+    """A small risk model that reads the uncertainty too (trained on synthetic rows: only its use is compared)."""
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(300, len(GEOMETRY_FEATURES) + len(UNCERTAINTY_FEATURES)))
+    features[:, 0] = rng.uniform(0, 5, 300)  # the gap
+    labels = (features[:, 0] < 1.0).astype(float)
+    model = train_risk_model(features, labels, np.arange(300) // 10, uncertainty=True, horizon_steps=4,
+                             members=2, epochs=3)
+    return save_risk_model(model, tmp_path / "risk.npz")
+
+
+@pytest.mark.parametrize("trigger", ["time-to-collision", "conformal", "risk-model"])
+def test_navigator_reproduces_safe_policy_episodes_with_a_trigger(pretrained_policy, navigator_file, tmp_path,
+                                                                   trigger):
+    from socnav.envs.env import SocialNavEnv
+    from socnav.safety import SafePolicy
+    from socnav.uncertainty import MCDropoutEstimator
+
+    thresholds = {"time-to-collision": -2.0, "conformal": -0.6, "risk-model": 0.5}[trigger]
+    model = str(_risk_model_file(tmp_path)) if trigger == "risk-model" else None
+    spec = TriggerSpec.create(trigger=trigger, threshold=thresholds, model=model, hold_steps=1)
+    path = save_trigger_spec(spec, tmp_path / "trigger.yaml")  # through its file, as a user would give it
+    assert load_safety(path) == spec
+    config = socnav.load_config({"scenario": "circle_crossing", "n_humans": 5})
+    seed = 3
+    estimator = MCDropoutEstimator(pretrained_policy, k=20, uniforms=DropoutStream(seed))
+    reference = SafePolicy(pretrained_policy, estimator, spec, config, n_envs=1)
+    navigator = SafeNavigator.load(navigator_file, thresholds=path, seed=seed)
+    env = SocialNavEnv(config)
+    fallbacks = steps = 0
+    for episode in range(2):
+        obs, _ = env.reset(seed=100 * seed + episode)
+        reference.reset()
+        navigator.reset()
+        done = False
+        while not done:
+            decision = navigator.act(*_state(env.world))
+            expected, _ = reference.predict(obs)
+            assert decision.fallback == bool(reference.last_fallback[0])
+            np.testing.assert_allclose(decision.action, expected, rtol=0, atol=1e-5)
+            fallbacks += decision.fallback
+            steps += 1
+            obs, _, terminated, truncated, _ = env.step(decision.action)
+            done = terminated or truncated
+    assert 0 < fallbacks < steps  # both the fallback and the policy were compared
+    assert navigator.thresholds == load_safety(path)
