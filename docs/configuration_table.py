@@ -17,6 +17,9 @@ from pydantic import BaseModel
 #: The commands whose flags are documented, in the order of the doc.
 COMMANDS = ("train", "evaluate", "calibrate", "run", "tune", "export")
 
+#: --humans, in every command that has it: one model for every human.
+HUMANS = ("env file `humans.model` (a single model: `humans.mix` is dropped)", "`EnvConfig.humans.model`")
+
 #: (command, CLI parameter name) -> (YAML field, Python name). "—": no counterpart.
 FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     # socnav train -> socnav.rl.training.train(config, algo, seed, timesteps, out_dir, ...)
@@ -36,6 +39,7 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("train", "out"): ("— (`socnav run`: `<run dir>/train/...`)", "`train(out_dir=)`"),
     ("train", "resume"): ("— (`socnav run` resumes by itself)", "`train(resume=True)`"),
     ("train", "force"): ("—", "`train(force=True)` (moves the run aside to `<out_dir>.old-<timestamp>`)"),
+    ("train", "humans"): HUMANS,
     # socnav evaluate -> socnav.envs.rollout.rollout_episodes(policy, config, n_episodes, seed, n_envs, ...)
     ("evaluate", "controller"): ("—", "`socnav.controllers.make_controller(name, config)`"),
     ("evaluate", "policy"): ("—", "hidden, deprecated: `--controller`"),
@@ -60,6 +64,9 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("evaluate", "k"): ("experiment `safety.k`", "`MCDropoutEstimator(k=)`"),
     ("evaluate", "n_envs"): ("experiment `evaluation.n_envs`", "`rollout_episodes(n_envs=)`"),
     ("evaluate", "out"): ("—", "`socnav.io.write_table_atomic(records, path)`"),
+    ("evaluate", "force"): ("—", "— (`write_table_atomic` replaces the file; the CLI checks with "
+                                 "`socnav.io.check_output_file(path, force=)`)"),
+    ("evaluate", "humans"): HUMANS,
     # socnav calibrate -> socnav.safety.calibrate_thresholds(policy, estimator, env, episodes, budget, ...)
     ("calibrate", "model"): ("—", "`socnav.load_policy(path)`"),
     ("calibrate", "estimator"): ("experiment `safety.estimators`", "`socnav.uncertainty.make_estimator(kind)`"),
@@ -78,6 +85,11 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("calibrate", "sensing"): ("experiment `safety.sensing`", "`calibrate_thresholds(sensing=)`"),
     ("calibrate", "confidence"): ("— (experiments use the default)", "`calibrate_thresholds(confidence=)`"),
     ("calibrate", "out"): ("— (a threshold file: Thresholds fields)", "`save_thresholds(thresholds, path)`"),
+    ("calibrate", "force"): ("—", "— (`save_thresholds` replaces the file)"),
+    ("calibrate", "humans"): HUMANS,
+    ("calibrate", "trigger"): ("experiment `safety.triggers` (the rows a `safety_benchmark` calibrates)",
+                               "`calibrate_thresholds(conditions=)` (the rule's variants); "
+                               "`socnav.safety.calibration.trigger_search.calibrate_score_triggers` (score triggers)"),
     # socnav run -> socnav.experiments.load_experiment(path, budget) + run_experiment(experiment, root, ...)
     ("run", "experiment"): ("the experiment file (below)", "`load_experiment(path)`"),
     ("run", "budget"): ("experiment `budgets.<name>` (a compute budget)", "`load_experiment(path, budget=)`"),
@@ -105,6 +117,8 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("tune", "timeout"): ("—", "`tune(timeout=)`"),
     ("tune", "write_preset"): ("writes a preset file for `--algo-config` / `grid.algo_overrides.<algo>`",
                                "`write_preset(path, result, ...)`"),
+    ("tune", "force"): ("—", "— (`write_preset` replaces the file)"),
+    ("tune", "humans"): HUMANS,
     # socnav export -> socnav.export.export_onnx(model, out, thresholds, k, p_test, window, with_value)
     ("export", "model"): ("—", "`export_onnx(model=)`"),
     ("export", "out"): ("—", "`export_onnx(out=)`"),
@@ -114,6 +128,7 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("export", "p_test"): ("experiment `study.p_test`; hyperparameter `p_test`", "`export_onnx(p_test=)`"),
     ("export", "window"): ("experiment `safety.window`", "`export_onnx(window=)`"),
     ("export", "value"): ("—", "`export_onnx(with_value=)`"),
+    ("export", "force"): ("—", "— (`export_onnx` replaces the file)"),
 }
 
 
@@ -141,6 +156,7 @@ def choices() -> dict[str, tuple[str, ...]]:
     from socnav.experiments.tune import METRICS
     from socnav.rl.presets import ALGOS
     from socnav.safety import PROXIMITY_VARIANTS, SENSING_CHOICES, THRESHOLD_PRESETS
+    from socnav.sim.humans import human_model_names
     from socnav.sim.scenarios import scenario_names
     from socnav.uncertainty import ESTIMATOR_KINDS
 
@@ -149,7 +165,7 @@ def choices() -> dict[str, tuple[str, ...]]:
         "estimator": tuple(ESTIMATOR_KINDS), "sensing": SENSING_CHOICES, "proximity": ("both", *PROXIMITY_VARIANTS),
         "safety": (*THRESHOLD_PRESETS, "FILE"), "thresholds": (*THRESHOLD_PRESETS, "FILE"),
         "backend": typing.get_args(typing.get_type_hints(run_experiment)["backend"]), "metric": tuple(METRICS),
-        "model": ("FILE", "pretrained"),
+        "model": ("FILE", "pretrained"), "humans": tuple(human_model_names()),
     }
 
 

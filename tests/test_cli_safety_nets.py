@@ -60,7 +60,7 @@ def _curve_run(tmp_path: Path) -> Path:
     return run_dir
 
 
-# ------------------------------------------------------------------------------------------ outputs (item 1)
+# ------------------------------------------------------------------------------------------ outputs
 
 def test_evaluate_out_refuses_an_existing_file_unless_force(tmp_path):
     out = tmp_path / "r.csv"
@@ -148,7 +148,7 @@ def test_report_keeps_an_earlier_report_unless_force(tmp_path):
     assert page.read_text() != "edited"
 
 
-# ------------------------------------------------------------------------------------------ options first (item 2)
+# ------------------------------------------------------------------------------------------ options first
 
 @pytest.mark.parametrize("options, words", [
     (["evaluate", "--model", "pretrained", "--safety", "foo"], "--safety"),
@@ -181,7 +181,7 @@ def test_k_is_bounded_as_the_export_bounds_it():
         assert code == 2 and "'--k'" in output and str(MAX_K) in output, output
 
 
-# ------------------------------------------------------------------------------------------ exported navigator (item 3)
+# ------------------------------------------------------------------------------------------ exported navigator
 
 def test_evaluate_scores_an_exported_navigator_like_the_policy_it_came_from(tmp_path):
     require("onnx")
@@ -204,7 +204,7 @@ def test_evaluate_scores_an_exported_navigator_like_the_policy_it_came_from(tmp_
     assert code == 2 and "exported navigator" in output and "zip" not in output.split("exported navigator")[0]
 
 
-# ------------------------------------------------------------------------------------------ Ctrl-C (item 4)
+# ------------------------------------------------------------------------------------------ Ctrl-C
 
 TINY = ["--scenario", "position_swap", "--n-humans", "1", "--algo", "ppo", "--n-envs", "2", "--eval-episodes", "1",
         "--set", "n_steps=128"]
@@ -282,7 +282,7 @@ def test_an_interrupted_rollout_carries_its_finished_records():
     pd.testing.assert_frame_equal(finished, full.set_index("episode").loc[finished.index])
 
 
-# ------------------------------------------------------------------------------------------ --humans (item 5)
+# ------------------------------------------------------------------------------------------ --humans
 
 def test_humans_option_sets_the_human_model(tmp_path, monkeypatch):
     out = tmp_path / "r.csv"
@@ -299,7 +299,7 @@ def test_humans_option_sets_the_human_model(tmp_path, monkeypatch):
         assert "did you mean social_force" in output
 
 
-# ------------------------------------------------------------------------------------------ dry run (item 6)
+# ------------------------------------------------------------------------------------------ dry run
 
 def test_dry_run_refuses_what_the_run_refuses(tmp_path):
     from socnav.experiments.runner import prepare_run_dir
@@ -320,7 +320,7 @@ def test_dry_run_refuses_what_the_run_refuses(tmp_path):
     assert code == 2 and "is a file" in output
 
 
-# ------------------------------------------------------------------------------------------ world note (item 7)
+# ------------------------------------------------------------------------------------------ world note
 
 def test_a_policy_outside_its_training_world_gets_a_note(monkeypatch, tmp_path):
     monkeypatch.setattr("socnav.envs.rollout.rollout_episodes", _no_work)
@@ -334,7 +334,7 @@ def test_a_policy_outside_its_training_world_gets_a_note(monkeypatch, tmp_path):
     assert isinstance(result.exception, WorkStarted) and "note:" not in result.output
 
 
-# ------------------------------------------------------------------------------------------ progress (item 8)
+# ------------------------------------------------------------------------------------------ progress
 
 def test_rollout_shows_progress_when_asked_or_in_a_terminal(monkeypatch, capsys):
     import socnav
@@ -360,7 +360,7 @@ def test_readme_python_example_is_the_measured_example_file():
     assert block.strip() in example
 
 
-# ------------------------------------------------------------------------------------------ plot (item 9)
+# ------------------------------------------------------------------------------------------ plot
 
 def test_plot_draws_a_runs_training_curve(tmp_path):
     require("matplotlib")

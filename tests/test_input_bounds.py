@@ -1,9 +1,10 @@
-"""Every file socnav reads is bounded before the expensive step (issue: inputs an attacker shaped): replay trajectory
-files, map YAML, map images, configs and thresholds files, navigator files. Each crafted input below is refused with
-one line naming the file, the limit and the value -- within seconds, and under a memory limit: the loads run in a
-subprocess whose address space is capped at what its imports took plus 1 GiB (`resource.RLIMIT_AS`), so a
-regression fails with a MemoryError instead of taking the machine's memory. Large files are sparse (`truncate`):
-refusing them from their size costs nothing. docs/limits.md lists the limits and the measured peak memory.
+"""Every file socnav reads is bounded before the expensive step, so that an input an attacker shaped costs nothing:
+replay trajectory files, map YAML, map images, configs and thresholds files, navigator files. Each crafted input
+below is refused with one line naming the file, the limit and the value -- within seconds, and under a memory limit:
+the loads run in a subprocess whose address space is capped at what its imports took plus 1 GiB
+(`resource.RLIMIT_AS`), so a regression fails with a MemoryError instead of taking the machine's memory. Large files
+are sparse (`truncate`): refusing them from their size costs nothing. docs/limits.md lists the limits and the
+measured peak memory.
 """
 
 from __future__ import annotations
@@ -252,7 +253,7 @@ def test_a_config_of_a_short_replay_file_of_too_many_positions_is_refused_as_it_
             f"keeps at most {replay.MAX_SAMPLES:,}") in problems[0], problems[0]
     assert seconds < SECONDS, seconds  # ~10 ms: the positions are counted, not built
     # a longer time_step gives fewer positions, but not few enough; within the bound the file is accepted
-    with pytest.raises(ConfigError, match="give 400,000,003 positions at time_step 1 s"):
+    with pytest.raises(ConfigError, match="give 400,000,002 positions at time_step 1 s"):
         load_config(config, time_step=1.0)
     path.write_text("0 1 0 0\n100 1 1 1\n0 2 0 0\n10 2 1 1\n")
     assert load_config(config).humans.replay.files == [str(path.resolve())]
@@ -262,12 +263,14 @@ def test_the_replay_files_of_a_config_are_bounded_together(tmp_path, monkeypatch
     monkeypatch.setattr(replay, "MAX_TOTAL_BYTES", 100)
     files = [tmp_path / f"{name}.txt" for name in "abc"]
     for path in files:
-        path.write_text("0 1 0 0\n10 1 1 1\n" * 3)
+        path.write_text("".join(f"{10 * frame} 1 {frame} 0\n" for frame in range(6)))  # 53 bytes each
     config = {"scenario": "replay", "humans": {"model": "replay", "replay": {"files": [str(p) for p in files]}}}
+    load_config(config, humans={"replay": {"files": [str(files[0])] * 3}})  # a file listed again is counted once
     with pytest.raises(ConfigError) as error:
         load_config(config)
-    assert "humans.replay.files: trajectory files" in str(error.value), str(error.value)
-    assert "hold 153 bytes together, more than the 100 socnav reads" in str(error.value), str(error.value)
+    _, *problems = str(error.value).splitlines()
+    assert len(problems) == 1 and problems[0].startswith("  - humans.replay.files: trajectory files "), problems
+    assert "hold 159 bytes together, more than the 100 socnav reads" in problems[0], problems[0]
 
 
 def test_read_bounded_refuses_a_file_from_its_size_before_reading(tmp_path, monkeypatch):
@@ -287,6 +290,13 @@ def test_read_bounded_refuses_a_file_from_its_size_before_reading(tmp_path, monk
     assert time.perf_counter() - start < SECONDS
     assert str(error.value) == (f"{huge} is larger than {512 << 20:,} bytes, the most socnav reads from such a file "
                                 f"(it has {2 << 30:,})")
+    # a 2 GiB navigator file: refused from its size, nothing read (it was read up to the 512 MiB bound)
+    from socnav.runtime.format import NAVIGATOR_MAX_BYTES
+    from socnav.runtime.network import ExportedPolicy, NavigatorLoadError
+
+    with pytest.raises(NavigatorLoadError, match=rf"navigator.onnx is larger than {NAVIGATOR_MAX_BYTES:,} bytes, the "
+                                                 rf"most socnav reads from such a file \(it has {2 << 30:,}\)"):
+        ExportedPolicy.load(huge)
     assert not opened, "read before its size was checked"
     monkeypatch.setattr(os, "fdopen", real_fdopen)
     # at the bound exactly: read

@@ -1,6 +1,6 @@
-"""What a new user still hit (issue 21, items 4, 6, 8 and 9): one clear line where a traceback came, refused before
-any work is done, and output that says what actually happens (a rollout larger than the budget, where a stopped
-training can continue, the world a model plays in)."""
+"""Mistakes a new user makes get one clear line instead of a traceback, refused before any work is done, and the
+output says what actually happens (a rollout larger than the budget, where a stopped training can continue, the
+world a model plays in)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Run directories and input files an attacker or an accident shaped (issue 21, items 3-5 and 7): a symbolic link
-planted in a run directory is never followed, a deep or huge JSON file gives one line and its unit is redone, a zip
+"""Run directories and input files an attacker or an accident shaped are handled safely: a symbolic link planted
+in a run directory is never followed, a deep or huge JSON file gives one line and its unit is redone, a zip
 is sized from its end record before `zipfile` parses it, a checkpoint's optimizer settings and counters are
 cross-checked before a run resumes, and the Python API does not overwrite a run."""
 

@@ -166,7 +166,7 @@ def test_evaluate_table_has_nav_time_and_says_what_pv_counts(tmp_path):
     records = pd.read_csv(tmp_path / "r.csv")
     nav_time = records.loc[records["outcome"] == "goal", "time_to_goal"].mean()
     assert "nav time (s)" in output and f"{nav_time:.1f} │" in output
-    assert "PV per 200 episodes" in flat(output)
+    assert "PV: personal-space violations (intrusion events) per 200 episodes" in flat(output)
 
 
 def test_piped_tables_keep_words_whole(tmp_path):

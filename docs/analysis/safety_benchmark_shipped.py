@@ -21,7 +21,7 @@ from socnav.experiments.safety_benchmark_units import benchmark_markdown
 from socnav.io import read_table, write_text_atomic
 from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
-TABLE3_WORLD = {"scenario": "position_swap", "n_humans": 1, "personal_space": [0.3, 0.4]}  # configs/experiments/table3.yaml
+TABLE3_WORLD = {"scenario": "position_swap", "n_humans": 1, "personal_space": [0.3, 0.4]}  # Table 3 world
 DOCS = Path(__file__).resolve().parents[1]
 INTRO = """# Safety-layer benchmark (the shipped policy)
 

@@ -379,7 +379,7 @@ def test_a_simulator_without_a_navigator_says_what_it_waits_for(ros_context, nav
 
 def test_simulated_stamps_on_a_wall_clock_node_are_a_clock_mismatch_logged_once(ros_context, navigator_file,
                                                                                 monkeypatch):
-    """The issue's case: a navigator without --use-sim-time fed `socnav ros2 sim`'s stamps (simulated seconds
+    """A navigator without --use-sim-time fed `socnav ros2 sim`'s stamps (simulated seconds
     since 0): 52 decisions say "clock mismatch" and name --use-sim-time; one log line, not 52. A stop whose age
     changes at every decision (stale inputs) is one log line too."""
     import types

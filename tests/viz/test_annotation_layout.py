@@ -84,3 +84,38 @@ def test_the_walls_lie_inside_the_scene(scenario):
         assert scene.x0 - 2 <= wall.x0 and wall.x1 <= scene.x1 + 2 and scene.y0 - 2 <= wall.y0
         assert wall.y1 <= scene.y1 + 2
     renderer.close()
+
+
+@pytest.mark.parametrize("scenario", MAP_SCENARIOS)
+def test_the_clock_of_a_plain_frame_lies_off_the_walls(scenario):
+    """`env.render` (and so Gymnasium's RecordVideo) draws the clock in the scene's top-left corner; the scenario's
+    extent leaves a band above the walls for it (`clock_clear_extent`), so its box -- text and padding -- overlaps
+    no wall's box, at any time of the episode, and the frame keeps the documented pixel mapping (the scene fills
+    the image) with every wall inside it."""
+    import dataclasses
+
+    env = socnav.make_env({"scenario": scenario}, render_mode="rgb_array")
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    image = env.render()
+    renderer = env.unwrapped._renderer
+    assert image.shape == (renderer.height, renderer.width, 3)
+    assert renderer.scene_box() == (0.0, 0.0, renderer.width, renderer.height)
+    assert renderer.extent == scene_extent(env.unwrapped.config)
+    frame = env.unwrapped.scene_frame()
+    walls = [np.asarray(wall) for wall in frame.walls]
+    canvas = renderer.canvas.get_renderer()
+    pixels = Bbox([[0, 0], [renderer.width, renderer.height]])
+    for time in (frame.time, 999.9):  # the widest clock an episode shows
+        renderer.render(dataclasses.replace(frame, time=time))
+        clock = renderer.time_text
+        assert clock.get_visible() and clock.get_text().startswith("t = ")
+        box = Bbox.union([clock.get_window_extent(canvas), clock.get_bbox_patch().get_window_extent(canvas)])
+        assert pixels.containsx(box.x0) and pixels.containsx(box.x1), box
+        assert pixels.containsy(box.y0) and pixels.containsy(box.y1), box
+        for index, wall in enumerate(wall_boxes(renderer, walls)):
+            assert not box.overlaps(wall), f"{scenario}: the clock {box} overlaps wall {index} {wall}"
+    for wall in wall_boxes(renderer, walls):  # the map is still shown whole
+        assert wall.x0 >= -2 and wall.x1 <= renderer.width + 2 and wall.y0 >= -2 and wall.y1 <= renderer.height + 2
+    env.close()

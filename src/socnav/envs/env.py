@@ -133,18 +133,28 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
 
 def scene_extent(config: EnvConfig) -> float:
     """Half the side of the square a rendered scene shows (metres around the origin): the circle scenarios'
-    circle, the random scenario's square, the replayed robot's path, plus a margin."""
+    circle, the random scenario's square, the replayed robot's path, plus a margin; a map scenario's walls, with
+    a band above them for the clock of a plain frame (`socnav.viz.render.clock_clear_extent`, at `env.render`'s
+    480 pixels), so that the clock is never drawn over a wall."""
     if config.scenario == "random":
         return config.square_size / 2 + 1.5
     if config.scenario == "replay":
         return config.humans.replay.robot_distance / 2 + 1.5
     if config.scenario in ("corridor", "intersection"):
-        return config.layout.corridor_length / 2 + 0.5
-    if config.scenario == "doorway":
-        return config.layout.room_size + 0.5
-    if config.scenario == "room":
-        return config.circle_radius + config.circle_jitter + 2.6
-    return config.circle_radius + 1.5
+        extent = config.layout.corridor_length / 2 + 0.5
+    elif config.scenario == "doorway":
+        extent = config.layout.room_size + 0.5
+    elif config.scenario == "room":
+        extent = config.circle_radius + config.circle_jitter + 2.6
+    else:
+        return config.circle_radius + 1.5
+    from socnav.sim.scenarios import get_scenario
+    from socnav.viz.render import clock_clear_extent
+
+    static_map = getattr(get_scenario(config.scenario), "static_map", None)  # a map scenario's walls
+    walls = static_map(config) if static_map is not None else []
+    top = max((float(np.max(np.asarray(polygon)[:, 1])) for polygon in walls), default=0.0)
+    return max(extent, clock_clear_extent(top))
 
 
 class SocialNavEnv(gym.Env):

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 
 from socnav.config import load_config
-from socnav.envs.perturbations import CALIBRATION_SEED, perturbed_config
+from socnav.envs.perturbations import CALIBRATION_SEED, perturbation_override, perturbed_config
 from socnav.io import write_table_atomic, write_text_atomic
 from socnav.safety.calibration.trigger_search import (
     ANALYTIC_TRIGGERS,
@@ -37,7 +37,7 @@ from socnav.safety.calibration.trigger_search import (
     prepare_triggers,
 )
 from socnav.safety.calibration.workflow import calibrate_budgets
-from socnav.safety.rule import RULE_CONDITIONS
+from socnav.safety.rule import RULE_CONDITIONS, Thresholds
 from socnav.safety.triggers import SafetyDecision, decision_fields
 
 __all__ = [
@@ -58,8 +58,9 @@ __all__ = [
 PAPER_TYPES: dict[str, list[float]] = {"observation_noise": [1.0, 2.0], "heading_noise": [1.0, 2.0],
                                        "speed_noise": [1.0], "faster_humans": [4.0, 8.0], "more_humans": [7.0]}
 #: Worlds no calibration step resembles: humans of another model, and a map scenario.
-HELD_OUT_SHIFTS: dict[str, dict[str, Any]] = {"behaviour_shift": {"perturbation": {"behaviour_shift": 1}},
-                                              "corridor": {"scenario": "corridor"}}
+HELD_OUT_SHIFTS: dict[str, dict[str, Any]] = {
+    "behaviour_shift": {"perturbation": perturbation_override("behaviour_shift", 1)},
+    "corridor": {"scenario": "corridor"}}
 #: The benchmark's rows: the rule and its proximity-only ablation, the analytic triggers, the risk model without and
 #: with the uncertainty inputs (its ablation).
 BENCHMARK_ROWS = ("paper", "proximity-only", *ANALYTIC_TRIGGERS, "risk-model", "risk-model+uncertainty")
@@ -226,18 +227,45 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
+LAYERS_FILE = "layers.yaml"
+
+
+def layer_record(layer: Layer) -> dict[str, Any]:
+    """A layer as a file record (:func:`load_layers` reads it back): name, budget, fallback, the decision's kind
+    (``rule`` or ``trigger``) and its fields, and the flat fields of a table row."""
+    kind = "rule" if isinstance(layer.decision, Thresholds) else "trigger"
+    return {"name": layer.name, "budget": layer.budget, "fallback": layer.fallback, "kind": kind,
+            "decision": layer.decision.model_dump(mode="json"), "row": decision_fields(layer.decision)}
+
+
+def load_layers(path: Path) -> list[Layer]:
+    """The layers :func:`run_safety_benchmark` calibrated and wrote (a risk model's file must still be there)."""
+    import yaml
+
+    from socnav.safety.triggers import TriggerSpec
+
+    records = yaml.safe_load(path.read_text())
+    return [Layer(record["name"], Thresholds.create(record["decision"]) if record["kind"] == "rule"
+                  else TriggerSpec.create(record["decision"]), float(record["budget"]), record["fallback"])
+            for record in records]
+
+
 def run_safety_benchmark(policy: Any, estimator: Any, setup: BenchmarkSetup, out: str | Path,
                          log: Callable[[str], None] = print) -> pd.DataFrame:
-    """Calibrate every layer, add the best score trigger with the brake fallback, evaluate on the held-out worlds,
-    and write ``layers.yaml``, ``episodes.csv`` and ``summary.csv`` in ``out``. Returns the summary."""
+    """Calibrate every layer (or read them from ``out/layers.yaml``, written when the calibration finished: an
+    interrupted run keeps it), add the rows of `setup.brake_rows` with the brake fallback, evaluate on the held-out
+    worlds, and write ``episodes.csv`` and ``summary.csv`` in ``out``. Returns the summary."""
     import yaml
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    layers = calibrate_layers(policy, estimator, setup, out, log)
-    write_text_atomic(out / "layers.yaml", yaml.safe_dump(
-        [{"name": layer.name, "budget": layer.budget, **decision_fields(layer.decision)} for layer in layers],
-        sort_keys=False))
+    saved = out / LAYERS_FILE
+    if saved.is_file():  # an interrupted run: the calibration is kept, only the evaluation is played again
+        layers = load_layers(saved)
+        log(f"calibrated layers read from {saved}")
+    else:
+        layers = calibrate_layers(policy, estimator, setup, out, log)
+        write_text_atomic(saved, yaml.safe_dump([layer_record(layer) for layer in layers], sort_keys=False))
     brakes = [Layer(layer.name, layer.decision, layer.budget, "brake") for layer in layers
               if layer.name in setup.brake_rows]
     episodes = evaluate_layers(policy, estimator, [*layers, *brakes], setup, log)

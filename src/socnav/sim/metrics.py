@@ -342,8 +342,8 @@ METRICS: dict[str, Metric] = {m.name: m for m in [
     Metric("timeout_pct", "TO %", "%", "share of episodes reaching the time limit (timeout_factor x straight-line "
            "time + timeout_margin)", False, FRANCIS, "outcome", PERCENT, equals="timeout", default=True,
            decimals=1),
-    Metric("pv", f"PV/{PV_PER} ep.", f"events / {PV_PER} episodes", "personal-space intrusion events (the gap to a "
-           "human falls below its personal-space radius after being above it) per 200 episodes", False,
+    Metric("pv", f"PV/{PV_PER} ep.", f"events / {PV_PER} episodes", "PV, personal-space violations: intrusion events "
+           "(the gap to a human falls below its personal-space radius after being above it) per 200 episodes", False,
            "Flögel, Gómez Villafañe et al. 2025 (PV, the replicated paper)", "intrusion_events", PER_EPISODES,
            default=True, decimals=0),
     Metric("return_mean", "Return", "", "mean episode return (undiscounted sum of the reward)", True, OURS,

@@ -71,6 +71,18 @@ OUTCOME_TOP, OUTCOME_BOTTOM = 0.89, 0.07
 #: (the metre scale, then the caption), and the annotations' font sizes (points).
 TOP_BAND_PT, BOTTOM_BAND_PT = 30.0, 34.0
 TEXT_PT, OUTCOME_PT, SCALE_PT = 9.0, 17.0, 8.0
+#: Plain frames: the clock sits in the scene's top-left corner, `CLOCK_INSET_PT` in from both edges; its box (text
+#: and padding) and half a wall line lie in the band `CLOCK_BAND_PT` high at the top of the scene, so a scene whose
+#: walls stay below that band (`clock_clear_extent`) has no wall under the clock.
+CLOCK_INSET_PT, CLOCK_BAND_PT = 4.0, 20.0
+
+
+def clock_clear_extent(top: float, size: int = 480, dpi: int = 80) -> float:
+    """The smallest extent of a plain frame whose scene, drawn `size` pixels high at `dpi`, shows everything up to
+    the height `top` (metres) below the clock's band (`CLOCK_BAND_PT`): with ``extent >= clock_clear_extent(top)``,
+    ``(extent - top) / (2 * extent)`` of the scene's height lies above `top`, at least the band."""
+    band = CLOCK_BAND_PT / (size / dpi * 72.0)  # the band as a fraction of the scene's height
+    return float(top) / (1.0 - 2.0 * band)
 
 
 @dataclass
@@ -284,8 +296,9 @@ class SceneRenderer:
             self.outcome_text = ax.text(0.99, 1.0, "", transform=right, ha="right", va="bottom", fontsize=OUTCOME_PT,
                                         fontweight="bold")
         else:
-            self.time_text = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=TEXT_PT,
-                                     bbox=box)
+            inset = ax.transAxes + ScaledTranslation(CLOCK_INSET_PT / 72.0, -CLOCK_INSET_PT / 72.0,
+                                                     self.fig.dpi_scale_trans)  # in the band of CLOCK_BAND_PT
+            self.time_text = ax.text(0.0, 1.0, "", transform=inset, ha="left", va="top", fontsize=TEXT_PT, bbox=box)
             self.caption_text = ax.text(0.02, 0.02, "", transform=ax.transAxes, ha="left", va="bottom",
                                         fontsize=TEXT_PT, bbox=box)
             self.title_text = ax.text(0.5, 0.98, "", transform=ax.transAxes, ha="center", va="top", fontsize=TEXT_PT,

@@ -1,0 +1,131 @@
+"""The safety-layer benchmark: its plan, its pooled table by hand, the paired comparison against proximity-only, and
+verdicts whose error rate is shown by simulating the null (and whose power is shown on a real difference)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from socnav.experiments.safety_benchmark import BenchmarkSetup, paired_against, summarize_layers
+from socnav.experiments.safety_benchmark_units import benchmark_markdown, seed_differences, verdicts
+from socnav.experiments.spec import ExperimentError, load_experiment, parse_experiment, plan_units
+
+CONFIG = "configs/experiments/safety_benchmark.yaml"
+
+
+def _episodes(layers: dict[str, dict[str, list[int]]], seed: int = 0, lengths: int = 10) -> pd.DataFrame:
+    """Episode rows: layer -> world -> collided flags (one per episode); worlds named `group=strength`, `unperturbed`
+    or a shift; every layer falls back on one step of each unperturbed episode."""
+    rows = []
+    for layer, worlds in layers.items():
+        for world, flags in worlds.items():
+            group = "unperturbed" if world == "unperturbed" else "shift" if "=" not in world else world.split("=")[0]
+            for episode, collided in enumerate(flags):
+                rows.append({"train_seed": seed, "world": world, "group": group, "layer": layer,
+                             "budget": 0.0 if layer == "plain" else 0.05, "fallback": "" if layer == "plain"
+                             else "cautious", "episode": episode, "collided": bool(collided),
+                             "goal": not collided, "length": lengths,
+                             "fallback_steps": 0 if layer == "plain" else int(world == "unperturbed")})
+    return pd.DataFrame(rows)
+
+
+def test_the_plan_trains_then_benchmarks_each_seed():
+    experiment = load_experiment(CONFIG, "check")
+    units = plan_units(experiment)
+    trains = [unit for unit in units if unit.kind == "train"]
+    benchmarks = [unit for unit in units if unit.kind == "safety_benchmark"]
+    assert len(trains) == len(benchmarks) == 2
+    assert [unit.deps for unit in benchmarks] == [(train.id,) for train in trains]
+    assert benchmarks[0].params["budgets"] == [0.05]
+    quick = plan_units(load_experiment(CONFIG, "quick"))
+    assert [u for u in quick if u.kind == "safety_benchmark"][0].params["budgets"] == [0.01, 0.02, 0.05, 0.1]
+    assert len([u for u in quick if u.kind == "safety_benchmark"]) == 20
+
+
+def test_unknown_trigger_in_a_config_names_the_closest():
+    import yaml
+
+    data = yaml.safe_load(open(CONFIG))
+    data["safety"]["triggers"] = ["conformall"]
+    with pytest.raises(ExperimentError, match="did you mean 'conformal'"):
+        parse_experiment(data)
+
+
+def test_the_setup_holds_out_the_calibration_strengths():
+    from socnav.envs.perturbations import CALIBRATION_SET
+
+    setup = BenchmarkSetup(env={"scenario": "position_swap", "n_humans": 1})
+    for kind, strengths in setup.paper_types.items():
+        assert not set(strengths) & set(CALIBRATION_SET[kind])
+    groups = {group for group, _ in setup.worlds().values()}
+    assert {"unperturbed", "shift"} <= groups
+
+
+def test_pooled_table_by_hand():
+    episodes = _episodes({
+        "plain": {"unperturbed": [1, 0, 0, 0], "heading_noise=1": [1, 1, 1, 1], "corridor": [1, 1, 0, 0]},
+        "proximity-only": {"unperturbed": [0, 0, 0, 0], "heading_noise=1": [1, 1, 0, 0], "corridor": [1, 0, 0, 0]},
+        "time-to-collision": {"unperturbed": [0, 0, 0, 1], "heading_noise=1": [0, 0, 0, 0], "corridor": [0, 0, 0, 0]},
+    })
+    table = summarize_layers(episodes).set_index("layer")
+    assert table.attrs["plain_collisions_paper_types"] == 4
+    assert table.loc["proximity-only", "prevented_paper_types_pct"] == pytest.approx(50.0)
+    assert table.loc["time-to-collision", "prevented_paper_types_pct"] == pytest.approx(100.0)
+    assert table.loc["time-to-collision", "prevented_unperturbed_pct"] == pytest.approx(0.0)  # 1 vs 1
+    assert table.loc["proximity-only", "prevented_corridor_pct"] == pytest.approx(50.0)
+    # one fallback step in each 10-step unperturbed episode
+    assert table.loc["time-to-collision", "false_activation_pct"] == pytest.approx(10.0)
+    # paired over the paper types: 2 episodes fewer of 4 -> -0.5, both discordant pairs in its favour
+    versus = paired_against(episodes, ("time-to-collision", 0.05, "cautious"), ("proximity-only", 0.05, "cautious"),
+                            ["heading_noise=1"])
+    assert versus["difference"] == pytest.approx(-0.5)
+    assert (versus["fewer"], versus["more"]) == (2, 0)
+    assert versus["p"] == pytest.approx(0.5)  # two-sided exact binomial test of 2 of 2
+
+
+def _seeded(rng: np.random.Generator, seeds: int, rate_base: float, rate_layer: float,
+            episodes: int = 100) -> pd.DataFrame:
+    frames = []
+    for seed in range(seeds):
+        base = rng.random(episodes) < rate_base
+        layer = rng.random(episodes) < rate_layer
+        frames.append(_episodes({"plain": {"unperturbed": [0] * 10, "faster_humans=4": list(base | layer)},
+                                 "proximity-only": {"unperturbed": [0] * 10, "faster_humans=4": list(base)},
+                                 "conformal": {"unperturbed": [0] * 10, "faster_humans=4": list(layer)}},
+                                seed=seed))
+    return pd.concat(frames, ignore_index=True)
+
+
+def test_the_verdict_keeps_its_error_rate_under_the_null():
+    """Layer and proximity-only equally good (same collision probability, independent episodes): over 400
+    simulated benchmarks of 20 seeds the one-sided 5 % verdict says 'fewer collisions' in at most ~5 % of them."""
+    rng = np.random.default_rng(0)
+    claims = 0
+    trials = 400
+    for _ in range(trials):
+        table = verdicts(seed_differences(_seeded(rng, 20, 0.2, 0.2)))
+        claims += int((table.loc[table["layer"] == "conformal", "verdict"] == "fewer collisions").iloc[0])
+    # binomial(400, 0.05): mean 20, sd 4.4; 32 is the mean + 2.7 sd
+    assert claims / trials <= 0.08
+
+
+def test_the_verdict_finds_a_real_difference():
+    rng = np.random.default_rng(1)
+    table = verdicts(seed_differences(_seeded(rng, 20, 0.2, 0.1)))
+    row = table[table["layer"] == "conformal"].iloc[0]
+    assert row["verdict"] == "fewer collisions"
+    assert row["low"] < -10.0 < row["high"] < 0  # the simulated difference: 10 % - 20 % = -10 points
+    assert table.loc[table["layer"] == "proximity-only", "verdict"].iloc[0] == "(the row to beat)"
+
+
+def test_markdown_with_one_policy_pairs_the_episodes(tmp_path):
+    rng = np.random.default_rng(2)
+    episodes = _seeded(rng, 1, 0.3, 0.05, episodes=200)
+    text = benchmark_markdown(episodes, tmp_path, "one policy")
+    assert "| conformal | 5% | cautious |" in text and "fewer collisions" in text
+    assert (tmp_path / "safety_benchmark_tradeoff.png").stat().st_size > 0
+    table = pd.read_csv(tmp_path / "safety_benchmark_verdicts.csv")
+    assert math.isclose(table.loc[table["layer"] == "proximity-only", "diff_pct"].iloc[0], 0.0)
