@@ -22,6 +22,7 @@ from socnav.experiments.registry import (
 from socnav.experiments.safety_benchmark import (
     BENCHMARK_ROWS,
     HELD_OUT_SHIFTS,
+    LAYERS_FILE,
     BenchmarkSetup,
     run_safety_benchmark,
     summarize_layers,
@@ -34,7 +35,7 @@ __all__ = ["benchmark_markdown", "seed_differences", "verdicts"]
 SHIFT_TYPES = ("behaviour_shift",)  # perturbation types that are held-out shifts, not the paper's
 
 
-@register_executor("safety_benchmark")
+@register_executor("safety_benchmark", resumable=lambda directory: (directory / LAYERS_FILE).is_file())
 def _execute_benchmark(root: Path, unit: Unit, directory: Path) -> ExecutorResult:
     from socnav.rl.persistence import load_policy
     from socnav.uncertainty import MC_SEED, MCDropoutEstimator
