@@ -27,7 +27,7 @@ def _episodes(layers: dict[str, dict[str, list[int]]], seed: int = 0, lengths: i
                 rows.append({"train_seed": seed, "world": world, "group": group, "layer": layer,
                              "budget": 0.0 if layer == "plain" else 0.05, "fallback": "" if layer == "plain"
                              else "cautious", "episode": episode, "collided": bool(collided),
-                             "goal": not collided, "length": lengths,
+                             "goal": not collided, "length": lengths, "fallback_at_end": False,
                              "fallback_steps": 0 if layer == "plain" else int(world == "unperturbed")})
     return pd.DataFrame(rows)
 

@@ -142,9 +142,11 @@ def evaluate_layers(policy: Any, estimator: Any, layers: Sequence[Layer], setup:
     parts = []
     for world, (group, config) in setup.worlds().items():
         log(f"evaluating in {world}")
-        for layer in [None, *layers]:
-            if layer is None:
-                records = rollout_episodes(policy, config, setup.eval_episodes, seed=setup.eval_seed,
+        for layer in [None, STAND_STILL, *layers]:
+            at_end = None
+            if layer is None or layer is STAND_STILL:
+                actor = policy if layer is None else _StandStill()
+                records = rollout_episodes(actor, config, setup.eval_episodes, seed=setup.eval_seed,
                                            n_envs=setup.n_envs, metrics=False)
                 fallbacks = np.zeros(len(records), dtype=np.int64)
             else:
@@ -158,14 +160,35 @@ def evaluate_layers(policy: Any, estimator: Any, layers: Sequence[Layer], setup:
                 records = rollout_episodes(safe, config, setup.eval_episodes, seed=setup.eval_seed,
                                            n_envs=setup.n_envs, observer=counter, metrics=False)
                 fallbacks = np.asarray(counter.per_episode(records["episode"]))
+                at_end = [counter.drove_at(e, n - 1) for e, n in zip(records["episode"], records["length"],
+                                                                      strict=True)]
             parts.append(pd.DataFrame({
                 "world": world, "group": group, "layer": "plain" if layer is None else layer.name,
                 "budget": 0.0 if layer is None else layer.budget,
-                "fallback": "" if layer is None else layer.fallback,
+                "fallback": "" if layer is None or layer is STAND_STILL else layer.fallback,
                 "episode": records["episode"].to_numpy(), "collided": (records["outcome"] == "collision").to_numpy(),
                 "goal": (records["outcome"] == "goal").to_numpy(), "length": records["length"].to_numpy(),
-                "fallback_steps": fallbacks}))
+                "fallback_steps": fallbacks,
+                # the fallback drove the step that ended the episode: with the brake, a collision the robot could
+                # not avoid by stopping when the trigger fired
+                "fallback_at_end": np.zeros(len(records), bool) if at_end is None else np.asarray(at_end)}))
     return pd.concat(parts, ignore_index=True)
+
+
+class _StandStill:
+    """A robot that never moves (the brake action at every step): the collisions no robot can avoid by stopping."""
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        from socnav.safety.safe_policy import BRAKE_ACTION
+
+        return np.tile(BRAKE_ACTION, (np.asarray(observation["robot"]).shape[0], 1)), None
+
+
+#: The reference row of a robot that stands still the whole episode (its collisions: the benchmark's floor).
+STAND_STILL = Layer("stand-still", Thresholds.never(), 0.0, "")
+#: Rows that are references, not safety layers: no comparison with proximity-only.
+REFERENCE_ROWS = ("plain", "stand-still")
 
 
 def paired_against(episodes: pd.DataFrame, layer: tuple[str, float, str], baseline: tuple[str, float, str],
@@ -208,6 +231,8 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
                         & (episodes["fallback"] == fallback)]
         unperturbed = mine[mine["group"] == "unperturbed"]
         row: dict[str, Any] = {"layer": name, "budget": budget, "fallback": fallback,
+                               "collisions_fallback_driving": int((mine["collided"] & mine["fallback_at_end"]).sum())
+                               if "fallback_at_end" in mine else 0,
                                "false_activation_pct": 100.0 * unperturbed["fallback_steps"].sum()
                                / max(unperturbed["length"].sum(), 1),
                                "goal_pct": 100.0 * mine["goal"].mean()}
@@ -217,7 +242,7 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
             theirs = int(plain.loc[plain["world"].isin(worlds), "collided"].sum())
             row[f"collisions_{label}"] = ours
             row[f"prevented_{label}_pct"] = 100.0 * (theirs - ours) / theirs if theirs else math.nan
-        if name != "plain":
+        if name not in REFERENCE_ROWS:
             versus = paired_against(episodes, (name, budget, fallback), ("proximity-only", budget, "cautious"),
                                     paper_worlds)
             row.update({f"vs_proximity_{key}": value for key, value in versus.items()})

@@ -23,6 +23,7 @@ from socnav.experiments.safety_benchmark import (
     BENCHMARK_ROWS,
     HELD_OUT_SHIFTS,
     LAYERS_FILE,
+    REFERENCE_ROWS,
     BenchmarkSetup,
     run_safety_benchmark,
     summarize_layers,
@@ -77,7 +78,7 @@ def seed_differences(episodes: pd.DataFrame) -> pd.DataFrame:
     for seed, mine in episodes.groupby("train_seed"):
         paper = ~mine["group"].isin(["unperturbed", "shift"])
         for (name, budget, fallback), layer in mine.groupby(["layer", "budget", "fallback"]):
-            if name == "plain":
+            if name in REFERENCE_ROWS:
                 continue
             base = mine[(mine["layer"] == "proximity-only") & np.isclose(mine["budget"], budget)
                         & (mine["fallback"] == "cautious")]
@@ -169,11 +170,13 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
              "that the layer prevents on the same episodes (negative: it causes more); false activation: share of "
              "held-out unperturbed steps on which the fallback drove; the difference in collision rate against "
              f"proximity-only at the same budget (percentage points; 95 % interval over the {unit}), and its "
-             "Holm-adjusted one-sided p for fewer collisions.", "",
-             "| layer | budget | fallback | false act. % | prevented, paper's types % | unperturbed % | "
-             + " | ".join(f"{name} %" for name in shift_columns)
-             + " | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
-             "|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|"]
+             "Holm-adjusted one-sided p for fewer collisions. `stand-still`: a robot that never moves (the collisions "
+             "no robot avoids by stopping); collisions with the fallback driving: those whose last step the fallback "
+             "drove (with the brake: the robot had stopped when the trigger fired and was still hit).", "",
+             "| layer | budget | fallback | false act. % | collisions, paper's types | prevented, paper's types % | "
+             "unperturbed % | " + " | ".join(f"{name} %" for name in shift_columns)
+             + " | collisions with the fallback driving | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
+             "|---|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|---|"]
     for row in pooled[pooled["layer"] != "plain"].itertuples(index=False):
         match = table[(table["layer"] == row.layer) & np.isclose(table["budget"], row.budget)
                       & (table["fallback"] == row.fallback)]
@@ -181,8 +184,9 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
         interval = ("" if verdict is None or not np.isfinite(verdict.diff_pct) else
                     f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]")
         shifts = " | ".join(f"{getattr(row, f'prevented_{name}_pct'):.0f}" for name in shift_columns)
-        lines.append(f"| {row.layer} | {row.budget:.0%} | {row.fallback} | {row.false_activation_pct:.2f} | "
-                     f"{row.prevented_paper_types_pct:.1f} | {row.prevented_unperturbed_pct:.0f} | {shifts} | "
+        lines.append(f"| {row.layer} | {row.budget:.0%} | {row.fallback or '-'} | {row.false_activation_pct:.2f} | "
+                     f"{row.collisions_paper_types} | {row.prevented_paper_types_pct:.1f} | "
+                     f"{row.prevented_unperturbed_pct:.0f} | {shifts} | {row.collisions_fallback_driving} | "
                      f"{interval} | {'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
                      f"{'' if verdict is None else verdict.verdict} |")
     lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
@@ -195,7 +199,7 @@ def _episode_verdicts(pooled: pd.DataFrame, confidence: float = 0.95) -> pd.Data
     and fallback."""
     from socnav.experiments.statistics import holm_adjust
 
-    rows = pooled[pooled["layer"] != "plain"].copy()
+    rows = pooled[~pooled["layer"].isin(REFERENCE_ROWS)].copy()
     table = pd.DataFrame({"layer": rows["layer"], "budget": rows["budget"], "fallback": rows["fallback"],
                           "diff_pct": 100.0 * rows["vs_proximity_difference"],
                           "low": 100.0 * rows["vs_proximity_low"], "high": 100.0 * rows["vs_proximity_high"],

@@ -314,6 +314,10 @@ class FallbackCounter:
         """Fallback steps of each of ``episodes`` (ids), 0 where it never acted."""
         return [self.counts.get(int(e), 0) for e in episodes]
 
+    def drove_at(self, episode: int, step: int) -> bool:
+        """Whether the fallback drove at step ``step`` (0-based) of ``episode``."""
+        return int(step) in self._fallback_steps.get(int(episode), ())
+
     def digest(self, episode: int) -> str:
         """16 hex digits identifying the step indices where the fallback drove in ``episode`` (the same for the same
         indices; an episode without a fallback step has the digest of the empty list)."""
