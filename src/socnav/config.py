@@ -22,142 +22,19 @@ from pydantic import (
     model_validator,
 )
 
+# YAML input is bounded by `socnav.io` (the lowest layer: the simulator's map reader uses it too); re-exported here.
+from socnav.io import YAML_MAX_BYTES as YAML_MAX_BYTES
+from socnav.io import YAML_MAX_DEPTH as YAML_MAX_DEPTH
+from socnav.io import YAML_MAX_NODES as YAML_MAX_NODES
+from socnav.io import YAMLTooLargeError as YAMLTooLargeError
+from socnav.io import file_size_problem as file_size_problem
+from socnav.io import read_yaml_file as read_yaml_file
+from socnav.io import safe_load_yaml as safe_load_yaml
+from socnav.io import yaml_problem as yaml_problem
+
 
 class ConfigError(ValueError):
     """A configuration value is wrong; the message names the field and what is allowed."""
-
-
-# ---------------------------------------------------------------------------------------------------- YAML input
-
-#: socnav's config, experiment, preset, threshold and map files are a few KB (a polygon map at its vertex bound
-#: ~200 KB): these limits leave ample room while bounding what a crafted file can make the reader build (a 409-byte
-#: "billion laughs" alias bomb expands to ~10^9 values, whose repr in an error message alone took ~1 GB). The values
-#: are counted as the document is composed, before any Python object is built (docs/limits.md).
-YAML_MAX_BYTES = 1 << 20
-YAML_MAX_NODES = 100_000
-#: Nesting of sequences and mappings (socnav's own files nest 5 deep): checked before the composer recurses, so a
-#: document nested thousands of levels deep is one line, never a RecursionError.
-YAML_MAX_DEPTH = 64
-
-
-class YAMLTooLargeError(yaml.YAMLError):
-    """A YAML input is too large (bytes, or values once its aliases are expanded), recursive or too deeply nested.
-
-    A `yaml.YAMLError`, so every reader's existing YAML error handling reports it.
-    """
-
-
-def _expanded_size(root: yaml.Node) -> int:
-    """Number of nodes of the document with every alias expanded (a DAG walk, memoised: linear in its size)."""
-    sizes: dict[int, int] = {}
-    on_path: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
-    while stack:
-        node, finished = stack.pop()
-        key = id(node)
-        if isinstance(node, yaml.MappingNode):
-            children = [item for pair in node.value for item in pair]
-        elif isinstance(node, yaml.SequenceNode):
-            children = list(node.value)
-        else:
-            children = []
-        if finished:
-            on_path.discard(key)
-            sizes[key] = 1 + sum(sizes[id(child)] for child in children)
-            if sizes[key] > YAML_MAX_NODES:
-                raise YAMLTooLargeError(f"its aliases (*name) expand to more than {YAML_MAX_NODES:,} values "
-                                        "(an alias bomb?)")
-            continue
-        if key in sizes:
-            continue
-        if key in on_path:
-            raise YAMLTooLargeError("an alias (*name) refers to a node that contains it (recursive anchors)")
-        on_path.add(key)
-        stack.append((node, True))
-        stack.extend((child, False) for child in children if id(child) not in sizes)
-    return sizes[id(root)]
-
-
-class _BoundedLoader(yaml.SafeLoader):
-    """`yaml.SafeLoader` that bounds a document while composing it -- nesting depth (`YAML_MAX_DEPTH`, before
-    recursing) and values written (`YAML_MAX_NODES`, as they are composed) -- and checks its size with aliases
-    expanded before constructing any Python object."""
-
-    def __init__(self, stream: Any) -> None:
-        super().__init__(stream)
-        self._depth = 0
-        self._composed = 0
-
-    def compose_document(self) -> yaml.Node | None:
-        self._depth = self._composed = 0
-        node = super().compose_document()
-        if node is not None:
-            _expanded_size(node)
-        return node
-
-    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
-        if not self.check_event(yaml.AliasEvent):  # an alias adds no node (its expansion is checked at the end)
-            self._composed += 1
-            if self._composed > YAML_MAX_NODES:
-                raise YAMLTooLargeError(f"it holds more than {YAML_MAX_NODES:,} values")
-        if self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent):
-            self._depth += 1
-            if self._depth > YAML_MAX_DEPTH:
-                raise YAMLTooLargeError(f"it is nested too deeply: more than {YAML_MAX_DEPTH} levels of lists or "
-                                        "mappings inside each other")
-            try:
-                return super().compose_node(parent, index)
-            finally:
-                self._depth -= 1
-        return super().compose_node(parent, index)
-
-
-def safe_load_yaml(text: str) -> Any:
-    """`yaml.safe_load` for untrusted input: at most `YAML_MAX_BYTES` characters, at most `YAML_MAX_NODES` values
-    (counted as written while composing, then with aliases expanded), no recursive anchors, nesting at most
-    `YAML_MAX_DEPTH` deep; every bound is checked before a Python object is built.
-
-    :raises YAMLTooLargeError: (a `yaml.YAMLError`) when a bound is exceeded; other `yaml.YAMLError` for bad YAML.
-    """
-    if len(text) > YAML_MAX_BYTES:
-        raise YAMLTooLargeError(f"{len(text):,} characters; socnav reads YAML of at most {YAML_MAX_BYTES:,}")
-    try:
-        return yaml.load(text, Loader=_BoundedLoader)
-    except RecursionError:
-        raise YAMLTooLargeError("nested too deeply") from None
-
-
-def _read_bounded_text(path: Path) -> str:
-    """The text of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
-    from socnav.io import UntrustedInputError, read_bounded
-
-    size = path.stat().st_size
-    if size > YAML_MAX_BYTES:
-        raise YAMLTooLargeError(f"{size:,} bytes; socnav reads files of at most {YAML_MAX_BYTES:,}")
-    try:  # within the bound whatever the size reported (a file still growing, /proc)
-        return read_bounded(path, YAML_MAX_BYTES).decode()
-    except UntrustedInputError as exc:
-        raise YAMLTooLargeError(str(exc)) from None
-
-
-def file_size_problem(path: str | Path, limit: int) -> str | None:
-    """'is N bytes, more than the M bytes socnav reads from such a file' when the regular file `path` is larger than
-    `limit` (from its size, before anything is read), else None (missing or not regular files are the reader's)."""
-    import os
-    import stat
-
-    try:
-        status = os.stat(path)
-    except OSError:
-        return None
-    if stat.S_ISREG(status.st_mode) and status.st_size > limit:
-        return f"is {status.st_size:,} bytes, more than the {limit:,} bytes socnav reads from such a file"
-    return None
-
-
-def read_yaml_file(path: Path) -> Any:
-    """`safe_load_yaml` of a file, refusing files over `YAML_MAX_BYTES` before reading them (OSError as usual)."""
-    return safe_load_yaml(_read_bounded_text(Path(path)))
 
 
 def read_mapping_file(path: str | Path, what: str, error: type[Exception] = ConfigError,
@@ -208,12 +85,6 @@ def read_mapping_file(path: str | Path, what: str, error: type[Exception] = Conf
     if not isinstance(data, dict):
         raise error(f"{what} file {path} must hold a mapping of fields, got {type(data).__name__}")
     return data
-
-
-def yaml_problem(error: yaml.YAMLError) -> str:
-    """The end of an error message about a YAML input: 'is refused: ...' or 'is not valid YAML: ...'."""
-    kind = "is refused" if isinstance(error, YAMLTooLargeError) else "is not valid YAML"
-    return f"{kind}: {error}"
 
 
 def short_repr(value: Any, limit: int = 200) -> str:

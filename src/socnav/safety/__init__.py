@@ -48,6 +48,9 @@ from socnav.safety.rule import (
 )
 from socnav.safety.safe_policy import FallbackCounter, SafePolicy, fallback_percent, no_uncertainty
 
+# The built-in triggers defined in modules of their own register on import: every user of the registry finds them.
+from socnav.safety import conformal, risk_model  # noqa: F401  isort: skip
+
 __all__ = [
     "CAUTIOUS_RADIUS_SCALE",
     "PROXIMITY_VARIANTS",

@@ -20,7 +20,7 @@ without action noise; every human keeps its observed velocity):
 - ``predicted-clearance``: minus the smallest gap to any human over the next ``horizon`` seconds.
 
 The conformal shield (`socnav.safety.conformal`) and the learned collision-risk model (`socnav.safety.risk_model`)
-register themselves the same way.
+register themselves the same way (`socnav.safety` imports both, so every import of a trigger module finds them).
 """
 
 from __future__ import annotations
@@ -183,13 +183,11 @@ def register_trigger(cls: type[ScoreTrigger]) -> type[ScoreTrigger]:
 def trigger_names() -> tuple[str, ...]:
     """Every trigger a layer can use: the rule's (``paper``, ``proximity-only``, ``uncertainty-only``) and the
     registered score triggers."""
-    _load_builtin_triggers()
     return (*RULE_CONDITIONS, *TRIGGERS)
 
 
 def trigger_class(name: str) -> type[ScoreTrigger]:
     """The registered score trigger ``name``; :class:`TriggerError` with a did-you-mean and the list otherwise."""
-    _load_builtin_triggers()
     if name in TRIGGERS:
         return TRIGGERS[name]
     allowed = trigger_names()
@@ -198,12 +196,6 @@ def trigger_class(name: str) -> type[ScoreTrigger]:
     if name in RULE_CONDITIONS:
         raise TriggerError(f"trigger {name!r} is the paper's rule: give its thresholds (socnav.safety.Thresholds)")
     raise TriggerError(f"unknown trigger {name!r}; {hint}allowed: {', '.join(allowed)}")
-
-
-def _load_builtin_triggers() -> None:
-    """Import the modules that register the built-in triggers defined outside this one."""
-    import socnav.safety.conformal
-    import socnav.safety.risk_model  # noqa: F401
 
 
 def make_trigger(spec: TriggerSpec | Thresholds, base: Path | None = None) -> Trigger:
@@ -450,6 +442,5 @@ def save_trigger_spec(spec: TriggerSpec, path: str | Path, extra: Mapping[str, A
 
 def trigger_descriptions() -> dict[str, str]:
     """One line per registered score trigger, for ``--help`` and the docs."""
-    _load_builtin_triggers()
     return {name: cls.description for name, cls in TRIGGERS.items()}
 

@@ -51,7 +51,7 @@ MAX_GRID_CELLS = 2048 * 2048
 #: half-cell simplification removes the corners of shallow staircases, but not 16 times the vertex bound.
 MAX_GRID_CORNERS = 16 * MAX_TOTAL_VERTICES
 #: The largest map YAML read (refused from its size, before reading): a polygon map at `MAX_TOTAL_VERTICES` is
-#: ~200 KB. Its YAML is also bounded in nesting and values (`socnav.config.safe_load_yaml`).
+#: ~200 KB. Its YAML is also bounded in nesting and values (`socnav.io.safe_load_yaml`).
 MAX_MAP_BYTES = 1 << 20
 #: The largest occupancy-grid image file read (refused from its size, before PIL opens it): a 2048 x 2048 RGBA
 #: image is 16 MB uncompressed. Its pixel count (`MAX_GRID_CELLS`) is read from the header before decoding.
@@ -229,11 +229,10 @@ def load_map(path: str | Path) -> list[np.ndarray]:
       image is free.
 
     The map YAML is bounded before it is parsed (`MAX_MAP_BYTES` from the file's size, then nesting and values as
-    `socnav.config.safe_load_yaml` bounds them), the image before it is decoded (`MAX_IMAGE_BYTES` from the file's
+    `socnav.io.safe_load_yaml` bounds them), the image before it is decoded (`MAX_IMAGE_BYTES` from the file's
     size, `MAX_GRID_CELLS` from its header); see docs/limits.md.
     """
-    from socnav.config import file_size_problem, safe_load_yaml, yaml_problem
-    from socnav.io import UntrustedInputError, read_bounded
+    from socnav.io import UntrustedInputError, file_size_problem, read_bounded, safe_load_yaml, yaml_problem
 
     path = Path(path)
     if not path.is_file():
@@ -328,7 +327,7 @@ def _read_image(path: Path, image_path: Path) -> np.ndarray:
     Bounded before decoding: the file's size (`MAX_IMAGE_BYTES`), then its width x height from the header
     (`MAX_GRID_CELLS`); PIL's own decompression-bomb check (far above ours) is reported the same way.
     """
-    from socnav.config import file_size_problem
+    from socnav.io import file_size_problem
 
     if not image_path.is_file():
         raise MapError(f"{path}: image not found: {image_path}")
