@@ -160,3 +160,32 @@ def test_markdown_with_one_policy_pairs_the_episodes(tmp_path):
     assert (tmp_path / "safety_benchmark_tradeoff.png").stat().st_size > 0
     table = pd.read_csv(tmp_path / "safety_benchmark_verdicts.csv")
     assert math.isclose(table.loc[table["layer"] == "proximity-only", "diff_pct"].iloc[0], 0.0)
+
+
+def test_a_small_benchmark_runs_end_to_end_and_resumes_from_its_calibration(tmp_path):
+    """Three rows of the benchmark on a few episodes: calibrated, written, evaluated against the plain policy and
+    the stand-still robot on the same episodes; a second run reads the calibrated layers back instead of
+    calibrating again."""
+    import socnav
+    from socnav.experiments.safety_benchmark import LAYERS_FILE, load_layers, run_safety_benchmark
+
+    pretrained_policy = socnav.load_policy("pretrained")
+
+    setup = BenchmarkSetup(env={"scenario": "position_swap", "n_humans": 1}, calibration_episodes=3,
+                           eval_episodes=4, paper_types={"faster_humans": [4.0]}, shifts={},
+                           rows=("proximity-only", "time-to-collision", "conformal"), brake_rows=("conformal",))
+    messages: list[str] = []
+    summary = run_safety_benchmark(pretrained_policy, None, setup, tmp_path, log=messages.append)
+    assert any("calibrating the rule (proximity-only)" in m for m in messages)
+    assert set(summary["layer"]) == {"plain", "stand-still", "proximity-only", "time-to-collision", "conformal"}
+    assert summary.loc[summary["fallback"] == "brake", "layer"].tolist() == ["conformal"]
+    episodes = pd.read_csv(tmp_path / "episodes.csv")
+    per_layer = episodes.groupby(["layer", "fallback"], dropna=False)["episode"].apply(lambda e: sorted(set(e)))
+    assert all(ids == [0, 1, 2, 3] for ids in per_layer)  # every row plays the same episodes of each world
+    layers = load_layers(tmp_path / LAYERS_FILE)
+    assert [layer.name for layer in layers] == ["proximity-only", "time-to-collision", "conformal"]
+    assert layers[2].decision.params["initial_quantile"] != 0.0  # fitted on the calibration episodes
+    messages.clear()
+    again = run_safety_benchmark(pretrained_policy, None, setup, tmp_path, log=messages.append)
+    assert any("read from" in m for m in messages) and not any("calibrating" in m for m in messages)
+    pd.testing.assert_frame_equal(again, summary)

@@ -38,7 +38,7 @@ from socnav.safety.calibration.trigger_search import (
 )
 from socnav.safety.calibration.workflow import calibrate_budgets
 from socnav.safety.rule import RULE_CONDITIONS, Thresholds
-from socnav.safety.triggers import SafetyDecision, decision_fields
+from socnav.safety.triggers import SafetyDecision, decision_fields, never_fires
 
 __all__ = [
     "ANALYTIC_TRIGGERS",
@@ -137,7 +137,7 @@ def evaluate_layers(policy: Any, estimator: Any, layers: Sequence[Layer], setup:
     """One row per (world, layer, episode), the plain policy as layer ``plain``: ``collided``, ``goal``,
     ``length``, ``fallback_steps``."""
     from socnav.envs.rollout import rollout_episodes
-    from socnav.safety.safe_policy import FallbackCounter, SafePolicy
+    from socnav.safety.safe_policy import FallbackCounter, SafePolicy, no_uncertainty
 
     parts = []
     for world, (group, config) in setup.worlds().items():
@@ -153,9 +153,10 @@ def evaluate_layers(policy: Any, estimator: Any, layers: Sequence[Layer], setup:
                 restart = getattr(estimator, "restart", None)
                 if callable(restart):
                     restart()
-                reads = layer.decision.uses_uncertainty
-                safe = SafePolicy(policy, estimator if reads else None, layer.decision, config, window=setup.window,
-                                  fallback=layer.fallback)
+                # a layer the calibration switched off (no collision to learn from) never fires: no estimate needed
+                reads = layer.decision.uses_uncertainty and not never_fires(layer.decision)
+                safe = SafePolicy(policy, estimator if reads else no_uncertainty, layer.decision, config,
+                                  window=setup.window, fallback=layer.fallback)
                 counter = FallbackCounter(safe)
                 records = rollout_episodes(safe, config, setup.eval_episodes, seed=setup.eval_seed,
                                            n_envs=setup.n_envs, observer=counter, metrics=False)
@@ -260,7 +261,7 @@ def layer_record(layer: Layer) -> dict[str, Any]:
     (``rule`` or ``trigger``) and its fields, and the flat fields of a table row."""
     kind = "rule" if isinstance(layer.decision, Thresholds) else "trigger"
     return {"name": layer.name, "budget": layer.budget, "fallback": layer.fallback, "kind": kind,
-            "decision": layer.decision.model_dump(mode="json"), "row": decision_fields(layer.decision)}
+            "decision": layer.decision.model_dump(), "row": decision_fields(layer.decision)}  # inf stays .inf
 
 
 def load_layers(path: Path) -> list[Layer]:

@@ -123,12 +123,14 @@ def verdicts(differences: pd.DataFrame, confidence: float = 0.95) -> pd.DataFram
         return table
     table["p_holm"] = math.nan
     for _budget, block in table.groupby("budget"):
-        tested = block[(block["layer"] != "proximity-only") & block["p_fewer"].notna()]
+        tested = block[~((block["layer"] == "proximity-only") & (block["fallback"] == "cautious"))
+                       & block["p_fewer"].notna()]
         if len(tested):
             table.loc[tested.index, "p_holm"] = holm_adjust(tested["p_fewer"].to_numpy())
     alpha = 1.0 - confidence
+    beaten = (table["layer"] == "proximity-only") & (table["fallback"] == "cautious")
     table["verdict"] = np.where(table["p_holm"] < alpha, "fewer collisions",
-                                np.where(table["layer"] == "proximity-only", "(the row to beat)", "not established"))
+                                np.where(beaten, "(the row to beat)", "not established"))
     return table
 
 
@@ -183,14 +185,21 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
         verdict = match.iloc[0] if len(match) else None
         interval = ("" if verdict is None or not np.isfinite(verdict.diff_pct) else
                     f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]")
-        shifts = " | ".join(f"{getattr(row, f'prevented_{name}_pct'):.0f}" for name in shift_columns)
-        lines.append(f"| {row.layer} | {row.budget:.0%} | {row.fallback or '-'} | {row.false_activation_pct:.2f} | "
-                     f"{row.collisions_paper_types} | {row.prevented_paper_types_pct:.1f} | "
-                     f"{row.prevented_unperturbed_pct:.0f} | {shifts} | {row.collisions_fallback_driving} | "
+        shifts = " | ".join(_share(getattr(row, f"prevented_{name}_pct"), 0) for name in shift_columns)
+        reference = row.layer in REFERENCE_ROWS
+        lines.append(f"| {row.layer} | {'–' if reference else f'{row.budget:.0%}'} | "
+                     f"{'–' if reference else row.fallback} | {row.false_activation_pct:.2f} | "
+                     f"{row.collisions_paper_types} | {_share(row.prevented_paper_types_pct, 1)} | "
+                     f"{_share(row.prevented_unperturbed_pct, 0)} | {shifts} | {row.collisions_fallback_driving} | "
                      f"{interval} | {'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
                      f"{'' if verdict is None else verdict.verdict} |")
     lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
     return "\n".join(lines)
+
+
+def _share(value: float, decimals: int) -> str:
+    """A prevented share for the table: '–' where the plain policy had no collision to prevent."""
+    return "–" if not np.isfinite(value) else f"{value:.{decimals}f}"
 
 
 def _episode_verdicts(pooled: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
