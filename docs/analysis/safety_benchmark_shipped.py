@@ -40,25 +40,31 @@ def main() -> None:
     parser.add_argument("--budgets", type=float, nargs="+", default=[0.05])
     parser.add_argument("--k", type=int, default=20)
     parser.add_argument("--docs", action="store_true", help="write docs/safety-benchmark.md and its figure")
+    parser.add_argument("--minutes", type=float, default=None,
+                        help="the page only, from the episodes of a finished run in --out (its duration in minutes, "
+                             "for the page)")
     args = parser.parse_args()
     start = time.monotonic()
-    policy = socnav.load_policy("pretrained")
-    estimator = MCDropoutEstimator(policy, k=args.k, seed=MC_SEED)
-    setup = BenchmarkSetup(env=TABLE3_WORLD, budgets=args.budgets, calibration_episodes=args.calibration_episodes,
-                           risk_training_episodes=3 * args.calibration_episodes, eval_episodes=args.episodes)
-    def log(message: str) -> None:
-        print(f"[{time.monotonic() - start:6.0f}s] {message}", flush=True)
+    if args.minutes is None:
+        policy = socnav.load_policy("pretrained")
+        estimator = MCDropoutEstimator(policy, k=args.k, seed=MC_SEED)
+        setup = BenchmarkSetup(env=TABLE3_WORLD, budgets=args.budgets,
+                               calibration_episodes=args.calibration_episodes,
+                               risk_training_episodes=3 * args.calibration_episodes, eval_episodes=args.episodes)
 
-    run_safety_benchmark(policy, estimator, setup, args.out, log=log)
+        def log(message: str) -> None:
+            print(f"[{time.monotonic() - start:6.0f}s] {message}", flush=True)
+
+        run_safety_benchmark(policy, estimator, setup, args.out, log=log)
     episodes = read_table(args.out / "episodes.csv")
-    text = benchmark_markdown(episodes, args.out, "the shipped policy acting", level="##")
+    text = benchmark_markdown(episodes, args.out, "The shipped policy acting", level="##", title="The table")
     print(text)
     if args.docs:
         budgets = " ".join(f"{b:g}" for b in args.budgets)
         given = f"--calibration-episodes {args.calibration_episodes} --episodes {args.episodes} --budgets {budgets}"
-        intro = INTRO.format(args=f"{given} --docs", minutes=(time.monotonic() - start) / 60, k=args.k,
-                             calibration=args.calibration_episodes, episodes=args.episodes,
-                             budgets=", ".join(f"{b:.0%}" for b in args.budgets))
+        minutes = args.minutes if args.minutes is not None else (time.monotonic() - start) / 60
+        intro = INTRO.format(args=f"{given} --docs", minutes=minutes, k=args.k, calibration=args.calibration_episodes,
+                             episodes=args.episodes, budgets=", ".join(f"{b:.0%}" for b in args.budgets))
         shutil.copyfile(args.out / "safety_benchmark_tradeoff.png", DOCS / "images" / "safety_benchmark_tradeoff.png")
         write_text_atomic(DOCS / "safety-benchmark.md", intro + "\n" + text.replace(
             "(safety_benchmark_tradeoff.png)", "(images/safety_benchmark_tradeoff.png)"))

@@ -383,3 +383,22 @@ def test_a_context_shut_down_by_ctrl_c_while_spinning_is_a_clean_interruption(ca
 
     with pytest.raises(RuntimeError, match="something else"):
         _spin(_FakeRclpy(), [], _Node, broken)
+
+
+def test_the_node_decides_with_a_trigger_file(ros_context, navigator_file, tmp_path):
+    """`thresholds` may name a trigger file (socnav.safety.triggers): the node's navigator decides with it."""
+    from rclpy.parameter import Parameter
+
+    from socnav.ros2.navigator import NavigatorNode
+    from socnav.safety.triggers import TriggerSpec, save_trigger_spec
+
+    spec = TriggerSpec.create(trigger="time-to-collision", threshold=-2.0)
+    path = save_trigger_spec(spec, tmp_path / "ttc.yaml")
+    node = NavigatorNode(parameter_overrides=[Parameter("model", value=str(navigator_file)),
+                                              Parameter("thresholds", value=str(path)),
+                                              Parameter("seed", value=0)], context=ros_context)
+    try:
+        assert node.navigator.thresholds == spec
+        assert type(node.navigator.trigger).__name__ == "TimeToCollisionTrigger"
+    finally:
+        node.destroy_node()

@@ -4,8 +4,9 @@ Each episode's seed is fixed by its index, so the world of every episode does no
 run at once, nor do the records of a policy that decides each environment alone. A policy whose decision reads the
 batch (the safety layer with MC dropout: its masks come from one stream drawn across the batch, and torch's batched
 float32 forward pass changes in the last digits with the batch shape) can play an episode differently with another
-``n_envs``: compare such policies at the same ``n_envs``. The records hold the world's episode columns (`EPISODE_COLUMNS`) and, by default, every metric's per-episode column
-(`socnav.sim.metrics.METRIC_RECORD_COLUMNS`); `summarize` aggregates them with the metrics registry.
+``n_envs``: compare such policies at the same ``n_envs``. The records hold the world's episode columns
+(`EPISODE_COLUMNS`) and, by default, every metric's per-episode column (`socnav.sim.metrics.METRIC_RECORD_COLUMNS`);
+`summarize` aggregates them with the metrics registry.
 """
 
 from __future__ import annotations

@@ -222,6 +222,7 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
     """Per layer (name, budget, fallback): false activation on the unperturbed episodes, collisions prevented per
     world group and pooled over the paper's types, goal rate, and the paired difference against proximity-only
     at the same budget and fallback."""
+    episodes = episodes.assign(fallback=episodes["fallback"].fillna(""))  # a CSV reads the references' '' as NaN
     plain = episodes[episodes["layer"] == "plain"]
     paper_worlds = sorted(plain.loc[~plain["group"].isin(["unperturbed", "shift"]), "world"].unique())
     shift_worlds = sorted(plain.loc[plain["group"] == "shift", "world"].unique())
@@ -231,9 +232,11 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
         mine = episodes[(episodes["layer"] == name) & np.isclose(episodes["budget"], budget)
                         & (episodes["fallback"] == fallback)]
         unperturbed = mine[mine["group"] == "unperturbed"]
+        typed = mine[mine["world"].isin(paper_worlds)]
         row: dict[str, Any] = {"layer": name, "budget": budget, "fallback": fallback,
-                               "collisions_fallback_driving": int((mine["collided"] & mine["fallback_at_end"]).sum())
-                               if "fallback_at_end" in mine else 0,
+                               # over the paper's types, as the collisions column beside it
+                               "collisions_fallback_driving": int((typed["collided"] & typed["fallback_at_end"]).sum())
+                               if "fallback_at_end" in typed else 0,
                                "false_activation_pct": 100.0 * unperturbed["fallback_steps"].sum()
                                / max(unperturbed["length"].sum(), 1),
                                "goal_pct": 100.0 * mine["goal"].mean()}

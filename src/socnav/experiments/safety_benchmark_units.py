@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -75,6 +76,7 @@ def seed_differences(episodes: pd.DataFrame) -> pd.DataFrame:
     at the same budget (cautious fallback), the false activation on the unperturbed episodes, and the collision rate
     in the unperturbed world and each shift minus proximity-only's."""
     rows = []
+    episodes = episodes.assign(fallback=episodes["fallback"].fillna(""))  # a CSV reads the references' '' as NaN
     for seed, mine in episodes.groupby("train_seed"):
         paper = ~mine["group"].isin(["unperturbed", "shift"])
         for (name, budget, fallback), layer in mine.groupby(["layer", "budget", "fallback"]):
@@ -145,7 +147,8 @@ def _section(context: ReportContext) -> str:
     return benchmark_markdown(episodes, context.out_dir, f"{len(done)} of {planned} training seeds' acting policies")
 
 
-def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, level: str = "##") -> str:
+def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, level: str = "##",
+                       title: str = "Safety-layer benchmark") -> str:
     """The benchmark's table (one row per layer) and trade-off figure, written to ``out_dir`` with its CSV files.
 
     With two or more training seeds, the verdict against proximity-only treats the seeds as the clusters
@@ -166,15 +169,16 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
     shown = ("prevented_paper_types_pct", "prevented_unperturbed_pct")
     shift_columns = [c.removeprefix("prevented_").removesuffix("_pct") for c in pooled.columns
                      if c.startswith("prevented_") and c not in shown]
-    lines = [f"{level} Safety-layer benchmark", "",
+    lines = [f"{level} {title}", "",
              f"{policies}; collisions of the plain policy over the paper's perturbation types: "
              f"{pooled.attrs['plain_collisions_paper_types']}. Prevented: share of the plain policy's collisions "
              "that the layer prevents on the same episodes (negative: it causes more); false activation: share of "
              "held-out unperturbed steps on which the fallback drove; the difference in collision rate against "
              f"proximity-only at the same budget (percentage points; 95 % interval over the {unit}), and its "
-             "Holm-adjusted one-sided p for fewer collisions. `stand-still`: a robot that never moves (the collisions "
-             "no robot avoids by stopping); collisions with the fallback driving: those whose last step the fallback "
-             "drove (with the brake: the robot had stopped when the trigger fired and was still hit).", "",
+             "Holm-adjusted one-sided p for fewer collisions. `stand-still`: a robot that never moves (the "
+             "collisions no robot avoids by stopping); collisions with the fallback driving: those of the paper's "
+             "types whose last step the fallback drove (with the brake: the robot had stopped when the trigger "
+             "fired and was still hit).", "",
              "| layer | budget | fallback | false act. % | collisions, paper's types | prevented, paper's types % | "
              "unperturbed % | " + " | ".join(f"{name} %" for name in shift_columns)
              + " | collisions with the fallback driving | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
@@ -191,10 +195,15 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
                      f"{'–' if reference else row.fallback} | {row.false_activation_pct:.2f} | "
                      f"{row.collisions_paper_types} | {_share(row.prevented_paper_types_pct, 1)} | "
                      f"{_share(row.prevented_unperturbed_pct, 0)} | {shifts} | {row.collisions_fallback_driving} | "
-                     f"{interval} | {'' if verdict is None else f'{verdict.p_holm:.3g}'} | "
+                     f"{interval} | {_p_value(verdict)} | "
                      f"{'' if verdict is None else verdict.verdict} |")
     lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
     return "\n".join(lines)
+
+
+def _p_value(verdict: Any) -> str:
+    """The Holm-adjusted p of a verdict row for the table ('' where none was tested)."""
+    return "" if verdict is None or not np.isfinite(verdict.p_holm) else f"{verdict.p_holm:.3g}"
 
 
 def _share(value: float, decimals: int) -> str:
