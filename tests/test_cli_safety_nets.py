@@ -378,3 +378,23 @@ def test_plot_draws_a_runs_training_curve(tmp_path):
     assert code == 2 and "has no curve.csv" in output
     code, output = run("plot", run_dir, "--out", tmp_path / "curve.jpg")
     assert code == 2 and ".png" in output
+
+
+def test_a_config_error_found_when_the_world_is_built_is_one_line(tmp_path, monkeypatch, capsys):
+    """Walls that cover every start are found only when episodes are drawn (inside the rollout): the `socnav`
+    entry point still reports them in one line with exit code 2, not a traceback."""
+    import sys
+
+    from socnav.cli import main
+
+    config = tmp_path / "covered.yaml"
+    config.write_text("scenario: circle_crossing\nn_humans: 2\nobstacles:\n"
+                      "  - [[-50, -50], [50, -50], [50, 50], [-50, 50]]\n")
+    monkeypatch.setattr(sys, "argv", ["socnav", "evaluate", "--controller", "orca", "--config", str(config),
+                                      "--episodes", "2", "--out", str(tmp_path / "r.csv")])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code == 2
+    output = " ".join(capsys.readouterr().out.split())
+    assert "error: scenario 'circle_crossing': no episode in 100 draws has every start and goal clear" in output
+    assert "Traceback" not in output

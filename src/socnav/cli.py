@@ -1376,8 +1376,16 @@ app.add_typer(ros2_app, name="ros2")  # socnav ros2 navigator / sim
 
 
 def main() -> None:
-    """Entry point of `python -m socnav` (the usage line names `socnav`, not `__main__.py`)."""
-    app(prog_name="socnav")
+    """Entry point of the `socnav` command and of `python -m socnav` (the usage line names `socnav`).
+
+    A configuration error found only when a world is built (e.g. walls that cover every start of a scenario, found
+    when episodes are drawn) is one line, as the errors found when the options are read; anything else keeps its
+    traceback."""
+    try:
+        app(prog_name="socnav")  # exits (SystemExit) unless a command raised: typer re-raises it
+    except ConfigError as exc:
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":
