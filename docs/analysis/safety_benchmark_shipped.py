@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import socnav
-from socnav.experiments.safety_benchmark import BenchmarkSetup, run_safety_benchmark
+from socnav.experiments.safety_benchmark import LAYERS_FILE, BenchmarkSetup, load_layers, run_safety_benchmark
 from socnav.experiments.safety_benchmark_units import benchmark_markdown
 from socnav.io import read_table, write_text_atomic
 from socnav.uncertainty import MC_SEED, MCDropoutEstimator
@@ -57,7 +57,8 @@ def main() -> None:
 
         run_safety_benchmark(policy, estimator, setup, args.out, log=log)
     episodes = read_table(args.out / "episodes.csv")
-    text = benchmark_markdown(episodes, args.out, "The shipped policy acting", level="##", title="The table")
+    text = benchmark_markdown(episodes, args.out, "The shipped policy acting", level="##", title="The table",
+                              layers=[load_layers(args.out / LAYERS_FILE)])
     print(text)
     if args.docs:
         budgets = " ".join(f"{b:g}" for b in args.budgets)

@@ -185,7 +185,31 @@ def test_a_small_benchmark_runs_end_to_end_and_resumes_from_its_calibration(tmp_
     layers = load_layers(tmp_path / LAYERS_FILE)
     assert [layer.name for layer in layers] == ["proximity-only", "time-to-collision", "conformal"]
     assert layers[2].decision.params["initial_quantile"] != 0.0  # fitted on the calibration episodes
+    assert all(set(layer.calibration) == {"prevented_worst", "prevented_fraction", "false_activation_upper"}
+               for layer in layers)  # what the calibration measured, kept for a choice made on it alone
     messages.clear()
     again = run_safety_benchmark(pretrained_policy, None, setup, tmp_path, log=messages.append)
     assert any("read from" in m for m in messages) and not any("calibrating" in m for m in messages)
     pd.testing.assert_frame_equal(again, summary)
+
+
+def test_the_row_to_deploy_is_chosen_on_the_calibration_scores():
+    from socnav.experiments.safety_benchmark import Layer
+    from socnav.experiments.safety_benchmark_units import calibration_table, deployment_choice
+    from socnav.safety import Thresholds
+
+    never = Thresholds.never()
+
+    def layer(name, worst, mean, fallback="cautious"):
+        return Layer(name, never, 0.05, fallback, {"prevented_worst": worst, "prevented_fraction": mean,
+                                                   "false_activation_upper": 0.04})
+
+    seeds = [[layer("proximity-only", 0.2, 0.5), layer("conformal", 0.5, 0.6), layer("ttc", 0.5, 0.7),
+              layer("conformal", 0.9, 0.9, "brake")],
+             [layer("proximity-only", 0.4, 0.5), layer("conformal", 0.7, 0.6), layer("ttc", 0.5, 0.7)]]
+    table = calibration_table(seeds).set_index(["layer", "fallback"])
+    assert table.loc[("conformal", "cautious"), "calibration_prevented_worst"] == pytest.approx(60.0)  # the mean of 50 and 70
+    # worst type first (conformal 60 > ttc 50), whatever the mean; the brake row is not a candidate
+    assert deployment_choice(calibration_table(seeds), 0.05) == "conformal"
+    assert deployment_choice(calibration_table(seeds[:1]), 0.05) == "ttc"  # tie on the worst type: the mean
+    assert deployment_choice(calibration_table(seeds), 0.10) is None

@@ -105,6 +105,9 @@ class Layer:
     decision: SafetyDecision
     budget: float
     fallback: str = "cautious"
+    #: what the calibration measured of it on the calibration episodes (prevented_worst, prevented_fraction,
+    #: false_activation_upper): the only scores a choice between layers may read
+    calibration: dict[str, float] = field(default_factory=dict, hash=False, compare=False)
 
 
 def calibrate_layers(policy: Any, estimator: Any, setup: BenchmarkSetup, out: Path,
@@ -120,14 +123,18 @@ def calibrate_layers(policy: Any, estimator: Any, setup: BenchmarkSetup, out: Pa
         per_budget = calibrate_budgets(policy, None if conditions == "proximity-only" else estimator, setup.env,
                                        setup.calibration_episodes, setup.budgets, sensing=setup.sensing,
                                        conditions=conditions, window=setup.window, light=light)
-        layers += [Layer(conditions, thresholds, budget) for budget, (thresholds, _report) in per_budget.items()]
+        layers += [Layer(conditions, thresholds, budget, calibration={
+            key: float(report.get(key, math.nan)) for key in CALIBRATION_SCORES})
+            for budget, (thresholds, report) in per_budget.items()]
     scored = [row for row in setup.rows if row not in RULE_CONDITIONS]
     if scored:
         specs = prepare_triggers(scored, policy, estimator, setup.env, setup.calibration_episodes,
                                  setup.risk_training_episodes, setup.sensing, setup.window, setup.n_envs, out, log)
+        scores: dict[str, dict[float, dict[str, float]]] = {}
         chosen = calibrate_score_triggers(specs, policy, estimator, setup.env, setup.calibration_episodes,
-                                          setup.budgets, setup.sensing, setup.window, setup.n_envs, log=log)
-        layers += [Layer(name, spec, budget) for name, per_budget in chosen.items()
+                                          setup.budgets, setup.sensing, setup.window, setup.n_envs, log=log,
+                                          scores=scores)
+        layers += [Layer(name, spec, budget, calibration=scores[name][budget]) for name, per_budget in chosen.items()
                    for budget, spec in per_budget.items()]
     return layers
 
@@ -257,6 +264,8 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
 
 
 LAYERS_FILE = "layers.yaml"
+#: The calibration's measurements of a layer kept with it (`Layer.calibration`).
+CALIBRATION_SCORES = ("prevented_worst", "prevented_fraction", "false_activation_upper")
 
 
 def layer_record(layer: Layer) -> dict[str, Any]:
@@ -264,7 +273,8 @@ def layer_record(layer: Layer) -> dict[str, Any]:
     (``rule`` or ``trigger``) and its fields, and the flat fields of a table row."""
     kind = "rule" if isinstance(layer.decision, Thresholds) else "trigger"
     return {"name": layer.name, "budget": layer.budget, "fallback": layer.fallback, "kind": kind,
-            "decision": layer.decision.model_dump(), "row": decision_fields(layer.decision)}  # inf stays .inf
+            "decision": layer.decision.model_dump(), "row": decision_fields(layer.decision),  # inf stays .inf
+            "calibration": dict(layer.calibration)}
 
 
 def load_layers(path: Path) -> list[Layer]:
@@ -275,7 +285,8 @@ def load_layers(path: Path) -> list[Layer]:
 
     records = yaml.safe_load(path.read_text())
     return [Layer(record["name"], Thresholds.create(record["decision"]) if record["kind"] == "rule"
-                  else TriggerSpec.create(record["decision"]), float(record["budget"]), record["fallback"])
+                  else TriggerSpec.create(record["decision"]), float(record["budget"]), record["fallback"],
+                  {key: float(value) for key, value in (record.get("calibration") or {}).items()})
             for record in records]
 
 
@@ -295,8 +306,8 @@ def run_safety_benchmark(policy: Any, estimator: Any, setup: BenchmarkSetup, out
     else:
         layers = calibrate_layers(policy, estimator, setup, out, log)
         write_text_atomic(saved, yaml.safe_dump([layer_record(layer) for layer in layers], sort_keys=False))
-    brakes = [Layer(layer.name, layer.decision, layer.budget, "brake") for layer in layers
-              if layer.name in setup.brake_rows]
+    brakes = [Layer(layer.name, layer.decision, layer.budget, "brake") for layer in layers  # calibrated with the
+              if layer.name in setup.brake_rows]                                               # cautious fallback
     episodes = evaluate_layers(policy, estimator, [*layers, *brakes], setup, log)
     write_table_atomic(episodes, out / "episodes.csv")
     summary = summarize_layers(episodes)

@@ -4,6 +4,7 @@ and its report section (every layer against proximity-only, across the training 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,17 +23,20 @@ from socnav.experiments.registry import (
 )
 from socnav.experiments.safety_benchmark import (
     BENCHMARK_ROWS,
+    CALIBRATION_SCORES,
     HELD_OUT_SHIFTS,
     LAYERS_FILE,
     REFERENCE_ROWS,
     BenchmarkSetup,
+    Layer,
+    load_layers,
     run_safety_benchmark,
     summarize_layers,
 )
 from socnav.experiments.spec import Unit
 from socnav.io import read_table, write_table_atomic, write_text_atomic
 
-__all__ = ["benchmark_markdown", "seed_differences", "verdicts"]
+__all__ = ["benchmark_markdown", "calibration_table", "deployment_choice", "seed_differences", "verdicts"]
 
 SHIFT_TYPES = ("behaviour_shift",)  # perturbation types that are held-out shifts, not the paper's
 
@@ -144,17 +148,48 @@ def _section(context: ReportContext) -> str:
     episodes = pd.concat([read_table(unit_dir(context.results_dir, unit) / "episodes.parquet") for unit in done],
                          ignore_index=True)
     planned = len([unit for unit in context.units if unit.kind == "safety_benchmark"])
-    return benchmark_markdown(episodes, context.out_dir, f"{len(done)} of {planned} training seeds' acting policies")
+    layers = [load_layers(unit_dir(context.results_dir, unit) / LAYERS_FILE) for unit in done]
+    return benchmark_markdown(episodes, context.out_dir, f"{len(done)} of {planned} training seeds' acting policies",
+                              layers=layers)
+
+
+def calibration_table(layers: Sequence[Sequence[Layer]]) -> pd.DataFrame:
+    """Per row (layer, budget, fallback): what the calibration measured of it on the calibration episodes, in
+    percent, averaged over the acting policies (one list of layers each)."""
+    names = [f"calibration_{key}" for key in CALIBRATION_SCORES]
+    rows = [{"layer": layer.name, "budget": layer.budget, "fallback": layer.fallback,
+             **{name: 100.0 * layer.calibration.get(key, math.nan) for name, key in zip(names, CALIBRATION_SCORES,
+                                                                                           strict=True)}}
+            for policy in layers for layer in policy]
+    if not rows:
+        return pd.DataFrame(columns=["layer", "budget", "fallback", *names])
+    return pd.DataFrame(rows).groupby(["layer", "budget", "fallback"], as_index=False, sort=False)[names].mean()
+
+
+def deployment_choice(calibration: pd.DataFrame, budget: float) -> str | None:
+    """The row to deploy at ``budget``, chosen on the calibration episodes alone, as the calibration chooses within a
+    trigger: the most prevented on the worst perturbation type, then on the mean over types (None: no row measured)."""
+    rows = calibration[np.isclose(calibration["budget"], budget) & (calibration["fallback"] == "cautious")
+                       & calibration["calibration_prevented_worst"].notna()]
+    if rows.empty:
+        return None
+    best = rows.sort_values(["calibration_prevented_worst", "calibration_prevented_fraction"], ascending=False,
+                            kind="stable").iloc[0]
+    return str(best["layer"])
 
 
 def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, level: str = "##",
-                       title: str = "Safety-layer benchmark") -> str:
+                       title: str = "Safety-layer benchmark", layers: Sequence[Sequence[Layer]] = ()) -> str:
     """The benchmark's table (one row per layer) and trade-off figure, written to ``out_dir`` with its CSV files.
 
     With two or more training seeds, the verdict against proximity-only treats the seeds as the clusters
     (:func:`verdicts`); with one, it pairs the episodes (the exact McNemar test of `summarize_layers`), Holm-adjusted
-    over the layers of each budget and fallback, one-sided for fewer collisions."""
+    over the layers of each budget and fallback, one-sided for fewer collisions. ``layers`` (one list per acting
+    policy): the calibration's own scores are shown beside, and the row to deploy is chosen on them alone."""
     pooled = summarize_layers(episodes)
+    calibration = calibration_table(layers)
+    pooled = pooled.merge(calibration, on=["layer", "budget", "fallback"], how="left")
+    pooled.attrs = summarize_layers(episodes).attrs
     seeds = episodes["train_seed"].nunique() if "train_seed" in episodes else 1
     write_table_atomic(pooled, out_dir / "safety_benchmark_pooled.csv")
     if seeds >= 2:
@@ -179,10 +214,11 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
              "collisions no robot avoids by stopping); collisions with the fallback driving: those of the paper's "
              "types whose last step the fallback drove (with the brake: the robot had stopped when the trigger "
              "fired and was still hit).", "",
-             "| layer | budget | fallback | false act. % | collisions, paper's types | prevented, paper's types % | "
+             "| layer | budget | fallback | calibration: prevented, worst type / mean % | false act. % | "
+             "collisions, paper's types | prevented, paper's types % | "
              "unperturbed % | " + " | ".join(f"{name} %" for name in shift_columns)
              + " | collisions with the fallback driving | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
-             "|---|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|---|"]
     for row in pooled[pooled["layer"] != "plain"].itertuples(index=False):
         match = table[(table["layer"] == row.layer) & np.isclose(table["budget"], row.budget)
                       & (table["fallback"] == row.fallback)]
@@ -192,11 +228,19 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
         shifts = " | ".join(_share(getattr(row, f"prevented_{name}_pct"), 0) for name in shift_columns)
         reference = row.layer in REFERENCE_ROWS
         lines.append(f"| {row.layer} | {'–' if reference else f'{row.budget:.0%}'} | "
-                     f"{'–' if reference else row.fallback} | {row.false_activation_pct:.2f} | "
+                     f"{'–' if reference else row.fallback} | "
+                     f"{_share(row.calibration_prevented_worst, 0)} / "
+                     f"{_share(row.calibration_prevented_fraction, 0)} | "
+                     f"{row.false_activation_pct:.2f} | "
                      f"{row.collisions_paper_types} | {_share(row.prevented_paper_types_pct, 1)} | "
                      f"{_share(row.prevented_unperturbed_pct, 0)} | {shifts} | {row.collisions_fallback_driving} | "
                      f"{interval} | {_p_value(verdict)} | "
                      f"{'' if verdict is None else verdict.verdict} |")
+    for budget in sorted(calibration["budget"].unique()):
+        choice = deployment_choice(calibration, budget)
+        if choice is not None:
+            lines += ["", f"Chosen on the calibration episodes alone at the {budget:.0%} budget (the most prevented on "
+                          f"the worst perturbation type, then on the mean; cautious fallback): **{choice}**."]
     lines += ["", "![trade-off](safety_benchmark_tradeoff.png)", ""]
     return "\n".join(lines)
 

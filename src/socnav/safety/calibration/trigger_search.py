@@ -36,6 +36,7 @@ __all__ = [
     "TriggerScoreRecorder",
     "calibrate_score_triggers",
     "calibrate_trigger",
+    "calibration_scores",
     "collect_trigger_records",
     "collision_labels",
     "fit_conformal_start",
@@ -293,9 +294,12 @@ def prepare_triggers(names: Sequence[str], policy: Any, estimator: Any, env: dic
 def calibrate_score_triggers(specs: dict[str, TriggerSpec], policy: Any, estimator: Any, env: dict[str, Any],
                              episodes: int, budgets: Sequence[float], sensing: str, window: int = 4,
                              n_envs: int = 40, confidence: float = 0.95,
-                             log: Callable[[str], None] = print) -> dict[str, dict[float, TriggerSpec]]:
+                             log: Callable[[str], None] = print,
+                             scores: dict[str, dict[float, dict[str, float]]] | None = None,
+                             ) -> dict[str, dict[float, TriggerSpec]]:
     """Every trigger of ``specs`` calibrated at every budget on the same calibration episodes: the records scored
-    once, the plain policy's collisions measured once, each trigger's replays shared by its budgets."""
+    once, the plain policy's collisions measured once, each trigger's replays shared by its budgets. ``scores``,
+    when given, receives name -> budget -> :func:`calibration_scores` of each choice."""
     runs = _calibration_runs(env, episodes)
     plain = rollout_scores(None, policy, None, runs, window, n_envs)["collisions"]
     shared = [spec for spec in specs.values() if not spec.uses_uncertainty and spec.model is None]
@@ -310,7 +314,20 @@ def calibrate_score_triggers(specs: dict[str, TriggerSpec], policy: Any, estimat
         chosen[name] = {}
         for budget in budgets:
             log(f"calibrating {name} at {budget:.0%}")
-            chosen[name][budget], _ = calibrate_trigger(
+            chosen[name][budget], table = calibrate_trigger(
                 spec, records, policy, estimator if spec.uses_uncertainty else None, runs, budget, window, n_envs,
                 confidence, plain_collisions=plain, cache=replayed)
+            if scores is not None:
+                scores.setdefault(name, {})[budget] = calibration_scores(table)
     return chosen
+
+
+def calibration_scores(table: pd.DataFrame) -> dict[str, float]:
+    """What the calibration measured of its choice (a `select_by_rollouts` table): the prevented share of the worst
+    perturbation type and the mean over types, and the false activation's upper bound, on the CALIBRATION
+    episodes (NaN where nothing was chosen: the layer is off)."""
+    chosen = table[table["chosen"]] if "chosen" in table else table.iloc[0:0]
+    if chosen.empty:
+        return {"prevented_worst": math.nan, "prevented_fraction": math.nan, "false_activation_upper": 0.0}
+    row = chosen.iloc[0]
+    return {key: float(row[key]) for key in ("prevented_worst", "prevented_fraction", "false_activation_upper")}
