@@ -1295,7 +1295,8 @@ def demo(
 def export(
     model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained'"),
     out: Path = typer.Option(Path("navigator.onnx"), help="the ONNX navigator file to write"),
-    thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE"),
+    thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE (a "
+                                              "trigger file too: the navigator then decides with that trigger)"),
     # k, p-test and window are read as text and checked by socnav.export.check_settings: one line naming the
     # option and its allowed range (socnav.runtime.format's MAX_K, MAX_WINDOW) for any bad value, 1e9 included.
     # typer does not enforce min / max on text: they document the range (docs/configuration_table.py reads them).
@@ -1315,7 +1316,8 @@ def export(
     if missing:
         fail(f"socnav export needs {' and '.join(missing)}: {install_hint('export')}")
     from socnav.export import ExportError, check_settings, export_onnx
-    from socnav.safety import ThresholdsError, load_thresholds
+    from socnav.safety import ThresholdsError
+    from socnav.safety.triggers import TriggerError, load_safety
 
     try:
         k_value, p_test_value, window_value = check_settings(
@@ -1327,15 +1329,15 @@ def export(
         fail(f"--thresholds {thresholds} is a directory; name a thresholds file (from socnav calibrate) or a preset: "
              "mc, ensemble")
     try:  # before the policy loads
-        load_thresholds(thresholds)
-    except (ThresholdsError, OSError) as exc:
+        load_safety(thresholds)
+    except (ThresholdsError, TriggerError, OSError) as exc:
         fail(f"--thresholds: {exc}")
 
     policy = _load_learned_policy(model)
     try:
         path = export_onnx(policy, out, thresholds=thresholds, k=k_value, p_test=p_test_value, window=window_value,
                            with_value=value)
-    except (ExportError, ThresholdsError, OSError) as exc:
+    except (ExportError, ThresholdsError, TriggerError, OSError) as exc:
         fail(str(exc))
     console.print(f"navigator: {path}  (run it with socnav.runtime.SafeNavigator.load({str(path)!r}))")
 

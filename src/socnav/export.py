@@ -45,6 +45,7 @@ from socnav.runtime.format import (
     OUTPUTS,
     SCAN_INPUT,
     SCAN_KEEP_PREFIX,
+    TRIGGER_VERSION,
     VALUE_OUTPUT,
     WALL_FREE_VERSION,
     NavigatorMetadata,
@@ -407,7 +408,7 @@ def export_onnx(
     :raises socnav.rl.persistence.PolicyLoadError: an unreadable policy file.
     :raises socnav.safety.ThresholdsError: invalid thresholds.
     """
-    from socnav.safety.rule import load_thresholds
+    from socnav.safety.triggers import TriggerSpec, load_safety
 
     k, p_test, window = check_settings(k, p_test, window)  # before the policy loads: cheap checks first
     policy = _load(model)
@@ -415,18 +416,49 @@ def export_onnx(
         p_test = _stored_p_test(policy)
     env_config = _policy_env_config(policy, env_config)
     source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
-    thresholds = load_thresholds(thresholds)
+    decision = load_safety(thresholds)
+    trigger = _trigger_record(decision) if isinstance(decision, TriggerSpec) else None
+    thresholds = decision if trigger is None else _rule_beside(decision)
 
     graph = NavigatorGraph(policy, with_value=with_value)
     for name, parameter in graph.named_parameters():  # a NaN weight would give NaN commands on the robot
         if not bool(th.isfinite(parameter).all()):
             raise ExportError(f"the policy's weights hold NaN or inf values (in {name}): it cannot be exported")
     metadata = _metadata(policy, graph, env_config, thresholds, source, k, p_test, window)
+    if trigger is not None:  # version 4: older socnav versions refuse it instead of deciding with the rule
+        metadata["safety"]["trigger"] = trigger
+        metadata["version"] = TRIGGER_VERSION
     try:  # the runtime's schema: what it would refuse at load is refused here, before anything is written
         NavigatorMetadata.model_validate(metadata)
     except ValidationError as exc:
         raise ExportError(f"the navigator metadata would be invalid: {metadata_message(exc)}") from None
     return _write_navigator(graph, metadata, Path(out), env_config.max_humans)
+
+
+def _trigger_record(spec: Any) -> dict[str, Any]:
+    """The metadata record of a score trigger (`socnav.runtime.format.TriggerRecord`): its spec without the file path,
+    a risk model's ``.npz`` embedded as base64 (checked as it is read)."""
+    import base64
+
+    from socnav.safety.risk_model import read_risk_model_bytes, risk_model_from_bytes
+
+    if spec.threshold == float("inf"):
+        raise ExportError(f"trigger {spec.trigger!r} has threshold inf: it never fires; calibrate it first")
+    record = {"trigger": spec.trigger, "params": dict(spec.params), "threshold": float(spec.threshold),
+              "sensing": spec.sensing, "hold_steps": int(spec.hold_steps)}
+    if spec.model is not None:
+        raw = read_risk_model_bytes(spec.model)
+        risk_model_from_bytes(raw, f"risk-model file {spec.model}")
+        record["risk_model"] = base64.b64encode(raw).decode("ascii")
+    return record
+
+
+def _rule_beside(spec: Any) -> Any:
+    """The rule's thresholds a trigger navigator carries for the conditions it reports (the paper's MC-dropout
+    preset, read as the trigger senses)."""
+    from socnav.safety.rule import Thresholds
+
+    return Thresholds.preset("mc", sensing=spec.sensing)
 
 
 def _stored_p_test(policy: Any) -> float:

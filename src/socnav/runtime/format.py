@@ -26,8 +26,9 @@ way to the robot (a flipped bit, a truncated copy) is refused at load instead of
 :func:`verify`). It is no signature: anyone can recompute it.
 
 Format versions: 2 carries the checksum (a version-1 file, which has none, is refused with a request to re-export
-it); 3 also has the ``scan`` input and the ``walls`` record. The exporter writes version 3 for a world with walls or a
-scan only, version 2 otherwise; the runtime reads both.
+it); 3 also has the ``scan`` input and the ``walls`` record; 4 also a score trigger (``safety.trigger``) that decides
+the hand-over instead of the rule. The exporter writes version 4 for a navigator with a trigger, 3 for a world with
+walls or a scan, version 2 otherwise; the runtime reads all three.
 """
 
 from __future__ import annotations
@@ -66,10 +67,12 @@ __all__ = [
     "SCAN_INPUT",
     "SCAN_KEEP_PREFIX",
     "SUPPORTED_VERSIONS",
+    "TRIGGER_VERSION",
     "VALUE_OUTPUT",
     "WALL_FREE_VERSION",
     "NavigatorLoadError",
     "NavigatorMetadata",
+    "TriggerRecord",
     "metadata_entries",
     "metadata_message",
     "seal",
@@ -78,14 +81,19 @@ __all__ = [
 
 #: The metadata's ``format`` and ``version`` values (as types: what the schema accepts; as constants below).
 FormatName = Literal["socnav-navigator"]
-FormatVersion = Literal[2, 3]
+FormatVersion = Literal[2, 3, 4]
 FORMAT_NAME: FormatName = "socnav-navigator"
 #: 3: a world with walls (``walls``) or a range scan (the ``scan`` input). 2: the file carries a sha256 checksum
 #: (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
 FORMAT_VERSION: FormatVersion = 3
 #: The version of a navigator without walls and without a scan.
 WALL_FREE_VERSION: FormatVersion = 2
-SUPPORTED_VERSIONS: tuple[FormatVersion, ...] = (WALL_FREE_VERSION, FORMAT_VERSION)
+#: The version of a navigator whose hand-over a score trigger decides (``safety.trigger``; socnav.safety.triggers),
+#: a risk model embedded: older socnav versions refuse it by its version instead of deciding with the rule.
+TRIGGER_VERSION: FormatVersion = 4
+SUPPORTED_VERSIONS: tuple[FormatVersion, ...] = (WALL_FREE_VERSION, FORMAT_VERSION, TRIGGER_VERSION)
+#: An embedded risk model (base64 of its .npz): the shipped size is ~150 KB; the metadata's whole bound is 1 MiB.
+MAX_EMBEDDED_MODEL_CHARS = 800_000
 METADATA_KEY = "socnav"
 CHECKSUM_KEY = "socnav_sha256"
 OBSERVATION_INPUTS = ("robot", "humans", "humans_mask")
@@ -335,6 +343,7 @@ class SafetyRecord(_Record):
     source: Text
     window: int = Field(ge=1, le=MAX_WINDOW, description="uncertainty window in steps")
     radius_scale: float = Field(gt=0, le=MAX_RADIUS_SCALE, description="the cautious controller's radius scale")
+    trigger: TriggerRecord | None = Field(None, description="a score trigger deciding instead of the rule")
 
     @field_validator("thresholds", mode="before")
     @classmethod
@@ -343,6 +352,39 @@ class SafetyRecord(_Record):
         if not isinstance(value, dict):
             raise ValueError(f"must be a mapping of the threshold fields, got {type(value).__name__}")
         return value
+
+
+class TriggerRecord(_Record):
+    """A score trigger that decides the hand-over instead of the rule (`socnav.safety.triggers.TriggerSpec` without
+    its file path; a risk model's weights embedded as base64 of its ``.npz``)."""
+
+    trigger: Name
+    params: dict[Name, float] = Field(default_factory=dict, max_length=32)
+    threshold: float
+    sensing: Literal["perceived", "true"]
+    hold_steps: int = Field(ge=0, le=1000)
+    risk_model: str | None = Field(None, max_length=MAX_EMBEDDED_MODEL_CHARS)
+
+    @model_validator(mode="after")
+    def _known_trigger(self) -> TriggerRecord:
+        from socnav.safety.triggers import TriggerSpec
+
+        TriggerSpec.create(trigger=self.trigger, params=self.params, threshold=self.threshold,
+                           sensing=self.sensing, hold_steps=self.hold_steps)  # its one-line error otherwise
+        if (self.trigger == "risk-model") != (self.risk_model is not None):
+            raise ValueError("a risk-model trigger embeds its model (risk_model), no other trigger does")
+        if self.risk_model is not None:  # checked here, so a broken model fails the load, not the first decision
+            import base64
+            import binascii
+
+            from socnav.safety.risk_model import risk_model_from_bytes
+
+            try:
+                raw = base64.b64decode(self.risk_model, validate=True)
+            except binascii.Error:
+                raise ValueError("risk_model is not base64 text") from None
+            risk_model_from_bytes(raw, "the embedded risk model")
+        return self
 
 
 #: One polygon: [x, y] vertices (checked by `socnav.sim.maps.validate_polygons`: finite, within
@@ -417,6 +459,9 @@ class NavigatorMetadata(_Record):
         if self.version == WALL_FREE_VERSION and (env.scan is not None or self.walls is not None):
             raise ValueError(f"version {WALL_FREE_VERSION} has neither a scan nor walls; a navigator with them is "
                              f"version {FORMAT_VERSION}")
+        if (self.version == TRIGGER_VERSION) != (self.safety.trigger is not None):
+            raise ValueError(f"version {TRIGGER_VERSION} is the version of a navigator with a safety.trigger, and "
+                             "only of one")
         if len(self.feature_range.h_min) != hidden:
             raise ValueError(f"feature_range has {len(self.feature_range.h_min)} values per bound, "
                              f"lstm_hidden_size={hidden}")

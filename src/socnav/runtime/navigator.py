@@ -292,7 +292,7 @@ class SafeNavigator:
         record = network.record  # validated at load: env config, thresholds, window, radius scale
         self.network = network
         self.config = record.env_config
-        decision = record.safety.thresholds if thresholds is None else load_safety(thresholds)
+        decision = self.file_decision(record) if thresholds is None else load_safety(thresholds)
         #: the rule's thresholds, or a score trigger's spec (`socnav.safety.triggers`): what decides the hand-over
         self.thresholds: Thresholds | TriggerSpec = decision
         self.trigger = make_trigger(decision)
@@ -319,6 +319,23 @@ class SafeNavigator:
         self._hold_left = np.zeros(1, dtype=np.int64)  # held fallback steps still owed (thresholds.hold_steps)
         self._batches: dict[tuple[int, int, bool], MCBatch] = {}  # per (K, human rows, any human)
         self._warm_up()
+
+    @staticmethod
+    def file_decision(record: Any) -> Thresholds | TriggerSpec:
+        """What the navigator file says decides the hand-over: its score trigger (a risk model's embedded weights
+        made loadable) or the rule's thresholds."""
+        trigger = record.safety.trigger
+        if trigger is None:
+            return record.safety.thresholds
+        model = None
+        if trigger.risk_model is not None:
+            import base64
+
+            from socnav.safety.risk_model import embed_risk_model
+
+            model = embed_risk_model(base64.b64decode(trigger.risk_model, validate=True))
+        return TriggerSpec.create(trigger=trigger.trigger, params=trigger.params, threshold=trigger.threshold,
+                                  sensing=trigger.sensing, hold_steps=trigger.hold_steps, model=model)
 
     def _warm_up(self) -> None:
         """Compile (or load) the numba kernels and prepare the onnxruntime session now, not at the first decision:

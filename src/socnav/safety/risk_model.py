@@ -41,8 +41,11 @@ __all__ = [
     "UNCERTAINTY_FEATURES",
     "RiskModel",
     "RiskModelTrigger",
+    "embed_risk_model",
     "load_risk_model",
+    "read_risk_model_bytes",
     "risk_features",
+    "risk_model_from_bytes",
     "risk_scores",
     "save_risk_model",
     "train_risk_model",
@@ -143,13 +146,24 @@ def save_risk_model(model: RiskModel, path: str | Path) -> Path:
 def load_risk_model(path: str | Path) -> RiskModel:
     """Read and check a risk-model file: no pickle, at most 16 MiB, the format known, every array present,
     finite and of matching shape. :class:`TriggerError` (one line naming the file and what is wrong) otherwise."""
+
+    return risk_model_from_bytes(read_risk_model_bytes(path), f"risk-model file {path}")
+
+
+def read_risk_model_bytes(path: str | Path) -> bytes:
+    """The bytes of a risk-model file, at most 16 MiB (:class:`TriggerError` naming the file otherwise)."""
     from socnav.io import read_bounded
 
     path = Path(path)
     try:
-        raw = read_bounded(path, MAX_MODEL_BYTES)
+        return read_bounded(path, MAX_MODEL_BYTES)
     except (OSError, UntrustedInputError) as exc:
         raise TriggerError(f"risk-model file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+
+
+def risk_model_from_bytes(raw: bytes, what: str = "risk model") -> RiskModel:
+    """A risk model from the bytes of its ``.npz`` (no pickle; shapes, finiteness and format checked);
+    :class:`TriggerError` naming ``what`` otherwise."""
     import io
     import zipfile
 
@@ -157,11 +171,27 @@ def load_risk_model(path: str | Path) -> RiskModel:
         with np.load(io.BytesIO(raw), allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
     except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-        raise TriggerError(f"risk-model file {path} is not a risk model (.npz without pickle): {exc}") from None
+        raise TriggerError(f"{what} is not a risk model (.npz without pickle): {exc}") from None
     try:
         return _checked_model(arrays)
     except (KeyError, ValueError, TypeError) as exc:
-        raise TriggerError(f"risk-model file {path} is invalid: {exc}") from None
+        raise TriggerError(f"{what} is invalid: {exc}") from None
+
+
+#: Risk models that came embedded in a navigator file, by their key (``embedded:<sha256 of the .npz>``).
+EMBEDDED_MODELS: dict[str, RiskModel] = {}
+EMBEDDED_PREFIX = "embedded:"
+
+
+def embed_risk_model(raw: bytes) -> str:
+    """Check the ``.npz`` bytes of a risk model carried inside another file (a navigator) and make them loadable
+    under the returned key, to use as a `TriggerSpec.model`."""
+    import hashlib
+
+    key = EMBEDDED_PREFIX + hashlib.sha256(raw).hexdigest()
+    if key not in EMBEDDED_MODELS:
+        EMBEDDED_MODELS[key] = risk_model_from_bytes(raw, "the embedded risk model")
+    return key
 
 
 def _checked_model(arrays: dict[str, np.ndarray]) -> RiskModel:
@@ -273,6 +303,10 @@ class RiskModelTrigger(ScoreTrigger):
     def load(cls, spec: TriggerSpec) -> RiskModel:
         if spec.model is None:
             raise TriggerError("trigger 'risk-model' needs its model file: give `model: <file>.npz`")
+        if spec.model.startswith(EMBEDDED_PREFIX):
+            if spec.model not in EMBEDDED_MODELS:
+                raise TriggerError(f"no embedded risk model {spec.model!r} is loaded")
+            return EMBEDDED_MODELS[spec.model]
         path = Path(spec.model)
         try:
             status = path.stat()
