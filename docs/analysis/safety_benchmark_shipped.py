@@ -40,6 +40,10 @@ def main() -> None:
     parser.add_argument("--budgets", type=float, nargs="+", default=[0.05])
     parser.add_argument("--k", type=int, default=20)
     parser.add_argument("--docs", action="store_true", help="write docs/safety-benchmark.md and its figure")
+    parser.add_argument("--seeds-run", type=Path, default=None,
+                        help="with --docs: also the table of a `socnav run configs/experiments/safety_benchmark.yaml` "
+                             "run directory (its finished benchmark units), across its training seeds")
+    parser.add_argument("--seeds-command", default="", help="the command that made --seeds-run, for the page")
     parser.add_argument("--minutes", type=float, default=None,
                         help="the page only, from the episodes of a finished run in --out (its duration in minutes, "
                              "for the page)")
@@ -67,8 +71,25 @@ def main() -> None:
         intro = INTRO.format(args=f"{given} --docs", minutes=minutes, k=args.k, calibration=args.calibration_episodes,
                              episodes=args.episodes, budgets=", ".join(f"{b:.0%}" for b in args.budgets))
         shutil.copyfile(args.out / "safety_benchmark_tradeoff.png", DOCS / "images" / "safety_benchmark_tradeoff.png")
-        write_text_atomic(DOCS / "safety-benchmark.md", intro + "\n" + text.replace(
-            "(safety_benchmark_tradeoff.png)", "(images/safety_benchmark_tradeoff.png)"))
+        page = intro + "\n" + text.replace("(safety_benchmark_tradeoff.png)", "(images/safety_benchmark_tradeoff.png)")
+        if args.seeds_run is not None:
+            page += "\n" + seeds_section(args.seeds_run, args.seeds_command)
+        write_text_atomic(DOCS / "safety-benchmark.md", page)
+
+
+def seeds_section(run: Path, command: str) -> str:
+    """The table of a benchmark run across training seeds (its finished units), its figure beside the shipped one."""
+    import pandas as pd
+
+    units = sorted(path.parent for path in (run / "benchmark").glob("seed*/episodes.parquet"))
+    episodes = pd.concat([read_table(unit / "episodes.parquet") for unit in units], ignore_index=True)
+    layers = [load_layers(unit / LAYERS_FILE) for unit in units]
+    out = run / "docs-section"
+    out.mkdir(exist_ok=True)
+    text = benchmark_markdown(episodes, out, f"{len(units)} training seeds' acting policies (`{command}`)",
+                              level="##", title="Across training seeds", layers=layers)
+    shutil.copyfile(out / "safety_benchmark_tradeoff.png", DOCS / "images" / "safety_benchmark_seeds_tradeoff.png")
+    return text.replace("(safety_benchmark_tradeoff.png)", "(images/safety_benchmark_seeds_tradeoff.png)")
 
 
 if __name__ == "__main__":

@@ -290,7 +290,7 @@ def _tradeoff_figure(pooled: pd.DataFrame, out_base: Path) -> list[Path]:
     figure, axes = plt.subplots(figsize=(6.5, 4.2))
     rows = pooled[(pooled["layer"] != "plain") & (pooled["fallback"] == "cautious")]
     for name, group in rows.groupby("layer", sort=False):
-        group = group.sort_values("budget")
+        group = group.sort_values("false_activation_pct")  # a trade-off curve: along its x axis
         axes.plot(group["false_activation_pct"], group["prevented_paper_types_pct"], marker="o", label=name)
     axes.set_xlabel("false activation (% of unperturbed steps, held out)")
     axes.set_ylabel("collisions prevented (%, paper's types)")
