@@ -67,6 +67,8 @@ def main() -> None:
     if args.docs:
         budgets = " ".join(f"{b:g}" for b in args.budgets)
         given = f"--calibration-episodes {args.calibration_episodes} --episodes {args.episodes} --budgets {budgets}"
+        if args.seeds_run is not None:
+            given += " --seeds-run RUN_DIR"
         minutes = args.minutes if args.minutes is not None else (time.monotonic() - start) / 60
         intro = INTRO.format(args=f"{given} --docs", minutes=minutes, k=args.k, calibration=args.calibration_episodes,
                              episodes=args.episodes, budgets=", ".join(f"{b:.0%}" for b in args.budgets))
