@@ -398,3 +398,28 @@ def test_a_config_error_found_when_the_world_is_built_is_one_line(tmp_path, monk
     output = " ".join(capsys.readouterr().out.split())
     assert "error: scenario 'circle_crossing': no episode in 100 draws has every start and goal clear" in output
     assert "Traceback" not in output
+
+
+@pytest.mark.heavy
+def test_sigterm_keeps_the_finished_episodes_as_ctrl_c_does(tmp_path):
+    """`kill` (SIGTERM) on a long `socnav evaluate` is handled as the first Ctrl-C: the finished episodes are written
+    and the command stops with exit code 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "part.csv"
+    process = subprocess.Popen([sys.executable, "-m", "socnav", "evaluate", "--controller", "orca", "--episodes",
+                                "500000", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+    try:
+        time.sleep(20)  # imports and the world built (a few seconds); the 500,000 episodes take minutes
+        assert process.poll() is None, "the evaluation ended before it was signalled"
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130, output
+    assert "interrupted: wrote the" in " ".join(output.split())
+    assert out.is_file() and out.stat().st_size > 0

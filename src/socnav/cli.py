@@ -1377,12 +1377,25 @@ from socnav.ros2.cli import app as ros2_app  # noqa: E402 -- imports no rclpy: e
 app.add_typer(ros2_app, name="ros2")  # socnav ros2 navigator / sim
 
 
+def _terminate_as_interrupt() -> None:
+    """SIGTERM does what the first Ctrl-C does (a service manager, `kill`, a job scheduler send it): the command's own
+    SIGINT handling runs -- `train` saves a checkpoint, `evaluate` writes its finished episodes, `run` stops its units
+    -- instead of the process dying with its work unsaved. The ROS 2 nodes install their own handlers for both."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    signal.signal(signal.SIGTERM, lambda signum, frame: signal.raise_signal(signal.SIGINT))
+
+
 def main() -> None:
     """Entry point of the `socnav` command and of `python -m socnav` (the usage line names `socnav`).
 
     A configuration error found only when a world is built (e.g. walls that cover every start of a scenario, found
     when episodes are drawn) is one line, as the errors found when the options are read; anything else keeps its
-    traceback."""
+    traceback. SIGTERM is handled as the first Ctrl-C (`_terminate_as_interrupt`)."""
+    _terminate_as_interrupt()
     try:
         app(prog_name="socnav")  # exits (SystemExit) unless a command raised: typer re-raises it
     except ConfigError as exc:
