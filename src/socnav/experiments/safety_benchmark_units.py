@@ -187,9 +187,10 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
     over the layers of each budget and fallback, one-sided for fewer collisions. ``layers`` (one list per acting
     policy): the calibration's own scores are shown beside, and the row to deploy is chosen on them alone."""
     pooled = summarize_layers(episodes)
+    attrs = dict(pooled.attrs)  # a merge drops them
     calibration = calibration_table(layers)
     pooled = pooled.merge(calibration, on=["layer", "budget", "fallback"], how="left")
-    pooled.attrs = summarize_layers(episodes).attrs
+    pooled.attrs = attrs
     seeds = episodes["train_seed"].nunique() if "train_seed" in episodes else 1
     write_table_atomic(pooled, out_dir / "safety_benchmark_pooled.csv")
     if seeds >= 2:
