@@ -1,5 +1,6 @@
-"""Fixtures of the runtime tests: navigator files exported once per session, and observations of every scenario.
-Exports go through the CLI (`socnav export`) and the Python API, so both paths are exercised."""
+"""Fixtures of the runtime tests: navigator files exported once per session, observations of every scenario, and a
+simulated world's state as a robot's tracker gives it. Exports go through the CLI (`socnav export`) and the Python
+API, so both paths are exercised."""
 
 from __future__ import annotations
 
@@ -63,3 +64,23 @@ def observations() -> dict[str, np.ndarray]:
     empty["humans"][:] = 0.0
     empty["humans_mask"][:] = 0.0
     return {key: np.concatenate([merged[key], empty[key]]) for key in merged}
+
+
+def _tracked_state(world, env: int = 0) -> tuple[dict, dict]:
+    """The robot's state and the humans it sees in one environment of a simulated world (none behind a wall, as the
+    world's occlusion has it), as a robot's tracker would give them to `SafeNavigator.act`."""
+    visible = world.active[env].copy()
+    if world.occlusion:
+        visible &= world.walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
+    humans = np.flatnonzero(visible[1:]) + 1
+    robot = {"position": world.positions[env, 0], "velocity": world.velocities[env, 0],
+             "heading": world.heading[env], "goal": world.goals[env, 0], "v_pref": world.preferred_speeds[env, 0],
+             "radius": world.radii[env, 0]}
+    return robot, {"positions": world.positions[env, humans], "velocities": world.velocities[env, humans],
+                   "radii": world.radii[env, humans]}
+
+
+@pytest.fixture
+def tracked_state():
+    """`(robot, humans)` of one environment of a world: ``tracked_state(world, env=0)``."""
+    return _tracked_state

@@ -20,16 +20,6 @@ ROBOT = {"position": [0.0, -4.0], "velocity": [0.0, 0.0], "heading": 1.5, "goal"
          "radius": 0.3}
 
 
-def _state(world, env: int = 0) -> tuple[dict, dict]:
-    """The robot's and the humans' state of one simulated environment, as a robot's tracker would give them."""
-    humans = np.flatnonzero(world.active[env, 1:]) + 1
-    robot = {"position": world.positions[env, 0], "velocity": world.velocities[env, 0],
-             "heading": world.heading[env], "goal": world.goals[env, 0], "v_pref": world.preferred_speeds[env, 0],
-             "radius": world.radii[env, 0]}
-    return robot, {"positions": world.positions[env, humans], "velocities": world.velocities[env, humans],
-                   "radii": world.radii[env, humans]}
-
-
 def test_runtime_imports_no_torch():
     code = ("import sys, socnav.runtime, socnav.sim.observation; "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'stable_baselines3')); "
@@ -43,7 +33,7 @@ def test_import_socnav_imports_no_torch():
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
 
 
-def test_observation_is_the_environments(navigator_file):
+def test_observation_is_the_environments(navigator_file, tracked_state):
     """Built from plain state arrays, the navigator's observation is bit-identical to the environment's."""
     from socnav.sim import world as world_module
     from socnav.sim.observation import observe_batch
@@ -59,7 +49,7 @@ def test_observation_is_the_environments(navigator_file):
         world.velocities[:] = np.random.default_rng(0).normal(size=world.velocities.shape)  # not all at rest
         expected = world.observe()
         for env in range(4):
-            decision = navigator.act(*_state(world, env))
+            decision = navigator.act(*tracked_state(world, env))
             for key, value in expected.items():
                 np.testing.assert_array_equal(decision.observation[key][0], value[env], err_msg=key)
 
@@ -84,7 +74,7 @@ def test_more_humans_than_rows_keeps_the_closest(navigator_file):
     ("circle_crossing", 5, 3, 2, "paper"), ("circle_crossing", 5, 4, 0, "proximity-only"),
     ("random", (0, 10), 5, 1, "uncertainty-only")])
 def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_file, scenario, humans, seed, hold,
-                                                   conditions):
+                                                   conditions, tracked_state):
     """The navigator drives the environment from the world's state arrays; at every step the torch SafePolicy,
     fed the environment's observation and the same mask stream, decides the same: fallback, action, uncertainty;
     with a hold of the fallback too (held steps: the fallback drives while the rule does not fire), and with each
@@ -110,7 +100,7 @@ def test_navigator_reproduces_safe_policy_episodes(pretrained_policy, navigator_
         navigator.reset()
         done = False
         while not done:
-            decision = navigator.act(*_state(env.world))
+            decision = navigator.act(*tracked_state(env.world))
             expected, _ = reference.predict(obs)
             assert decision.fallback == bool(reference.last_fallback[0])
             np.testing.assert_allclose(decision.action, expected, rtol=0, atol=1e-5)

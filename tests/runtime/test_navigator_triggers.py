@@ -12,16 +12,6 @@ from socnav.safety.risk_model import GEOMETRY_FEATURES, UNCERTAINTY_FEATURES, sa
 from socnav.safety.triggers import TriggerSpec, load_safety, save_trigger_spec
 
 
-def _state(world, env: int = 0) -> tuple[dict, dict]:
-    """The robot's and the humans' state of one simulated environment, as a robot's tracker would give them."""
-    humans = np.flatnonzero(world.active[env, 1:]) + 1
-    robot = {"position": world.positions[env, 0], "velocity": world.velocities[env, 0],
-             "heading": world.heading[env], "goal": world.goals[env, 0], "v_pref": world.preferred_speeds[env, 0],
-             "radius": world.radii[env, 0]}
-    return robot, {"positions": world.positions[env, humans], "velocities": world.velocities[env, humans],
-                   "radii": world.radii[env, humans]}
-
-
 def _risk_model_file(tmp_path):
     """A small risk model that reads the uncertainty too (trained on synthetic rows: only its use is compared)."""
     rng = np.random.default_rng(0)
@@ -36,7 +26,7 @@ def _risk_model_file(tmp_path):
 @pytest.mark.parametrize("embedded", [False, True], ids=["trigger-file", "exported-with-the-trigger"])
 @pytest.mark.parametrize("trigger", ["time-to-collision", "conformal", "risk-model"])
 def test_navigator_reproduces_safe_policy_episodes_with_a_trigger(pretrained_policy, navigator_file, tmp_path,
-                                                                   trigger, embedded):
+                                                                   trigger, embedded, tracked_state):
     """Given at load (a trigger file) or carried by the navigator file (`socnav export --thresholds TRIGGER_FILE`:
     format version 4, a risk model's weights embedded), the trigger decides as in the torch SafePolicy."""
     from socnav.envs.env import SocialNavEnv
@@ -66,7 +56,7 @@ def test_navigator_reproduces_safe_policy_episodes_with_a_trigger(pretrained_pol
         navigator.reset()
         done = False
         while not done:
-            decision = navigator.act(*_state(env.world))
+            decision = navigator.act(*tracked_state(env.world))
             expected, _ = reference.predict(obs)
             assert decision.fallback == bool(reference.last_fallback[0])
             np.testing.assert_allclose(decision.action, expected, rtol=0, atol=1e-5)

@@ -93,19 +93,6 @@ def _resealed(source: Path, target: Path, edit) -> Path:
     return target
 
 
-def _state(world, env: int = 0) -> tuple[dict, dict]:
-    """The robot's state and the humans it sees (none behind a wall, as the world's occlusion has it)."""
-    visible = world.active[env].copy()
-    if world.occlusion:
-        visible &= world.walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
-    humans = np.flatnonzero(visible[1:]) + 1
-    robot = {"position": world.positions[env, 0], "velocity": world.velocities[env, 0],
-             "heading": world.heading[env], "goal": world.goals[env, 0], "v_pref": world.preferred_speeds[env, 0],
-             "radius": world.radii[env, 0]}
-    return robot, {"positions": world.positions[env, humans], "velocities": world.velocities[env, humans],
-                   "radii": world.radii[env, humans]}
-
-
 # ------------------------------------------------------------------------------------------------ the file
 
 def test_the_file_carries_the_scan_input_and_the_walls(scan_file):
@@ -207,7 +194,8 @@ def test_actions_values_and_mc_samples_match_torch(scan_policy, scan_file, obser
 # ------------------------------------------------------------------------------------------------ the navigator
 
 @pytest.mark.parametrize("seed,hold", [(1, 0), (2, 2)])
-def test_navigator_reproduces_safe_policy_in_a_corridor_with_scan(scan_policy, scan_file, seed, hold):
+def test_navigator_reproduces_safe_policy_in_a_corridor_with_scan(scan_policy, scan_file, seed, hold,
+                                                                 tracked_state):
     """The navigator drives the corridor from the world's state arrays, the scan and the pose; at every step it
     builds the environment's observation, and the torch SafePolicy (its fallback planning around the config's
     walls), fed that observation and the same mask stream, decides the same."""
@@ -227,7 +215,7 @@ def test_navigator_reproduces_safe_policy_in_a_corridor_with_scan(scan_policy, s
         navigator.reset()
         done = False
         while not done:
-            robot, humans = _state(env.world)
+            robot, humans = tracked_state(env.world)
             decision = navigator.act(robot, humans, scan=observation["scan"])
             for key, value in observation.items():
                 np.testing.assert_array_equal(decision.observation[key][0], value, err_msg=key)

@@ -438,9 +438,3 @@ def save_trigger_spec(spec: TriggerSpec, path: str | Path, extra: Mapping[str, A
         data["report"] = dict(extra)
     text = json.dumps(data, indent=2) + "\n" if path.suffix == ".json" else yaml.safe_dump(data, sort_keys=False)
     return write_text_atomic(path, text)
-
-
-def trigger_descriptions() -> dict[str, str]:
-    """One line per registered score trigger, for ``--help`` and the docs."""
-    return {name: cls.description for name, cls in TRIGGERS.items()}
-
