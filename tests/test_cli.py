@@ -43,13 +43,20 @@ def test_demo_writes_tables_and_animation(tmp_path):
     from socnav.sim.scenarios import scenario_names
 
     baselines = 2 * len(scenario_names(self_contained=True))  # straight and ORCA in every scenario (maps included)
-    assert len(list(tmp_path.glob("*.csv"))) == baselines + 3  # the policy, and it perturbed without/with safety
+    # the policy, and it perturbed without the layer, with the paper's rule and with the two comparison layers
+    assert len(list(tmp_path.glob("*.csv"))) == baselines + 5
     assert "odv-ppo-drop (pretrained)" in result.output
-    # The safety layer's part: the same perturbed episodes without and with it.
-    plain, safe = (pd.read_csv(p) for p in sorted(tmp_path.glob("perturbed_*.csv")))
-    assert list(plain["seed"]) == list(safe["seed"])
-    prevented = int((plain["outcome"] == "collision").sum() - (safe["outcome"] == "collision").sum())
-    assert f"{prevented} prevented" in " ".join(result.output.split())
+    # The safety layer's part: the same perturbed episodes without and with each layer.
+    plain = pd.read_csv(tmp_path / "perturbed_position_swap.csv")
+    words = " ".join(result.output.split())
+    for name, label in [("safety", "safety layer"), ("proximity_only", "proximity-only"),
+                        ("time_to_collision", "time to collision")]:
+        layer = pd.read_csv(tmp_path / f"perturbed_position_swap_{name}.csv")
+        assert list(plain["seed"]) == list(layer["seed"])
+        prevented = int((plain["outcome"] == "collision").sum() - (layer["outcome"] == "collision").sum())
+        assert f"{prevented} prevented" in words
+        assert "fallback_steps" in layer
+    assert "time to collision (calibrated for the shipped policy" in words
     assert "fallback drove" in result.output
 
 

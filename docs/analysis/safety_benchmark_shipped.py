@@ -4,7 +4,8 @@ configs/experiments/safety_benchmark.yaml replicates it across training seeds): 
     python docs/analysis/safety_benchmark_shipped.py --out runs/safety-benchmark-shipped
 
 Every row is calibrated on calibration episodes (seeds 500,000...; the risk model on 700,000...) and played on the
-held-out episodes 3,000,000... of `socnav.experiments.safety_benchmark.PAPER_TYPES` and `HELD_OUT_SHIFTS`.
+held-out episodes 3,000,000... of `socnav.experiments.safety_benchmark.PAPER_TYPES` and `HELD_OUT_SHIFTS` (and, with
+`--replay-files`, recorded pedestrians: the shift `replay`).
 The page and its figure are generated; nothing in them is typed.
 """
 
@@ -16,7 +17,14 @@ import time
 from pathlib import Path
 
 import socnav
-from socnav.experiments.safety_benchmark import LAYERS_FILE, BenchmarkSetup, load_layers, run_safety_benchmark
+from socnav.experiments.safety_benchmark import (
+    HELD_OUT_SHIFTS,
+    LAYERS_FILE,
+    BenchmarkSetup,
+    load_layers,
+    replay_shift,
+    run_safety_benchmark,
+)
 from socnav.experiments.safety_benchmark_units import benchmark_markdown
 from socnav.io import read_table, write_text_atomic
 from socnav.uncertainty import MC_SEED, MCDropoutEstimator
@@ -39,6 +47,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--budgets", type=float, nargs="+", default=[0.05])
     parser.add_argument("--k", type=int, default=20)
+    parser.add_argument("--replay-files", type=Path, nargs="*", default=[],
+                        help="ETH/UCY trajectory files played as the held-out shift `replay` (none ship with socnav)")
     parser.add_argument("--docs", action="store_true", help="write docs/safety-benchmark.md and its figure")
     parser.add_argument("--seeds-run", type=Path, default=None,
                         help="with --docs: also the table of a `socnav run configs/experiments/safety_benchmark.yaml` "
@@ -54,7 +64,8 @@ def main() -> None:
         estimator = MCDropoutEstimator(policy, k=args.k, seed=MC_SEED)
         setup = BenchmarkSetup(env=TABLE3_WORLD, budgets=args.budgets,
                                calibration_episodes=args.calibration_episodes,
-                               risk_training_episodes=3 * args.calibration_episodes, eval_episodes=args.episodes)
+                               risk_training_episodes=3 * args.calibration_episodes, eval_episodes=args.episodes,
+                               shifts={**HELD_OUT_SHIFTS, **replay_shift(args.replay_files)})
 
         def log(message: str) -> None:
             print(f"[{time.monotonic() - start:6.0f}s] {message}", flush=True)
@@ -67,6 +78,8 @@ def main() -> None:
     if args.docs:
         budgets = " ".join(f"{b:g}" for b in args.budgets)
         given = f"--calibration-episodes {args.calibration_episodes} --episodes {args.episodes} --budgets {budgets}"
+        if args.replay_files:
+            given += " --replay-files " + " ".join(path.name for path in args.replay_files)
         if args.seeds_run is not None:
             given += " --seeds-run RUN_DIR"
         minutes = args.minutes if args.minutes is not None else (time.monotonic() - start) / 60

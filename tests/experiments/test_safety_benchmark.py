@@ -4,6 +4,7 @@ verdicts whose error rate is shown by simulating the null (and whose power is sh
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -52,6 +53,29 @@ def test_unknown_trigger_in_a_config_names_the_closest():
     data["safety"]["triggers"] = ["conformall"]
     with pytest.raises(ExperimentError, match="did you mean 'conformal'"):
         parse_experiment(data)
+
+
+def test_replayed_pedestrians_are_a_held_out_shift_when_files_are_given(tmp_path):
+    import yaml
+
+    from socnav.experiments.safety_benchmark import replay_shift
+
+    rows = [(10 * j, ped, 0.5 * j - 3.0, float(ped)) for j in range(12) for ped in (1, 2)]
+    recording = tmp_path / "scene.txt"
+    recording.write_text("".join(f"{frame}\t{ped:.1f}\t{x:.2f}\t{y:.2f}\n" for frame, ped, x, y in sorted(rows)))
+    data = yaml.safe_load(Path(CONFIG).read_text())
+    without = [u for u in plan_units(parse_experiment(data)) if u.kind == "safety_benchmark"]
+    assert "replay_files" not in without[0].params  # the units as before the shift existed: runs resume
+    data["safety"]["replay_files"] = [str(recording)]
+    units = [u for u in plan_units(parse_experiment(data)) if u.kind == "safety_benchmark"]
+    assert units[0].params["replay_files"] == [str(recording.resolve())]
+    setup = BenchmarkSetup(env={"scenario": "position_swap", "n_humans": 1},
+                           shifts=replay_shift(units[0].params["replay_files"]))
+    group, world = setup.worlds()["replay"]
+    assert (group, world.scenario, world.humans.model) == ("shift", "replay", "replay")
+    data["safety"]["replay_files"] = [str(tmp_path / "missing.txt")]
+    with pytest.raises(ExperimentError, match=r"safety\.replay_files"):
+        plan_units(parse_experiment(data))
 
 
 def test_the_setup_holds_out_the_calibration_strengths():
@@ -160,6 +184,22 @@ def test_markdown_with_one_policy_pairs_the_episodes(tmp_path):
     assert (tmp_path / "safety_benchmark_tradeoff.png").stat().st_size > 0
     table = pd.read_csv(tmp_path / "safety_benchmark_verdicts.csv")
     assert math.isclose(table.loc[table["layer"] == "proximity-only", "diff_pct"].iloc[0], 0.0)
+
+
+def test_one_policy_holm_family_is_every_row_of_a_budget(tmp_path):
+    """With one acting policy the brake rows join the cautious rows' Holm family (as across seeds): two tested rows
+    with the same raw p each get twice it."""
+    flags = {"unperturbed": [0] * 10, "faster_humans=4": [1] * 8 + [0] * 12}
+    fewer = {"unperturbed": [0] * 10, "faster_humans=4": [0] * 20}
+    episodes = _episodes({"plain": flags, "proximity-only": flags, "conformal": fewer, "conformal/brake": fewer})
+    brake = episodes["layer"] == "conformal/brake"
+    episodes.loc[brake, "layer"], episodes.loc[brake, "fallback"] = "conformal", "brake"
+    benchmark_markdown(episodes, tmp_path, "one policy")
+    table = pd.read_csv(tmp_path / "safety_benchmark_verdicts.csv").set_index(["layer", "fallback"])
+    raw = table.loc[("conformal", "cautious"), "p_fewer"]
+    assert raw == pytest.approx(0.5 ** 8)  # 8 discordant pairs, all in its favour: one-sided exact binomial
+    assert table.loc[("conformal", "cautious"), "p_holm"] == pytest.approx(2 * raw)
+    assert table.loc[("conformal", "brake"), "p_holm"] == pytest.approx(2 * raw)
 
 
 def test_a_small_benchmark_runs_end_to_end_and_resumes_from_its_calibration(tmp_path):

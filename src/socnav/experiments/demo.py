@@ -9,12 +9,15 @@ shows one bar while its evaluation runs and yields the callback advanced by fini
 The perturbation is heading noise (the robot's turns go astray). Its strength is chosen by a quick measurement on
 screening episodes disjoint from the demo's: the strength among `STRENGTHS` at which the plain policy collides most
 (the layer has the most to prevent there). The safety layer is MC-dropout with the paper's thresholds
-(``Thresholds.preset("mc")``).
+(``Thresholds.preset("mc")``); beside it, on the same episodes, the layers of `COMPARISONS`: proximity-only (the
+row the safety-layer benchmark asks every trigger to beat) and the trigger the benchmark recommends, both calibrated
+for the shipped policy at the 5 % false-activation budget (files in ``socnav/data``, made by the commands in its
+README).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,10 +30,10 @@ from socnav.config import EnvConfig, load_config
 if TYPE_CHECKING:
     from socnav.rl.training import TrainResult
 
-__all__ = ["BASELINES", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar", "SafetyDemo",
+__all__ = ["BASELINES", "COMPARISONS", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar", "SafetyDemo",
            "animate_baseline", "animate_learned_policy", "animate_saved_episode", "baseline_rows", "choose_strength",
-           "describe", "find_saved_episode", "learned_policy_row", "safety_demo", "summary_rows", "train_policy",
-           "write_safety_records"]
+           "comparison_file", "describe", "find_saved_episode", "learned_policy_row", "safety_demo", "summary_rows",
+           "train_policy", "write_safety_records"]
 
 #: ``progress(label, total)``: a context manager showing one progress bar, yielding its ``advance(n)`` callback.
 ProgressBar = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
@@ -47,6 +50,9 @@ SCREEN_EPISODES = 50
 SCREEN_SEED = 900_000  # screening episodes: disjoint from the demo's (seed .. seed + episodes - 1)
 MC_SAMPLES = 20
 THRESHOLDS = "mc"
+#: label -> the shipped trigger file (socnav/data) the demo plays beside the paper's rule
+COMPARISONS = {"proximity-only": "pretrained_proximity-only.yaml",
+               "time to collision": "pretrained_time-to-collision.yaml"}
 
 
 @dataclass
@@ -60,6 +66,8 @@ class SafetyDemo:
     safe: pd.DataFrame
     saved: list[int] = field(default_factory=list)  # seeds where the plain policy collides and the safe one not
     caused: list[int] = field(default_factory=list)  # seeds where only the safe policy collides
+    #: label -> the records of a `COMPARISONS` layer on the same episodes (`fallback_steps` included)
+    comparisons: dict[str, pd.DataFrame] = field(default_factory=dict)
 
     @property
     def prevented(self) -> int:
@@ -154,6 +162,26 @@ def animate_learned_policy(policy: Any, world: EnvConfig, out: Path, seed: int, 
                            policy_label=label)
 
 
+def comparison_file(name: str) -> Path:
+    """The shipped trigger file ``name`` (socnav/data): a layer calibrated for the pretrained policy."""
+    from importlib.resources import files
+
+    return Path(str(files("socnav") / "data" / name))
+
+
+def _with_layer(safe_policy: Any, config: EnvConfig, episodes: int, seed: int, n_envs: int,
+                advance: Callable[[int], None] | None) -> pd.DataFrame:
+    """Episodes of `safe_policy`, with the steps its fallback drove (`fallback_steps`) per episode."""
+    from socnav.envs.rollout import rollout_episodes
+    from socnav.safety import FallbackCounter
+
+    counter = FallbackCounter(safe_policy)
+    records = rollout_episodes(safe_policy, config, episodes, seed=seed, n_envs=n_envs, observer=counter,
+                               progress=advance)
+    records["fallback_steps"] = counter.per_episode(records["episode"])
+    return records
+
+
 def _safe_policy(policy: Any, config: EnvConfig) -> Any:
     from socnav.safety import SafePolicy
     from socnav.uncertainty import MC_SEED, MCDropoutEstimator
@@ -176,35 +204,44 @@ def choose_strength(policy: Any, base: EnvConfig, n_envs: int = 50) -> tuple[flo
 
 
 def safety_demo(policy: Any, base: EnvConfig, episodes: int, seed: int, n_envs: int = 32,
-                progress: Callable[[str, int], Callable[[int], None]] | None = None) -> SafetyDemo:
-    """Play `episodes` episodes (seeds `seed`...) of the perturbed world with `policy` and with the same policy
-    inside the safety layer. `progress(label, total)` returns a callback advanced by finished episodes."""
+                progress: Callable[[str, int], Callable[[int], None]] | None = None,
+                comparisons: Mapping[str, str | Path] | None = None) -> SafetyDemo:
+    """Play `episodes` episodes (seeds `seed`...) of the perturbed world with `policy`, with the same policy inside
+    the safety layer, and inside each layer of `comparisons` (label -> trigger or threshold file; default: the
+    shipped `COMPARISONS`). `progress(label, total)` returns a callback advanced by finished episodes."""
     from socnav.envs.rollout import rollout_episodes
-    from socnav.safety import FallbackCounter
+    from socnav.safety import SafePolicy
 
     strength, screening = choose_strength(policy, base)
     config = load_config(base, perturbation={PERTURBATION: strength})
     tick = (lambda label: progress(label, episodes)) if progress is not None else (lambda label: None)
     plain = rollout_episodes(policy, config, episodes, seed=seed, n_envs=n_envs, progress=tick("plain policy"))
-    safe_policy = _safe_policy(policy, config)
-    counter = FallbackCounter(safe_policy)
-    safe = rollout_episodes(safe_policy, config, episodes, seed=seed, n_envs=n_envs, observer=counter,
-                            progress=tick("with the safety layer"))
-    safe["fallback_steps"] = counter.per_episode(safe["episode"])
+    safe = _with_layer(_safe_policy(policy, config), config, episodes, seed, n_envs, tick("with the safety layer"))
+    files = comparisons if comparisons is not None else {label: comparison_file(name)
+                                                         for label, name in COMPARISONS.items()}
+    others = {}
+    for label, path in files.items():
+        layer = SafePolicy(policy, None, str(path), config)  # these triggers read no uncertainty: no estimator
+        others[label] = _with_layer(layer, config, episodes, seed, n_envs, tick(f"with {label}"))
     plain_hit, safe_hit = plain["outcome"].eq("collision"), safe["outcome"].eq("collision")
     return SafetyDemo(config, strength, screening, plain, safe,
                       saved=[int(s) for s in plain.loc[plain_hit & ~safe_hit, "seed"]],
-                      caused=[int(s) for s in plain.loc[~plain_hit & safe_hit, "seed"]])
+                      caused=[int(s) for s in plain.loc[~plain_hit & safe_hit, "seed"]], comparisons=others)
 
 
-def write_safety_records(result: SafetyDemo, out: Path) -> tuple[Path, Path]:
-    """The safety demo's records: OUT/perturbed_<scenario>.csv (plain policy) and
-    OUT/perturbed_<scenario>_safety.csv (with the layer, `fallback_steps` included); returns both paths."""
+def write_safety_records(result: SafetyDemo, out: Path) -> tuple[Path, ...]:
+    """The safety demo's records: OUT/perturbed_<scenario>.csv (plain policy), OUT/perturbed_<scenario>_safety.csv
+    (with the layer, `fallback_steps` included) and OUT/perturbed_<scenario>_<comparison>.csv per comparison layer;
+    returns the paths."""
     from socnav.io import write_table_atomic
 
-    plain = Path(out) / f"perturbed_{result.config.scenario}.csv"
-    safe = Path(out) / f"perturbed_{result.config.scenario}_safety.csv"
-    return write_table_atomic(result.plain, plain), write_table_atomic(result.safe, safe)
+    base = Path(out) / f"perturbed_{result.config.scenario}"
+    paths = [write_table_atomic(result.plain, base.with_name(base.name + ".csv")),
+             write_table_atomic(result.safe, base.with_name(base.name + "_safety.csv"))]
+    for label, records in result.comparisons.items():
+        slug = "_".join(label.replace("-", " ").split())
+        paths.append(write_table_atomic(records, base.with_name(f"{base.name}_{slug}.csv")))
+    return tuple(paths)
 
 
 def find_saved_episode(policy: Any, config: EnvConfig, saved: list[int], tries: int = 3) -> int | None:
@@ -250,15 +287,25 @@ def describe(result: SafetyDemo) -> list[str]:
         lines.append("the plain policy did not collide here, so the safety layer had nothing to prevent")
     elif not result.saved:
         lines.append("the safety layer saved none of these episodes")
+    from socnav.safety import fallback_percent
+
+    for label, records in result.comparisons.items():
+        hits = int(records["outcome"].eq("collision").sum())
+        lines.append(f"{label} (calibrated for the shipped policy, 5 % budget) on the same episodes: {hits} "
+                     f"collision(s), {plain_hits - hits} prevented net; its fallback drove "
+                     f"{fallback_percent(records) / 100.0:.1%} of the steps")
     return lines
 
 
 def summary_rows(result: SafetyDemo, label: str) -> list[tuple[str, dict[str, Any]]]:
-    """Metrics-table rows (`socnav.envs.rollout.summarize`) of the plain and the safe run."""
+    """Metrics-table rows (`socnav.envs.rollout.summarize`) of the plain run, the safe run and the comparisons."""
     from socnav.envs.rollout import summarize
     from socnav.safety import fallback_percent
 
-    safe = summarize(result.safe)
-    safe["fallback_pct"] = fallback_percent(result.safe)
-    return [(f"{label}, no safety layer", summarize(result.plain)), (f"{label} + safety layer (mc)", safe)]
+    rows = [(f"{label}, no safety layer", summarize(result.plain))]
+    for name, records in {"safety layer (mc)": result.safe, **result.comparisons}.items():
+        row = summarize(records)
+        row["fallback_pct"] = fallback_percent(records)
+        rows.append((f"{label} + {name}", row))
+    return rows
 

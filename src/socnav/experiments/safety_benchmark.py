@@ -48,6 +48,7 @@ __all__ = [
     "Layer",
     "evaluate_layers",
     "paired_against",
+    "replay_shift",
     "run_safety_benchmark",
     "summarize_layers",
 ]
@@ -60,6 +61,15 @@ PAPER_TYPES: dict[str, list[float]] = {"observation_noise": [1.0, 2.0], "heading
 HELD_OUT_SHIFTS: dict[str, dict[str, Any]] = {
     "behaviour_shift": {"perturbation": perturbation_override("behaviour_shift", 1)},
     "corridor": {"scenario": "corridor"}}
+
+
+def replay_shift(files: Sequence[str | Path]) -> dict[str, dict[str, Any]]:
+    """The held-out shift ``replay``: recorded pedestrians (ETH/UCY trajectory files, docs/humans.md) walk through
+    the robot's world instead of simulated humans; ``{}`` without files (no recording ships with socnav)."""
+    if not files:
+        return {}
+    return {"replay": {"scenario": "replay", "n_humans": None,
+                       "humans": {"model": "replay", "replay": {"files": [str(path) for path in files]}}}}
 #: The benchmark's rows: the rule and its proximity-only ablation, the analytic triggers, the risk model without and
 #: with the uncertainty inputs (its ablation).
 BENCHMARK_ROWS = ("paper", "proximity-only", *ANALYTIC_TRIGGERS, "risk-model", "risk-model+uncertainty")

@@ -30,6 +30,7 @@ from socnav.experiments.safety_benchmark import (
     BenchmarkSetup,
     Layer,
     load_layers,
+    replay_shift,
     run_safety_benchmark,
     summarize_layers,
 )
@@ -58,7 +59,8 @@ def _execute_benchmark(root: Path, unit: Unit, directory: Path) -> ExecutorResul
                            risk_training_episodes=3 * p["calibration_episodes"], eval_episodes=p["episodes"],
                            eval_seed=p["seed"], sensing=p["sensing"], window=p["window"],
                            n_envs=min(p["n_envs"], 40), paper_types={k: v for k, v in paper_types.items() if v},
-                           shifts=HELD_OUT_SHIFTS, rows=tuple(p["triggers"]) or BENCHMARK_ROWS)
+                           shifts={**HELD_OUT_SHIFTS, **replay_shift(p.get("replay_files", []))},
+                           rows=tuple(p["triggers"]) or BENCHMARK_ROWS)
     log_lines: list[str] = []
 
     def log(message: str) -> None:
@@ -106,7 +108,8 @@ def seed_differences(episodes: pd.DataFrame) -> pd.DataFrame:
 def verdicts(differences: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
     """Per layer: the mean over training seeds (the clusters) of the difference in collision rate against
     proximity-only over the paper's types, its t interval, and a verdict at the family-wise error rate: Holm over
-    the layers of each budget, one-sided (``fewer`` only when the upper end of a Holm-adjusted test is below 0)."""
+    the rows of each budget (both fallbacks), one-sided (``fewer`` only when the Holm-adjusted p is below
+    1 - confidence)."""
     from scipy import stats
 
     from socnav.experiments.statistics import holm_adjust
@@ -183,9 +186,10 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
     """The benchmark's table (one row per layer) and trade-off figure, written to ``out_dir`` with its CSV files.
 
     With two or more training seeds, the verdict against proximity-only treats the seeds as the clusters
-    (:func:`verdicts`); with one, it pairs the episodes (the exact McNemar test of `summarize_layers`), Holm-adjusted
-    over the layers of each budget and fallback, one-sided for fewer collisions. ``layers`` (one list per acting
-    policy): the calibration's own scores are shown beside, and the row to deploy is chosen on them alone."""
+    (:func:`verdicts`); with one, it pairs the episodes (the exact McNemar test of `summarize_layers`); either way
+    Holm-adjusted over the rows of each budget (both fallbacks), one-sided for fewer collisions. ``layers`` (one list
+    per acting policy): the calibration's own scores are shown beside, and the row to deploy is chosen on them
+    alone."""
     pooled = summarize_layers(episodes)
     attrs = dict(pooled.attrs)  # a merge drops them
     calibration = calibration_table(layers)
@@ -258,8 +262,8 @@ def _share(value: float, decimals: int) -> str:
 
 def _episode_verdicts(pooled: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
     """One acting policy: the paired episode differences of `summarize_layers` as verdicts (McNemar, one-sided for
-    fewer collisions: half the two-sided p when the difference is negative), Holm over the layers of each budget
-    and fallback."""
+    fewer collisions: half the two-sided p when the difference is negative), Holm over the rows of each budget (both
+    fallbacks: the same family as :func:`verdicts` across seeds)."""
     from socnav.experiments.statistics import holm_adjust
 
     rows = pooled[~pooled["layer"].isin(REFERENCE_ROWS)].copy()
@@ -269,7 +273,7 @@ def _episode_verdicts(pooled: pd.DataFrame, confidence: float = 0.95) -> pd.Data
                           "p_fewer": np.where(rows["vs_proximity_difference"] < 0, rows["vs_proximity_p"] / 2,
                                               1.0 - rows["vs_proximity_p"] / 2)})
     table["p_holm"] = math.nan
-    for _key, block in table.groupby(["budget", "fallback"]):
+    for _budget, block in table.groupby("budget"):
         tested = block[~((block["layer"] == "proximity-only") & (block["fallback"] == "cautious"))]
         if len(tested):
             table.loc[tested.index, "p_holm"] = holm_adjust(tested["p_fewer"].to_numpy())

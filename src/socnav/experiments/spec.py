@@ -43,6 +43,7 @@ from typing import Any, Literal, cast
 from pydantic import Field, StrictInt, ValidationError, field_validator, model_serializer, model_validator
 
 from socnav.config import (
+    REPLAY_MAX_FILES,
     ConfigError,
     StrictModel,
     deep_merge,
@@ -302,6 +303,10 @@ class Safety(StrictModel):
     triggers: list[str] = Field(default_factory=list,
                                 description="kind safety_benchmark: the rows (registered triggers, and "
                                             "risk-model+uncertainty); [] for every built-in row")
+    replay_files: list[str] = Field(default_factory=list, max_length=REPLAY_MAX_FILES,
+                                    description="kind safety_benchmark: recorded pedestrian trajectories (ETH/UCY "
+                                                "text, as humans.replay.files) played as the held-out shift "
+                                                "`replay`; [] for none (no recording ships with socnav)")
 
     @field_validator("triggers")
     @classmethod
@@ -322,8 +327,9 @@ class Safety(StrictModel):
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
         data = handler(self)
-        if not data.get("triggers"):  # only the benchmark reads it: Table 3's run files stay as they were
-            data.pop("triggers", None)
+        for key in ("triggers", "replay_files"):  # only the benchmark reads them: Table 3's run files stay as they were
+            if not data.get(key):
+                data.pop(key, None)
         return data
 
     @field_validator("perturbations")
@@ -881,8 +887,25 @@ def plan_safety_benchmark(experiment: Experiment) -> list[Unit]:
         "calibration_episodes": safety.calibration_episodes, "episodes": evaluation.episodes,
         "seed": evaluation.seed, "n_envs": evaluation.n_envs, "perturbations": safety.perturbations,
         "sensing": safety.sensing[0], "k": safety.k, "window": safety.window, "triggers": list(safety.triggers),
+        **_replay_files(experiment, scenario),
     }, deps=(train.id,)) for train in trains]
     return [*trains, *benchmarks]
+
+
+def _replay_files(experiment: Experiment, scenario: str) -> dict[str, list[str]]:
+    """``{"replay_files": [absolute paths]}`` of the benchmark's replay shift, each file checked as the world
+    reading it checks it; ``{}`` without files (the units' parameters as before the shift existed)."""
+    from socnav.experiments.safety_benchmark import replay_shift
+
+    files = experiment.safety.replay_files if experiment.safety is not None else []
+    if not files:
+        return {}
+    world = {**experiment.env_config(scenario), **replay_shift(files)["replay"]}
+    try:
+        checked = load_config(world).humans.replay.files
+    except ConfigError as error:
+        raise ExperimentError(f"experiment {experiment.name!r}: safety.replay_files: {error}") from None
+    return {"replay_files": [str(path) for path in checked]}
 
 
 def _relative_cost(unit: Unit) -> float:
