@@ -276,6 +276,28 @@ class ScanConfig(_Strict):
     )
 
 
+class PlannerConfig(_Strict):
+    """The global planner of worlds with walls (docs/maps.md, "Global planner"): the robot's ORCA controller, the
+    cautious fallback and the ORCA and social force humans steer towards a subgoal on their shortest path to the
+    goal, a path that keeps `margin` metres beyond their radius from every wall. Read only where there are walls."""
+
+    enabled: bool = Field(
+        default=True, description="plan paths around the walls (false: every agent heads straight at its goal, "
+        "as without a planner)",
+    )
+    margin: float = Field(
+        default=0.1, ge=0, le=5, description="m: clearance a path keeps from every wall beyond the agent's radius; "
+        "a gap narrower than 2 x (radius + margin) is closed to the planner",
+    )
+    lookahead: float = Field(
+        default=1.0, gt=0, le=50, description="m: the subgoal lies this far along the path (pure pursuit)",
+    )
+    replan_distance: float = Field(
+        default=0.5, gt=0, le=50, description="m: an agent farther than this from its path plans again (also when "
+        "it loses sight of the path's next vertex or its goal changes)",
+    )
+
+
 class RewardConfig(_Strict):
     """Weights of the socially integrated reward (Flögel et al., IROS 2024, as the paper trains with it, Sec. III-A;
     docs/world.md); every term can be switched off with 0."""
@@ -627,6 +649,10 @@ class EnvConfig(_Strict):
         default=None, description="the robot's range scan of the walls, an observation key 'scan' (null: no scan)",
     )
     layout: LayoutConfig = Field(default_factory=LayoutConfig)
+    planner: PlannerConfig = Field(
+        default_factory=PlannerConfig, description="the global planner of worlds with walls: paths around them "
+        "for the robot and the humans (on by default where there are walls; no effect without)",
+    )
 
     @field_validator("obstacles")
     @classmethod
@@ -721,6 +747,33 @@ class EnvConfig(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _robot_goals_are_reachable(self) -> EnvConfig:
+        # Where the robot's routes are fixed by the config (the circle scenarios' four diameters), a goal the planner
+        # cannot reach among the config's obstacles or map is known now: refused here rather than left to a robot
+        # that would head straight at it.
+        from socnav.sim.scenarios import FixedRouteScenario, get_scenario
+
+        scenario = get_scenario(self.scenario)
+        if not self.planner.enabled or not isinstance(scenario, FixedRouteScenario):
+            return self
+        from socnav.sim.planning import planner_for, unreachable_route
+        from socnav.sim.walls import world_polygons
+
+        polygons = world_polygons(self, scenario)
+        if not polygons:
+            return self
+        clearance = self.robot_radius + self.planner.margin
+        route = unreachable_route(planner_for(polygons, clearance), scenario.robot_routes(self), self.robot_radius)
+        if route is not None:
+            start, goal = (f"({x + 0.0:g}, {y + 0.0:g})" for x, y in route)  # + 0.0: no "-0" shown
+            raise ValueError(
+                f"planner: the robot's goal {goal} cannot be reached from its start {start} (scenario "
+                f"{self.scenario!r}): among the walls no way at least {2 * clearance:g} m wide (2 x (robot_radius "
+                f"{self.robot_radius:g} + planner.margin {self.planner.margin:g})) leads there; move the obstacles "
+                "or the map, lower planner.margin, or set planner.enabled: false")
+        return self
+
+    @model_validator(mode="after")
     def _humans_fit_observation(self) -> EnvConfig:
         most = self.humans_range()[1]
         if most > self.max_humans:
@@ -743,6 +796,8 @@ class EnvConfig(_Strict):
                 del data[key]
         if data.get("layout") == LayoutConfig().model_dump(mode=getattr(handler, "mode", "python")):
             del data["layout"]
+        if data.get("planner") == PlannerConfig().model_dump(mode=getattr(handler, "mode", "python")):
+            del data["planner"]
         return data
 
     def humans_range(self) -> tuple[int, int]:

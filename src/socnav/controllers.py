@@ -4,6 +4,7 @@ extends. Both (`orca`, `straight`) act from the observation alone with SB3's `pr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -11,6 +12,7 @@ import numpy as np
 from socnav.config import EnvConfig
 from socnav.sim.obstacles import ObstacleBatch, ObstacleMap
 from socnav.sim.orca import orca_velocities
+from socnav.sim.planning import GlobalPlanner, PathFollower, planner_for, redirect_to_subgoals
 from socnav.sim.scenarios import get_scenario
 from socnav.sim.walls import POSE_KEY, world_polygons
 
@@ -78,20 +80,54 @@ class OrcaController:
 
     `radius_scale` inflates every observed human radius (1.5 for the safety layer's cautious controller); `share` is
     the robot's share of the avoidance effort and `safety_margin` metres are added to every human's radius
-    (defaults: the config's `robot_orca_share` and `robot_orca_safety_margin`).
+    (defaults: the config's `robot_orca_share` and `robot_orca_safety_margin`). `walls`: the polygons to keep off
+    (RVO2's convention, validated by the caller); None: the config's (its scenario's map, ``obstacles``, ``map``).
+
+    Among walls, with the config's ``planner`` on (the default), ORCA's preferred velocity points at the subgoal of
+    the robot's shortest path to its goal (`socnav.sim.planning`), planned from the observation's ``pose`` and goal;
+    it is the goal itself, as without a planner, whenever the straight line to the goal keeps the robot's radius from
+    every wall.
     """
 
     def __init__(self, config: EnvConfig, radius_scale: float = 1.0, share: float | None = None,
-                 safety_margin: float | None = None):
+                 safety_margin: float | None = None, walls: Sequence[np.ndarray] | None = None):
         if radius_scale <= 0:
             raise ValueError(f"radius_scale must be > 0, got {radius_scale}")
         self.config = config
         self.radius_scale = radius_scale
         self.share = config.robot_orca_share if share is None else share
         self.safety_margin = config.robot_orca_safety_margin if safety_margin is None else safety_margin
-        polygons = world_polygons(config, get_scenario(config.scenario))
+        polygons = world_polygons(config, get_scenario(config.scenario)) if walls is None else list(walls)
         self.walls = ObstacleMap.from_polygons(polygons) if polygons else None
         self._wall_batches: dict[int, ObstacleBatch] = {}
+        #: the robot's global planner (None in the open plane or with ``planner.enabled: false``)
+        self.planner: GlobalPlanner | None = None
+        if polygons and config.planner.enabled:
+            self.planner = planner_for(polygons, config.robot_radius + config.planner.margin)
+        self._followers: dict[int, PathFollower] = {}
+
+    def _follower(self, n_envs: int) -> PathFollower:
+        """The paths of a batch of `n_envs` robots, kept per batch size (a path is reused only while it fits the
+        robot's pose and goal, so a batch of other robots, or in another order, is safe, if slower)."""
+        follower = self._followers.get(n_envs)
+        if follower is None and self.planner is not None:
+            planner = self.config.planner
+            # The goal is read back from the float32 observation (and its noise): it moves a little every step.
+            follower = PathFollower(self.planner, n_envs, planner.lookahead, planner.replan_distance,
+                                    goal_tolerance=planner.replan_distance, direct_clearance=self.config.robot_radius)
+            self._followers[n_envs] = follower
+        assert follower is not None
+        return follower
+
+    def _steer_to_subgoals(self, preferred: np.ndarray, pose: np.ndarray, distance: np.ndarray,
+                           goal_angle: np.ndarray) -> None:
+        """Turn the robot's preferred velocity (map frame, `preferred` (E, N, 2), slot 0) towards its path's subgoal,
+        at the same speed, where the straight line to the goal does not keep the robot's radius from every wall (in
+        place; `socnav.sim.planning.PathFollower`)."""
+        position = np.ascontiguousarray(pose[:, :2])
+        goals = position + distance[:, None] * np.column_stack((np.cos(goal_angle), np.sin(goal_angle)))
+        subgoals, direct = self._follower(len(pose)).update(position, goals)
+        redirect_to_subgoals(preferred[:, 0], position, subgoals, direct)
 
     def _obstacles(self, walls: ObstacleMap, n_envs: int) -> ObstacleBatch:
         """The map's walls once per environment, built once per batch size."""
@@ -140,6 +176,8 @@ class OrcaController:
             positions, velocities, preferred = (_rotate(array, goal_angle) for array in (positions, velocities,
                                                                                           preferred))
             positions += pose[:, None, :2]
+            if self.planner is not None:
+                self._steer_to_subgoals(preferred, pose, np.maximum(robot[:, 0], 0.0), goal_angle)
             # The margin moves from the humans' radii to the robot's own, so that it keeps off walls as well.
             radii[:, 0] += self.safety_margin
             pad[:, 0, :] = 0.0

@@ -140,7 +140,7 @@ def test_the_orca_robot_crosses_an_empty_map_and_straight_does_not_hit_its_walls
 
 def test_obstacles_in_an_open_scenario_are_avoided_and_starts_redrawn_clear_of_them():
     # a pillar across the robot's paths of circle crossing (the axes), off their centre lines: the ORCA robot goes
-    # around it (a pillar centred on a path is ORCA's local minimum: the robot stops in front of it, no planner)
+    # around it (a pillar centred on a path is ORCA's local minimum, which the global planner gets round: test_planning)
     pillar = [[0.2, 0.2], [1.0, 0.2], [1.0, 1.0], [0.2, 1.0]]
     config = load_config({"scenario": "circle_crossing", "n_humans": 0, "obstacles": [pillar]})
     records = rollout_episodes(make_controller("orca", config), config, 8, seed=0, n_envs=8)

@@ -57,10 +57,11 @@ __all__ = [
 #: plays.
 PAPER_TYPES: dict[str, list[float]] = {"observation_noise": [1.0, 2.0], "heading_noise": [1.0, 2.0],
                                        "speed_noise": [1.0], "faster_humans": [4.0, 8.0], "more_humans": [7.0]}
-#: Worlds no calibration step resembles: humans of another model, and a map scenario.
+#: Worlds no calibration step resembles: humans of another model, and a map scenario (its humans on the scenario's
+#: straight legs, as the benchmark was first measured: the global planner, on by default among walls, came later).
 HELD_OUT_SHIFTS: dict[str, dict[str, Any]] = {
     "behaviour_shift": {"perturbation": perturbation_override("behaviour_shift", 1)},
-    "corridor": {"scenario": "corridor"}}
+    "corridor": {"scenario": "corridor", "planner": {"enabled": False}}}
 
 
 def replay_shift(files: Sequence[str | Path]) -> dict[str, dict[str, Any]]:

@@ -69,6 +69,11 @@ class AlgoConfig(StrictModel):
     # -- dropout (paper IV-B) --
     p_train: float = Field(default=0.0, ge=0, lt=1, description="dropout probability during training")
     p_test: float = Field(default=0.5, ge=0, lt=1, description="MC-dropout probability at test time (stored)")
+    # -- smooth driving (socnav.rl.smoothing): training-time costs, 0 = the paper's training --
+    turn_penalty: float = Field(default=0.0, ge=0, le=100, description="per-step cost of |heading action| (in [-1, 1]) "
+                                "subtracted from the reward the agent learns from")
+    action_change_penalty: float = Field(default=0.0, ge=0, le=100, description="per-step cost of the change of the "
+                                         "action from the last step (sum over speed and heading of |change| / 2)")
     # -- runtime --
     device: str = "cpu"
     torch_threads: StrictInt | None = Field(

@@ -732,7 +732,7 @@ def _train_locked(run: _Run, info: dict[str, Any], state: CheckpointState | None
                   verbose: int) -> TrainResult:
     """`train` once the run directory is locked and its checkpoint (if resuming) validated."""
     bar, run.progress = _progress_display(progress, run.timesteps)
-    env = make_vec_env(run.env_config, n_envs=info["n_envs"])
+    env = _smoothed(make_vec_env(run.env_config, n_envs=info["n_envs"]), run.algo_config)
     model = _start_model(run, state, env, str(run.out_dir / "tb") if tensorboard else None, verbose)
     remaining = run.timesteps - int(model.num_timesteps)
     _write_run_json(run.out_dir, {**info, "status": "running"})
@@ -751,6 +751,15 @@ def _train_locked(run: _Run, info: dict[str, Any], state: CheckpointState | None
         env.close()
     # without steps to learn (a finished run resumed) there is no logger for TensorBoard
     return _finish(run, model, info, state, log=remaining > 0)
+
+
+def _smoothed(env: Any, config: AlgoConfig) -> Any:
+    """`env` behind `socnav.rl.smoothing.SmoothnessPenalty` when the run's config asks for smooth driving."""
+    if not (config.turn_penalty or config.action_change_penalty):
+        return env
+    from socnav.rl.smoothing import SmoothnessPenalty
+
+    return SmoothnessPenalty(env, config.turn_penalty, config.action_change_penalty)
 
 
 def _start_model(run: _Run, state: CheckpointState | None, env: Any, tensorboard_log: str | None,

@@ -10,7 +10,8 @@ It reuses :class:`socnav.controllers.OrcaController` (same ORCA code as the huma
 takes the config's ``robot_orca_share`` of the avoidance (default 1: it assumes nothing of the humans, which is the
 cautious choice when humans may not yield) and adds ``robot_orca_safety_margin`` metres to each (scaled) radius.
 In a world with walls it also keeps off them (RVO2's obstacle constraints, planned in the map frame from the
-observation's ``pose``): the config's walls, or the polygons given as ``walls`` (the deployed navigator's map).
+observation's ``pose``): the config's walls, or the polygons given as ``walls`` (the deployed navigator's map),
+and with the config's ``planner`` on it heads for the subgoal of its path around them, as the ORCA controller does.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import numpy as np
 
 from socnav.config import ConfigLike, load_config
 from socnav.controllers import OrcaController
-from socnav.sim.obstacles import ObstacleMap
 
 __all__ = ["CAUTIOUS_RADIUS_SCALE", "CautiousController"]
 
@@ -43,9 +43,8 @@ class CautiousController(OrcaController):
     def __init__(self, config: ConfigLike = None, radius_scale: float = CAUTIOUS_RADIUS_SCALE,
                  share: float | None = None, safety_margin: float | None = None,
                  walls: Sequence[np.ndarray] | None = None):
-        super().__init__(load_config(config), radius_scale=radius_scale, share=share, safety_margin=safety_margin)
-        if walls is not None:  # OrcaController plans around `self.walls` (None: the open plane)
-            self.walls = ObstacleMap.from_polygons(list(walls)) if len(walls) else None
+        super().__init__(load_config(config), radius_scale=radius_scale, share=share, safety_margin=safety_margin,
+                         walls=walls)
 
     def predict(self, observation: dict[str, np.ndarray], state: Any = None, episode_start: Any = None,
                 deterministic: bool = True):

@@ -1,8 +1,10 @@
 """Scenarios with walls: a corridor, a doorway between two rooms, a crossing of two corridors and a furnished room.
 
 Each builds its walls from the config's ``layout`` section (`static_map`, polygons in RVO2's convention) and places
-starts and goals in free space so that every straight path an agent is sent along stays clear of the walls:
-socnav's humans and its ORCA robot steer locally (no global planner), as RVO2's own examples do without a roadmap.
+starts and goals in free space so that every straight path an agent is sent along stays clear of the walls, as
+RVO2's own examples do without a roadmap: with the global planner off (``planner.enabled: false``) the humans and the
+ORCA robot steer locally along these straight legs; with it on (the default) they head straight wherever the leg is
+clear, and follow a planned path (`socnav.sim.planning`) where it is not.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from socnav.sim.scenarios import (
     MIN_START_SEPARATION,
     InitialState,
     ScenarioSettings,
+    crossing_routes,
     draw_humans_count,
     face_goal,
     far_enough,
@@ -241,6 +244,10 @@ class Room:
         from socnav.sim.scenarios import get_scenario
 
         return get_scenario("circle_crossing").sample(rng, n_envs, config)
+
+    def robot_routes(self, config: ScenarioSettings) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The robot's start and goal of every episode: circle crossing's four diameters."""
+        return crossing_routes(config)
 
 
 for _scenario in (Corridor(), Doorway(), Intersection(), Room()):

@@ -106,6 +106,14 @@ class GoalRedrawingScenario(Protocol):
                  taken: list[np.ndarray] | None = None) -> np.ndarray: ...
 
 
+@runtime_checkable
+class FixedRouteScenario(Protocol):
+    """A scenario whose robot starts and ends at points the config fixes (the circle scenarios' four diameters):
+    the config check knows them before any episode (`socnav.config.EnvConfig`: reachable among the walls)."""
+
+    def robot_routes(self, config: ScenarioSettings) -> list[tuple[np.ndarray, np.ndarray]]: ...
+
+
 _REGISTRY: dict[str, Scenario] = {}
 
 
@@ -180,6 +188,13 @@ ROBOT_CROSSING_ANGLES = np.deg2rad([0.0, 90.0, 180.0, 270.0])
 MAX_TRIES = 200
 
 
+def crossing_routes(config: ScenarioSettings) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The robot's four fixed (start, goal) pairs of the circle scenarios: the diameters at
+    `ROBOT_CROSSING_ANGLES`, from ``circle_radius`` to its antipode."""
+    return [(config.circle_radius * _unit(angle), -config.circle_radius * _unit(angle))
+            for angle in ROBOT_CROSSING_ANGLES]
+
+
 # --------------------------------------------------------------------------------------------------------------
 # The four scenarios of the paper
 
@@ -221,6 +236,10 @@ class CircleCrossing:
     default_humans: int | tuple[int, int] = 5
     redraw_goals: bool = False
 
+    def robot_routes(self, config: ScenarioSettings) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The robot's start and goal of every episode: one of the four `crossing_routes`."""
+        return crossing_routes(config)
+
     def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))
         radius, jitter = config.circle_radius, config.circle_jitter
@@ -256,6 +275,10 @@ class CircleInteraction:
     default_humans: int | tuple[int, int] = (1, 3)
     redraw_goals: bool = False
     arrival_spread: float = 0.15  # relative spread of the humans' arrival times, so they do not all meet at once
+
+    def robot_routes(self, config: ScenarioSettings) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The robot's start and goal of every episode: one of the four `crossing_routes`."""
+        return crossing_routes(config)
 
     def sample(self, rng: np.random.Generator, n_envs: int, config: ScenarioSettings) -> InitialState:
         state = InitialState.empty(n_envs, n_slots(config))

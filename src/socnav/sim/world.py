@@ -37,6 +37,7 @@ from socnav.sim.noise import (
     uniform01,
 )
 from socnav.sim.orca import default_social_arrays
+from socnav.sim.planning import PathFollower, planner_for
 from socnav.sim.scenarios import GoalRedrawingScenario, InitialState, RoutedScenario, get_scenario, n_slots
 from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons
 
@@ -486,6 +487,17 @@ class CrowdWorld:
         self.occlusion = self.walls is not None and (
             config.occlusion if config.occlusion is not None else bool(getattr(self.scenario, "has_map", False)))
         self.in_sight = np.ones(shape, dtype=bool)  # (E, N): no wall between the robot and each agent
+        # the global planner (walls, ``planner.enabled``): humans head for their path's subgoal (`subgoals`) rather
+        # than their goal; None in the open plane, with the planner off, and for scripted humans (they walk a script)
+        self.human_paths: PathFollower | None = None
+        planner = config.planner
+        if self.walls is not None and planner.enabled and self.script is None:
+            # An intermediate subgoal nearer than a model's arrival distance would stop its human: pushed out.
+            reach = max(planner.lookahead, 1.0 + float(self.arrival_distances.max()))
+            self.human_paths = PathFollower(planner_for(polygons, config.human_radius + planner.margin),
+                                            n_envs * self.n_slots, planner.lookahead, planner.replan_distance,
+                                            reach=reach, direct_clearance=config.human_radius)
+        self.subgoals = self.goals.copy()  # (E, N, 2): where each human heads this step (its goal without planner)
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -564,6 +576,9 @@ class CrowdWorld:
         if self.mix is not None:
             self.set_models(env, np.zeros(self.n_slots, dtype=np.int64))
         self.entered[env] = False
+        self.subgoals[env] = self.goals[env]
+        if self.human_paths is not None:  # a new episode: no path of the last one is reused
+            self.human_paths.forget(slice(env * self.n_slots, (env + 1) * self.n_slots))
         if self.script is not None:
             if not initial.script:
                 raise ValueError(f"{self.human_model.name} humans start from their scenario's script: load an "
@@ -610,9 +625,11 @@ class CrowdWorld:
     # ---------------------------------------------------------------------------------------------------- step
 
     def crowd(self, without_robot: bool = False) -> Crowd:
-        """The world's arrays as the human model reads them (views); `without_robot`: no human sees the robot."""
+        """The world's arrays as the human model reads them (views); `without_robot`: no human sees the robot. With
+        the global planner, a human's goal is this step's subgoal on its path (`steer_humans`)."""
         return Crowd(
-            positions=self.positions, velocities=self.velocities, goals=self.goals, radii=self.radii,
+            positions=self.positions, velocities=self.velocities,
+            goals=self.goals if self.human_paths is None else self.subgoals, radii=self.radii,
             max_speeds=self.max_speeds, active=self.active, radius_pad=self.radius_pad,
             avoidance_share=self.avoidance_share, sees=self.sees_without_robot if without_robot else self.sees,
             model_index=self.model_index, obstacles=None if self.walls is None else self.walls.obstacles,
@@ -654,6 +671,8 @@ class CrowdWorld:
             self._update_robot_visibility()
         elif self.walls is not None:
             self._update_robot_visibility()
+        if self.human_paths is not None:
+            self.steer_humans()
         humans = self.human_velocities()
         near = self.humans_near_robot(rew.social_radius)
         unhindered = self.unhindered_velocities(humans, near) if rew.disturbance > 0.0 and near.any() else humans
@@ -689,6 +708,17 @@ class CrowdWorld:
             nearest_relative_speed=nearest_speed,
             intrusions=intrusions,
         )
+
+    def steer_humans(self) -> None:
+        """This step's subgoal of every active human (`subgoals`), from the global planner (`human_paths`): the goal
+        itself where the straight line to it keeps the human's radius from every wall, else a point along its path
+        around the walls (re-planned only when the human strayed from its path, lost sight of it, or got a new
+        goal)."""
+        paths = self.human_paths
+        if paths is None:
+            return
+        asked = (self.active & self.humans_slots).ravel()
+        paths.update(self.positions.reshape(-1, 2), self.goals.reshape(-1, 2), asked, out=self.subgoals.reshape(-1, 2))
 
     def _end_at_walls(self, walls: Walls, robot_before: np.ndarray, outcome: np.ndarray, reward: np.ndarray) -> None:
         """A robot whose disc touched a wall during the step (swept, like a collision with a human) ends its episode
