@@ -296,6 +296,11 @@ class PlannerConfig(_Strict):
         default=0.5, gt=0, le=50, description="m: an agent farther than this from its path plans again (also when "
         "it loses sight of the path's next vertex or its goal changes)",
     )
+    observe: bool = Field(
+        default=False, description="the robot's observed goal lies along its path: the direction to its subgoal at "
+        "the goal's distance, so a learned policy follows the route (false: the goal itself, as a policy trained in "
+        "the open plane saw it)",
+    )
 
 
 class RewardConfig(_Strict):

@@ -347,3 +347,24 @@ def test_a_world_with_the_planner_plays_the_same_episodes_whatever_the_batch():
     one = rollout_episodes(make_controller("orca", config), config, 4, seed=3, n_envs=1, progress=False)
     four = rollout_episodes(make_controller("orca", config), config, 4, seed=3, n_envs=4, progress=False)
     assert one.equals(four)
+
+
+def test_the_observed_goal_follows_the_route_with_planner_observe():
+    """With ``planner.observe`` the robot observes its goal in the direction of its path's subgoal, at the goal's
+    distance: behind a pillar the goal is seen off to the side the path takes; with the line clear, and without the
+    option, the observation is the one of the open plane."""
+    pillar = square(0.0, 0.0, 0.5).tolist()
+    plain = staged({"obstacles": [pillar]}, robot=(-4.0, 0.0), goal=(4.0, 0.0)).observe()
+    routed_world = staged({"obstacles": [pillar], "planner": {"observe": True}}, robot=(-4.0, 0.0), goal=(4.0, 0.0))
+    routed = routed_world.observe()
+    distance, heading = 0, 1  # socnav.envs.spaces.ROBOT_FEATURE_NAMES
+    assert plain["robot"][0, heading] == pytest.approx(0.0, abs=1e-6)  # facing the goal
+    assert routed["robot"][0, distance] == pytest.approx(plain["robot"][0, distance], rel=1e-6)
+    subgoal = routed_world.robot_path.update(routed_world.positions[:, 0], routed_world.goals[:, 0])[0][0]
+    bearing = math.atan2(subgoal[1], subgoal[0] + 4.0)  # of the subgoal from the robot
+    assert abs(bearing) > 0.05  # the path leaves the straight line round the pillar
+    # docs/world.md: the robot's heading (0, along +x) relative to the observed goal's direction
+    assert routed["robot"][0, heading] == pytest.approx(0.0 - bearing, abs=1e-4)
+    clear = staged({"obstacles": [square(0.0, 3.0, 0.5).tolist()], "planner": {"observe": True}},
+                   robot=(-4.0, 0.0), goal=(4.0, 0.0)).observe()
+    np.testing.assert_array_equal(clear["robot"], plain["robot"])

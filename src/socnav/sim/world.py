@@ -498,6 +498,12 @@ class CrowdWorld:
                                             n_envs * self.n_slots, planner.lookahead, planner.replan_distance,
                                             reach=reach, direct_clearance=config.human_radius)
         self.subgoals = self.goals.copy()  # (E, N, 2): where each human heads this step (its goal without planner)
+        # ``planner.observe``: the robot's own path, whose subgoal turns the goal the policy observes (`observe`)
+        self.robot_path: PathFollower | None = None
+        if self.walls is not None and planner.enabled and planner.observe:
+            self.robot_path = PathFollower(planner_for(polygons, config.robot_radius + planner.margin), n_envs,
+                                           planner.lookahead, planner.replan_distance,
+                                           direct_clearance=config.robot_radius)
 
     # ---------------------------------------------------------------------------------------------------- seeding
 
@@ -579,6 +585,8 @@ class CrowdWorld:
         self.subgoals[env] = self.goals[env]
         if self.human_paths is not None:  # a new episode: no path of the last one is reused
             self.human_paths.forget(slice(env * self.n_slots, (env + 1) * self.n_slots))
+        if self.robot_path is not None:
+            self.robot_path.forget(slice(env, env + 1))
         if self.script is not None:
             if not initial.script:
                 raise ValueError(f"{self.human_model.name} humans start from their scenario's script: load an "
@@ -771,6 +779,9 @@ class CrowdWorld:
                                                     self.heading[envs], self.noise_keys[envs], self.steps[envs])
         if self.occlusion:  # a human behind a wall is absent, exactly as one out of range
             active = active & (self.in_sight if envs is None else self.in_sight[envs])
+        if self.robot_path is not None:
+            goals = goals.copy()
+            goals[:, 0] = self.route_goals(envs)
         robot, humans, mask = observe_batch(positions, velocities, radii, goals, speeds, active, heading,
                                             self.config.max_humans)
         if noisy and self.config.perturbation.observation_noise > 0.0:
@@ -785,6 +796,25 @@ class CrowdWorld:
             else:
                 observation[SCAN_KEY] = self.walls.scan(positions[:, 0], heading, scan.beams, scan.range, scan.fov)
         return observation
+
+    def route_goals(self, envs: np.ndarray | None = None) -> np.ndarray:
+        """The goal the robot observes with ``planner.observe`` ((E, 2), or of `envs`): at the distance of its goal,
+        in the direction of its path's subgoal (DRL-VO's sub-goal from the global planner; the goal itself where the
+        straight line to it is clear), so the observation's layout and the goal's distance stay those of the open
+        plane."""
+        assert self.robot_path is not None
+        asked = np.ones(self.n_envs, dtype=bool)
+        if envs is not None:
+            asked[:] = False
+            asked[envs] = True
+        positions, goals = self.positions[:, 0], self.goals[:, 0]
+        subgoals, _ = self.robot_path.update(positions, goals, asked)
+        rows = slice(None) if envs is None else envs
+        toward = subgoals[rows] - positions[rows]
+        length = np.linalg.norm(toward, axis=1, keepdims=True)
+        distance = np.linalg.norm(goals[rows] - positions[rows], axis=1, keepdims=True)
+        unit = np.divide(toward, length, out=np.zeros_like(toward), where=length > 1e-9)
+        return np.where(length > 1e-9, positions[rows] + unit * distance, goals[rows])
 
     def episode_summary(self, env: int, outcome: int) -> dict[str, float | int | str]:
         """End-of-episode metrics of environment `env` (call before it is reset); with ``metrics=True`` followed by
