@@ -237,11 +237,16 @@ def paired_against(episodes: pd.DataFrame, layer: tuple[str, float, str], baseli
 
 def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
     """Per layer (name, budget, fallback): false activation on the unperturbed episodes, collisions prevented per
-    world group and pooled over the paper's types, goal rate, and the paired difference against proximity-only
-    at the same budget and fallback."""
+    world group and pooled over the paper's types, the collisions over the paper's types in episodes where the
+    robot that never moves is hit too (``collisions_unavoidable``: no fallback that stops avoids them), goal rate,
+    and the paired difference against proximity-only at the same budget (cautious fallback)."""
     episodes = episodes.assign(fallback=episodes["fallback"].fillna(""))  # a CSV reads the references' '' as NaN
     plain = episodes[episodes["layer"] == "plain"]
     paper_worlds = sorted(plain.loc[~plain["group"].isin(["unperturbed", "shift"]), "world"].unique())
+    # an episode in which the robot that never moves is walked into: no fallback that stops can avoid that collision
+    same_episode = [column for column in ("train_seed", "world", "episode") if column in episodes]
+    still = episodes[(episodes["layer"] == "stand-still") & episodes["collided"]]
+    unavoidable = pd.MultiIndex.from_frame(still[same_episode]) if len(still) else None
     shift_worlds = sorted(plain.loc[plain["group"] == "shift", "world"].unique())
     rows = []
     keys = episodes[["layer", "budget", "fallback"]].drop_duplicates().itertuples(index=False)
@@ -254,6 +259,9 @@ def summarize_layers(episodes: pd.DataFrame) -> pd.DataFrame:
                                # over the paper's types, as the collisions column beside it
                                "collisions_fallback_driving": int((typed["collided"] & typed["fallback_at_end"]).sum())
                                if "fallback_at_end" in typed else 0,
+                               "collisions_unavoidable": 0 if unavoidable is None else int(
+                                   (typed["collided"] & pd.MultiIndex.from_frame(typed[same_episode])
+                                    .isin(unavoidable)).sum()),
                                "false_activation_pct": 100.0 * unperturbed["fallback_steps"].sum()
                                / max(unperturbed["length"].sum(), 1),
                                "goal_pct": 100.0 * mine["goal"].mean()}

@@ -124,6 +124,7 @@ def verdicts(differences: pd.DataFrame, confidence: float = 0.95) -> pd.DataFram
         # H0: no fewer collisions than proximity-only; H1: fewer (one-sided t over the seeds)
         p = float(stats.t.cdf(mean / (sd / math.sqrt(n)), n - 1)) if n > 1 and sd > 0 else math.nan
         rows.append({"layer": name, "budget": budget, "fallback": fallback, "seeds": n, "diff_pct": mean,
+                     "sd": sd,
                      "low": mean - half, "high": mean + half, "p_fewer": p,
                      "unperturbed_diff_pct": float(group["diff_pct_unperturbed"].mean()),
                      "false_activation_pct": float(group["false_activation_pct"].mean())})
@@ -137,10 +138,26 @@ def verdicts(differences: pd.DataFrame, confidence: float = 0.95) -> pd.DataFram
         if len(tested):
             table.loc[tested.index, "p_holm"] = holm_adjust(tested["p_fewer"].to_numpy())
     alpha = 1.0 - confidence
+    table["detectable_pct"] = _detectable(table, alpha)
     beaten = (table["layer"] == "proximity-only") & (table["fallback"] == "cautious")
     table["verdict"] = np.where(table["p_holm"] < alpha, "fewer collisions",
                                 np.where(beaten, "(the row to beat)", "not established"))
     return table
+
+
+def _detectable(table: pd.DataFrame, alpha: float, power: float = 0.8) -> pd.Series:
+    """The power of each row's verdict: the smallest true difference (percentage points, fewer collisions) its
+    one-sided t test over the seeds detects with probability ``power`` at the strictest Holm level of its budget
+    (alpha / the rows tested there), given the spread of its per-seed differences:
+    ``(t_{1 - alpha/m} + t_{power}) * sd / sqrt(n)``."""
+    from scipy import stats
+
+    tested = table["p_fewer"].notna()
+    rows = tested.groupby(table["budget"]).transform("sum").clip(lower=1)
+    n = table["seeds"].astype(float)
+    sd = table["sd"]
+    quantiles = stats.t.ppf(1 - alpha / rows, np.maximum(n - 1, 1)) + stats.t.ppf(power, np.maximum(n - 1, 1))
+    return pd.Series(np.where(tested, quantiles * sd / np.sqrt(n), np.nan), index=table.index)
 
 
 @register_section("safety_benchmark", "safety_benchmark")
@@ -216,14 +233,19 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
              "held-out unperturbed steps on which the fallback drove; the difference in collision rate against "
              f"proximity-only at the same budget (percentage points; 95 % interval over the {unit}), and its "
              "Holm-adjusted one-sided p for fewer collisions. `stand-still`: a robot that never moves (the "
-             "collisions no robot avoids by stopping); collisions with the fallback driving: those of the paper's "
+             "collisions no robot avoids by stopping); unavoidable: those of the paper's types in episodes where "
+             "the robot that never moves is hit too; collisions with the fallback driving: those of the paper's "
              "types whose last step the fallback drove (with the brake: the robot had stopped when the trigger "
-             "fired and was still hit).", "",
+             "fired and was still hit)."
+             + (" Detectable: the smallest difference the row's test finds with 80 % power at the strictest Holm "
+                "level of its budget, from the spread of its per-seed differences." if seeds >= 2 else ""), "",
              "| layer | budget | fallback | calibration: prevented, worst type / mean % | false act. % | "
-             "collisions, paper's types | prevented, paper's types % | "
+             "collisions, paper's types | unavoidable | prevented, paper's types % | "
              "unperturbed % | " + " | ".join(f"{name} %" for name in shift_columns)
-             + " | collisions with the fallback driving | vs proximity-only, pp [95 % CI] | Holm p | verdict |",
-             "|---|---|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|---|"]
+             + " | collisions with the fallback driving | vs proximity-only, pp [95 % CI] | "
+             + ("detectable, pp | " if seeds >= 2 else "") + "Holm p | verdict |",
+             "|---|---|---|---|---|---|---|---|---|" + "---|" * len(shift_columns) + "---|---|---|---|"
+             + ("---|" if seeds >= 2 else "")]
     for row in pooled[pooled["layer"] != "plain"].itertuples(index=False):
         match = table[(table["layer"] == row.layer) & np.isclose(table["budget"], row.budget)
                       & (table["fallback"] == row.fallback)]
@@ -231,15 +253,18 @@ def benchmark_markdown(episodes: pd.DataFrame, out_dir: Path, policies: str, lev
         interval = ("" if verdict is None or not np.isfinite(verdict.diff_pct) else
                     f"{verdict.diff_pct:+.1f} [{verdict.low:+.1f}, {verdict.high:+.1f}]")
         shifts = " | ".join(_share(getattr(row, f"prevented_{name}_pct"), 0) for name in shift_columns)
+        detectable = "" if seeds < 2 else (
+            "| " if verdict is None or not np.isfinite(verdict.detectable_pct) else f"{verdict.detectable_pct:.1f} | ")
         reference = row.layer in REFERENCE_ROWS
         lines.append(f"| {row.layer} | {'–' if reference else f'{row.budget:.0%}'} | "
                      f"{'–' if reference else row.fallback} | "
                      f"{_share(row.calibration_prevented_worst, 0)} / "
                      f"{_share(row.calibration_prevented_fraction, 0)} | "
                      f"{row.false_activation_pct:.2f} | "
-                     f"{row.collisions_paper_types} | {_share(row.prevented_paper_types_pct, 1)} | "
+                     f"{row.collisions_paper_types} | {row.collisions_unavoidable} | "
+                     f"{_share(row.prevented_paper_types_pct, 1)} | "
                      f"{_share(row.prevented_unperturbed_pct, 0)} | {shifts} | {row.collisions_fallback_driving} | "
-                     f"{interval} | {_p_value(verdict)} | "
+                     f"{interval} | {detectable}{_p_value(verdict)} | "
                      f"{'' if verdict is None else verdict.verdict} |")
     for budget in sorted(calibration["budget"].unique()):
         choice = deployment_choice(calibration, budget)
