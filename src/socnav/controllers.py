@@ -65,6 +65,14 @@ class StraightController:
     def __init__(self, config: EnvConfig):
         self.config = config
 
+    def on_episode_start(self, envs: np.ndarray) -> None:
+        """`socnav.envs.rollout.rollout_episodes` hook: environments `envs` start new episodes, so no path of the
+        last episode in those rows is followed (an episode's play does not depend on which episode ran before it in
+        its row, nor on the batch size)."""
+        rows = np.asarray(envs, dtype=np.int64)
+        for size, follower in self._followers.items():
+            follower.forget(rows[rows < size])
+
     def predict(self, observation: Observation, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, None]:
         """SB3's `predict`: the actions of a (batch of) observation(s), no recurrent state."""
@@ -105,6 +113,10 @@ class OrcaController:
         if polygons and config.planner.enabled:
             self.planner = planner_for(polygons, config.robot_radius + config.planner.margin)
         self._followers: dict[int, PathFollower] = {}
+        #: reuse a robot's path from one call to the next (rows are environments that `on_episode_start` names);
+        #: False plans afresh at every call, for a caller whose rows change from call to call (the safety layer
+        #: hands the fallback only the rows where it drives), so that no row inherits another robot's path
+        self.keep_paths = True
 
     def _follower(self, n_envs: int) -> PathFollower:
         """The paths of a batch of `n_envs` robots, kept per batch size (a path is reused only while it fits the
@@ -126,7 +138,10 @@ class OrcaController:
         place; `socnav.sim.planning.PathFollower`)."""
         position = np.ascontiguousarray(pose[:, :2])
         goals = position + distance[:, None] * np.column_stack((np.cos(goal_angle), np.sin(goal_angle)))
-        subgoals, direct = self._follower(len(pose)).update(position, goals)
+        follower = self._follower(len(pose))
+        if not self.keep_paths:
+            follower.forget(slice(None))
+        subgoals, direct = follower.update(position, goals)
         redirect_to_subgoals(preferred[:, 0], position, subgoals, direct)
 
     def _obstacles(self, walls: ObstacleMap, n_envs: int) -> ObstacleBatch:
@@ -191,6 +206,14 @@ class OrcaController:
         if self.walls is not None:
             return _rotate(velocities[:, :1], -goal_angle)[:, 0]
         return velocities[:, 0]
+
+    def on_episode_start(self, envs: np.ndarray) -> None:
+        """`socnav.envs.rollout.rollout_episodes` hook: environments `envs` start new episodes, so no path of the
+        last episode in those rows is followed (an episode's play does not depend on which episode ran before it in
+        its row, nor on the batch size)."""
+        rows = np.asarray(envs, dtype=np.int64)
+        for size, follower in self._followers.items():
+            follower.forget(rows[rows < size])
 
     def predict(self, observation: Observation, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, None]:

@@ -368,3 +368,12 @@ def test_the_observed_goal_follows_the_route_with_planner_observe():
     clear = staged({"obstacles": [square(0.0, 3.0, 0.5).tolist()], "planner": {"observe": True}},
                    robot=(-4.0, 0.0), goal=(4.0, 0.0)).observe()
     np.testing.assert_array_equal(clear["robot"], plain["robot"])
+
+
+def test_the_orca_robot_plays_the_same_episodes_whatever_the_batch():
+    """The robot's path is forgotten when its row starts a new episode (`OrcaController.on_episode_start`): an
+    episode does not inherit the path of the episode that ran before it in its row."""
+    config = load_config({"scenario": "doorway"})
+    played = [rollout_episodes(make_controller("orca", config), config, 60, seed=0, n_envs=n, progress=False,
+                               metrics=False).sort_values("seed").reset_index(drop=True) for n in (20, 7)]
+    assert played[0][["seed", "outcome", "length"]].equals(played[1][["seed", "outcome", "length"]])

@@ -117,6 +117,7 @@ class SafePolicy:
             raise ValueError(f"unknown fallback {fallback!r}; allowed: {', '.join(FALLBACKS)}")
         self.fallback = fallback
         self.cautious = CautiousController(self.config, radius_scale=radius_scale)
+        self.cautious.keep_paths = False  # it is handed only the rows where it drives, a different set each step
         self.n_envs: int | None = None
         self.last_fallback = np.zeros(0, dtype=bool)
         self.last_conditions: RuleConditions | None = None
