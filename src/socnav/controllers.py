@@ -65,14 +65,6 @@ class StraightController:
     def __init__(self, config: EnvConfig):
         self.config = config
 
-    def on_episode_start(self, envs: np.ndarray) -> None:
-        """`socnav.envs.rollout.rollout_episodes` hook: environments `envs` start new episodes, so no path of the
-        last episode in those rows is followed (an episode's play does not depend on which episode ran before it in
-        its row, nor on the batch size)."""
-        rows = np.asarray(envs, dtype=np.int64)
-        for size, follower in self._followers.items():
-            follower.forget(rows[rows < size])
-
     def predict(self, observation: Observation, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, None]:
         """SB3's `predict`: the actions of a (batch of) observation(s), no recurrent state."""
