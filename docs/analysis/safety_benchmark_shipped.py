@@ -57,7 +57,15 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=None,
                         help="the page only, from the episodes of a finished run in --out (its duration in minutes, "
                              "for the page)")
+    parser.add_argument("--seeds-only", action="store_true",
+                        help="with --seeds-run: regenerate only the page's section across training seeds, keeping "
+                             "the shipped policy's table as it was generated")
     args = parser.parse_args()
+    if args.seeds_only:
+        page = (DOCS / "safety-benchmark.md").read_text()
+        kept = page.split("\n" + SEEDS_HEADING)[0].rstrip("\n") + "\n"
+        write_text_atomic(DOCS / "safety-benchmark.md", kept + "\n" + seeds_section(args.seeds_run, args.seeds_command))
+        return
     start = time.monotonic()
     if args.minutes is None:
         policy = socnav.load_policy("pretrained")
@@ -90,6 +98,9 @@ def main() -> None:
         if args.seeds_run is not None:
             page += "\n" + seeds_section(args.seeds_run, args.seeds_command)
         write_text_atomic(DOCS / "safety-benchmark.md", page)
+
+
+SEEDS_HEADING = "## Across training seeds"
 
 
 def seeds_section(run: Path, command: str) -> str:
