@@ -415,6 +415,9 @@ def export_onnx(
     if p_test is None:
         p_test = _stored_p_test(policy)
     env_config = _policy_env_config(policy, env_config)
+    if env_config.planner.observe:  # the navigator would hand it the goal itself: another observation, silently
+        raise ExportError("env_config.planner.observe: the navigator does not plan a route yet, so a policy that "
+                          "observes its goal along the planned path cannot be exported; allowed: false")
     source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
     decision = load_safety(thresholds)
     trigger = _trigger_record(decision) if isinstance(decision, TriggerSpec) else None
