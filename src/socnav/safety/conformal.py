@@ -81,7 +81,8 @@ class ConformalShieldTrigger(ScoreTrigger):
     def score(self, inputs: TriggerInputs) -> np.ndarray:
         rows = np.arange(len(self._quantile))
         due = self._forecasts[rows, self._position]  # the forecast made `steps` steps ago for now
-        errors = due - inputs.nearest.gap
+        with np.errstate(invalid="ignore"):  # no human in view: inf - inf, an unknown error (masked next)
+            errors = due - inputs.nearest.gap
         known = np.isfinite(errors)
         missed = (errors > self._quantile) & known
         # quantile tracking: up by eta (1 - alpha) after a miss, down by eta alpha after a hit
