@@ -608,15 +608,22 @@ def unreachable_route(planner: GlobalPlanner, routes: Sequence[tuple[np.ndarray,
 # Following paths: each step's subgoal of a batch of agents
 # --------------------------------------------------------------------------------------------------------------------
 @numba.njit(cache=True, inline="always")
-def _distance_to_segment(px, py, ax, ay, bx, by):
-    """Distance from p to the segment [a, b] (sqrt rather than hypot: this runs for every agent at every step)."""
+def _nearest_on_segment(px, py, ax, ay, bx, by):
+    """(t, distance): p's nearest point on the segment [a, b] is a + t (b - a) (sqrt rather than hypot: this runs for
+    every agent at every step)."""
     ex, ey = bx - ax, by - ay
     length_squared = ex * ex + ey * ey
     t = 0.0
     if length_squared > 0.0:
         t = min(max(((px - ax) * ex + (py - ay) * ey) / length_squared, 0.0), 1.0)
     dx, dy = px - (ax + t * ex), py - (ay + t * ey)
-    return math.sqrt(dx * dx + dy * dy)
+    return t, math.sqrt(dx * dx + dy * dy)
+
+
+@numba.njit(cache=True, inline="always")
+def _distance_to_segment(px, py, ax, ay, bx, by):
+    """Distance from p to the segment [a, b]."""
+    return _nearest_on_segment(px, py, ax, ay, bx, by)[1]
 
 
 @numba.njit(cache=True)
@@ -626,14 +633,8 @@ def _follow(k, px, py, paths, counts, segments, lookahead):
     vertex at most). Returns (distance to the path, carrot x, carrot y, the carrot's segment)."""
     best, best_distance, best_t = segments[k], np.inf, 0.0
     for s in range(segments[k], counts[k] - 1):
-        ax, ay, bx, by = paths[k, s, 0], paths[k, s, 1], paths[k, s + 1, 0], paths[k, s + 1, 1]
-        ex, ey = bx - ax, by - ay
-        length_squared = ex * ex + ey * ey
-        t = 0.0
-        if length_squared > 0.0:
-            t = min(max(((px - ax) * ex + (py - ay) * ey) / length_squared, 0.0), 1.0)
-        dx, dy = px - (ax + t * ex), py - (ay + t * ey)
-        distance = math.sqrt(dx * dx + dy * dy)
+        t, distance = _nearest_on_segment(px, py, paths[k, s, 0], paths[k, s, 1], paths[k, s + 1, 0],
+                                          paths[k, s + 1, 1])
         if distance <= best_distance:
             best, best_distance, best_t = s, distance, t
     segments[k] = best
