@@ -43,6 +43,7 @@ from socnav.runtime.format import (
     METADATA_KEY,
     OBSERVATION_INPUTS,
     OUTPUTS,
+    ROUTE_VERSION,
     SCAN_INPUT,
     SCAN_KEEP_PREFIX,
     TRIGGER_VERSION,
@@ -415,9 +416,6 @@ def export_onnx(
     if p_test is None:
         p_test = _stored_p_test(policy)
     env_config = _policy_env_config(policy, env_config)
-    if env_config.planner.observe:  # the navigator would hand it the goal itself: another observation, silently
-        raise ExportError("env_config.planner.observe: the navigator does not plan a route yet, so a policy that "
-                          "observes its goal along the planned path cannot be exported; allowed: false")
     source = str(thresholds) if isinstance(thresholds, (str, Path)) else "given"
     decision = load_safety(thresholds)
     trigger = _trigger_record(decision) if isinstance(decision, TriggerSpec) else None
@@ -431,6 +429,8 @@ def export_onnx(
     if trigger is not None:  # version 4: older socnav versions refuse it instead of deciding with the rule
         metadata["safety"]["trigger"] = trigger
         metadata["version"] = TRIGGER_VERSION
+    if env_config.planner.observe and "walls" in metadata:  # version 5: older ones would not plan its route
+        metadata["version"] = ROUTE_VERSION
     try:  # the runtime's schema: what it would refuse at load is refused here, before anything is written
         NavigatorMetadata.model_validate(metadata)
     except ValidationError as exc:

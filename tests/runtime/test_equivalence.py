@@ -149,14 +149,3 @@ def test_export_rejects_a_mismatched_env_config(pretrained_policy, tmp_path):
 
     with pytest.raises(ExportError, match="max_humans=10 but the env config has max_humans=12"):
         export_onnx(pretrained_policy, tmp_path / "x.onnx", env_config={"scenario": "random", "max_humans": 12})
-
-
-def test_export_refuses_a_policy_that_observes_the_planned_route(pretrained_policy, tmp_path):
-    """The navigator observes the goal itself; a policy trained with `planner.observe` would act on another
-    observation than it learned from, so it is refused with the field named, and nothing is written."""
-    from socnav.export import ExportError, export_onnx
-
-    with pytest.raises(ExportError, match=r"env_config\.planner\.observe"):
-        export_onnx(pretrained_policy, tmp_path / "x.onnx",
-                    env_config={"scenario": "doorway", "planner": {"observe": True}})
-    assert not (tmp_path / "x.onnx").exists()

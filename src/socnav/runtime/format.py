@@ -27,8 +27,11 @@ way to the robot (a flipped bit, a truncated copy) is refused at load instead of
 
 Format versions: 2 carries the checksum (a version-1 file, which has none, is refused with a request to re-export
 it); 3 also has the ``scan`` input and the ``walls`` record; 4 also a score trigger (``safety.trigger``) that decides
-the hand-over instead of the rule. The exporter writes version 4 for a navigator with a trigger, 3 for a world with
-walls or a scan, version 2 otherwise; the runtime reads all three.
+the hand-over instead of the rule; 5 a policy that observes its route (``env_config.planner.observe`` among walls: the
+runtime plans the path and hands the policy the goal along it, `socnav.sim.route`), with or without a trigger. The
+exporter writes version 5 for a route-observing policy, 4 for a navigator with a trigger, 3 for a world with walls or
+a scan, version 2 otherwise; the runtime reads all four, and a socnav that reads only up to 4 refuses a version-5 file
+by its version instead of handing its policy the goal itself.
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ __all__ = [
     "NAVIGATOR_MAX_BYTES",
     "OBSERVATION_INPUTS",
     "OUTPUTS",
+    "ROUTE_VERSION",
     "SCAN_INPUT",
     "SCAN_KEEP_PREFIX",
     "SUPPORTED_VERSIONS",
@@ -81,7 +85,7 @@ __all__ = [
 
 #: The metadata's ``format`` and ``version`` values (as types: what the schema accepts; as constants below).
 FormatName = Literal["socnav-navigator"]
-FormatVersion = Literal[2, 3, 4]
+FormatVersion = Literal[2, 3, 4, 5]
 FORMAT_NAME: FormatName = "socnav-navigator"
 #: 3: a world with walls (``walls``) or a range scan (the ``scan`` input). 2: the file carries a sha256 checksum
 #: (:data:`CHECKSUM_KEY`); version-1 files (none) must be re-exported.
@@ -91,7 +95,10 @@ WALL_FREE_VERSION: FormatVersion = 2
 #: The version of a navigator whose hand-over a score trigger decides (``safety.trigger``; socnav.safety.triggers),
 #: a risk model embedded: older socnav versions refuse it by its version instead of deciding with the rule.
 TRIGGER_VERSION: FormatVersion = 4
-SUPPORTED_VERSIONS: tuple[FormatVersion, ...] = (WALL_FREE_VERSION, FORMAT_VERSION, TRIGGER_VERSION)
+#: The version of a navigator whose policy observes its route (``env_config.planner.observe`` in a world with walls):
+#: older socnav versions refuse it by its version instead of handing the policy the goal itself.
+ROUTE_VERSION: FormatVersion = 5
+SUPPORTED_VERSIONS: tuple[FormatVersion, ...] = (WALL_FREE_VERSION, FORMAT_VERSION, TRIGGER_VERSION, ROUTE_VERSION)
 #: An embedded risk model (base64 of its .npz): the shipped size is ~150 KB; the metadata's whole bound is 1 MiB.
 MAX_EMBEDDED_MODEL_CHARS = 800_000
 METADATA_KEY = "socnav"
@@ -459,7 +466,11 @@ class NavigatorMetadata(_Record):
         if self.version == WALL_FREE_VERSION and (env.scan is not None or self.walls is not None):
             raise ValueError(f"version {WALL_FREE_VERSION} has neither a scan nor walls; a navigator with them is "
                              f"version {FORMAT_VERSION}")
-        if (self.version == TRIGGER_VERSION) != (self.safety.trigger is not None):
+        route = bool(env.planner.observe and self.walls is not None)
+        if (self.version == ROUTE_VERSION) != route:
+            raise ValueError(f"version {ROUTE_VERSION} is the version of a navigator whose policy observes its route "
+                             "(env_config.planner.observe with walls), and only of one")
+        if not route and (self.version == TRIGGER_VERSION) != (self.safety.trigger is not None):
             raise ValueError(f"version {TRIGGER_VERSION} is the version of a navigator with a safety.trigger, and "
                              "only of one")
         if len(self.feature_range.h_min) != hidden:

@@ -25,10 +25,17 @@ Walls (a navigator exported from a world with walls, or given a map at load): th
 map's walls, planning in the map frame from the robot's ``pose`` (x, y, yaw), which :meth:`SafeNavigator.act` takes
 (default: the robot's own position and heading, its world frame then being the map frame). A policy trained with a
 range scan reads the robot's ``scan`` (its ranges, as a sensor_msgs/LaserScan gives them), which ``act`` then needs.
+
+A route (a policy trained with ``planner.observe``, file format 5): the navigator plans the robot's shortest path on
+the map from its pose to its goal, as the simulator does (`socnav.sim.planning`), and the policy observes the goal
+along that path (`socnav.sim.route.observed_goals`); or it follows a path it is given (``act(..., path=...)``, e.g.
+a nav_msgs/Path from nav2's planner): its pure-pursuit subgoal instead of its own. The cautious fallback heads for
+the goal itself (on its own path around the walls). `Decision.subgoal` says where the policy was pointed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -51,6 +58,8 @@ from socnav.safety.rule import (
 from socnav.safety.triggers import RuleTrigger, TriggerInputs, TriggerSpec, load_safety, make_trigger
 from socnav.sim.maps import validate_polygons
 from socnav.sim.observation import observe_robot, robot_command
+from socnav.sim.planning import PathFollower, planner_for
+from socnav.sim.route import observed_goals, subgoal_on_path, validate_path
 from socnav.sim.walls import POSE_KEY, SCAN_KEY
 from socnav.uncertainty.stats import Uncertainty
 from socnav.uncertainty.window import WindowedUncertainty
@@ -242,6 +251,8 @@ class Decision:
     :param windowed: the windowed values the rule read: ``u_ep_speed``, ``u_ep_heading``, ``u_al_speed``,
         ``u_al_heading``, ``u_feat``. :param conditions: the rule's conditions (``c_ep``, ... as (1,) arrays).
     :param observation: the observation the network saw (batch of one).
+    :param subgoal: for a policy that observes its route, the subgoal its observed goal points at (map frame, (2,));
+        None otherwise.
     :param fault: None when the network's output was usable. Otherwise why it was not (:data:`NON_FINITE_OUTPUT`:
         the network gave NaN / inf): the policy's action is then never used; the cautious controller acts
         (``fallback`` True) if its command is finite, else the robot stops (command ``(0, 0)``, ``fallback`` False,
@@ -259,6 +270,7 @@ class Decision:
     conditions: RuleConditions
     observation: dict[str, np.ndarray]
     fault: str | None = None
+    subgoal: np.ndarray | None = None
 
     @property
     def command(self) -> tuple[float, float]:
@@ -313,6 +325,15 @@ class SafeNavigator:
         self.walls = polygons or None
         self.cautious = CautiousController(self.config, radius_scale=record.safety.radius_scale,
                                            walls=polygons or [])
+        planner = self.config.planner
+        #: whether the policy observes its route (``planner.observe``): `act` plans it, or follows a given path
+        self.observes_route = bool(planner.observe)
+        #: the robot's own path on the map (a route-observing policy among walls), else None
+        self.route: PathFollower | None = None
+        if self.observes_route and polygons:
+            self.route = PathFollower(planner_for(polygons, self.config.robot_radius + planner.margin), 1,
+                                      planner.lookahead, planner.replan_distance,
+                                      direct_clearance=self.config.robot_radius)
         # v_pref above the trained range would give the policy an observation it never saw (and faster commands)
         self.max_speed = float(self.config.preferred_speed[1])
         self._previous_gap = np.full(1, np.nan)  # d(t-1) of this episode; NaN: none yet (c_ap holds)
@@ -382,6 +403,8 @@ class SafeNavigator:
         self._previous_gap[:] = np.nan
         self._hold_left[:] = 0
         self.trigger.reset(np.zeros(1, dtype=np.int64))
+        if self.route is not None:
+            self.route.forget(slice(None))
 
     @property
     def scan_beams(self) -> int | None:
@@ -390,7 +413,7 @@ class SafeNavigator:
 
     def act(self, robot: RobotState | Mapping[str, Any],
             humans: HumansState | Mapping[str, Any] | None = None, *, scan: Any = None,
-            pose: Any = None) -> Decision:
+            pose: Any = None, path: Any = None) -> Decision:
         """One control decision.
 
         :param robot: a :class:`RobotState` or a mapping with its fields (position, velocity, heading, goal,
@@ -406,6 +429,9 @@ class SafeNavigator:
             range, -inf as 0 (REP 117); NaN is refused.
         :param pose: the robot's pose in the map frame, (x, y, yaw), for the fallback's walls; None: the robot's
             ``position`` and ``heading`` (its world frame is the map frame). Ignored without walls.
+        :param path: for a policy that observes its route: the path to follow, (x, y) waypoints in the map frame
+            (a nav_msgs/Path's poses), instead of the one the navigator plans itself; None: its own (or, without
+            walls, the goal itself). Refused for a policy that does not observe a route.
         :return: the decision; its command is always finite (see :attr:`Decision.fault` for what happens when
             the network's output is not).
         :raises InputError: a wrong shape or type (text, bool, complex), a NaN / inf, ``v_pref <= 0`` or above
@@ -422,25 +448,65 @@ class SafeNavigator:
                                  "degrees); pass act(..., scan=ranges)")
             ranges = _ranges(scan, self.network.scan.beams, self.network.scan.range)
         map_pose = None
-        if self.walls is not None:
+        if self.walls is not None or path is not None:
             map_pose = (np.array([*robot.position, robot.heading]) if pose is None
                         else _vector("act", "pose (x, y, yaw)", pose, 3))
-        observation = observe_robot(robot.position, robot.velocity, robot.heading, robot.goal, robot.v_pref,
-                                    robot.radius, humans.positions, humans.velocities, humans.radii,
-                                    self.network.max_humans, pose=map_pose, scan=ranges)
-        for key, value in observation.items():  # finite float64 states can still overflow float32
-            if not _finite(value):
-                raise InputError(f"the robot's and humans' states give a non-finite observation ({key}): "
-                                 "positions or velocities beyond float32's range (about 3.4e38)")
-        return self.act_observation(observation, v_pref=robot.v_pref)
+        given_path = None
+        if path is not None:
+            if not self.observes_route:
+                raise InputError("path: this navigator's policy does not observe a route (its env config's "
+                                 "planner.observe is false); allowed: None")
+            try:
+                given_path = validate_path(path, name="path")
+            except ValueError as exc:
+                raise InputError(str(exc)) from None
 
-    def act_observation(self, observation: Mapping[str, np.ndarray], v_pref: float | None = None) -> Decision:
+        def observe(goal: np.ndarray) -> dict[str, np.ndarray]:
+            observed = observe_robot(robot.position, robot.velocity, robot.heading, goal, robot.v_pref,
+                                     robot.radius, humans.positions, humans.velocities, humans.radii,
+                                     self.network.max_humans, pose=map_pose if self.walls is not None else None,
+                                     scan=ranges)
+            for key, value in observed.items():  # finite float64 states can still overflow float32
+                if not _finite(value):
+                    raise InputError(f"the robot's and humans' states give a non-finite observation ({key}): "
+                                     "positions or velocities beyond float32's range (about 3.4e38)")
+            return observed
+
+        observation = observe(robot.goal)
+        if self.route is None and given_path is None:
+            return self.act_observation(observation, v_pref=robot.v_pref)
+        assert map_pose is not None
+        route_goal, subgoal = self._route_goal(robot, map_pose, pose is None, given_path)
+        decision = self.act_observation(observe(route_goal), v_pref=robot.v_pref, fallback_observation=observation)
+        return dataclasses.replace(decision, subgoal=subgoal)
+
+    def _route_goal(self, robot: RobotState, pose: np.ndarray, same_frame: bool,
+                    path: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The goal the route-observing policy sees (world frame) and its subgoal (map frame): the subgoal of the
+        given `path`, or of the navigator's own path from `pose` to the goal."""
+        # The robot's world frame and the map frame differ by the rotation yaw - heading about the robot.
+        angle = float(pose[2]) - robot.heading
+        rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+        position = pose[:2].copy()
+        goal = robot.goal if same_frame else rotation @ (robot.goal - robot.position) + position
+        if path is not None:
+            subgoal = subgoal_on_path(path, position, self.config.planner.lookahead)
+        else:
+            assert self.route is not None
+            subgoal = self.route.update(position[None], goal[None])[0][0].copy()
+        seen = observed_goals(position[None], subgoal[None], goal[None])[0]
+        return (seen if same_frame else rotation.T @ (seen - position) + robot.position), subgoal
+
+    def act_observation(self, observation: Mapping[str, np.ndarray], v_pref: float | None = None, *,
+                        fallback_observation: Mapping[str, np.ndarray] | None = None) -> Decision:
         """One decision from an observation already in the environment's layout (batch of one, float32), e.g.
         one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` its input is not checked, but
         its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot).
 
         `v_pref`: the robot's preferred speed at full precision, to turn the action into a speed as the simulator
         does (None: the observation's float32 copy; :meth:`act` passes the robot state's).
+        `fallback_observation`: what the cautious fallback acts on (None: `observation`); :meth:`act` passes the
+        one with the goal itself when the policy observes its route.
 
         :raises InputError: the observation lacks the ``scan`` the policy reads or the ``pose`` the fallback needs
             with walls."""
@@ -489,7 +555,8 @@ class SafeNavigator:
         speed = turn = math.nan
         if observed:
             if fallback:
-                action = self.cautious.predict(dict(observation))[0][0]
+                action = self.cautious.predict(dict(observation if fallback_observation is None
+                                                    else fallback_observation))[0][0]
             preferred = float(observation["robot"][0, 3]) if v_pref is None else float(v_pref)
             speed, turn = robot_command(action, preferred, self.config.max_heading_change)
         if not (math.isfinite(speed) and math.isfinite(turn)):  # the last guard: never a NaN command

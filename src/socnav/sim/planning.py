@@ -655,6 +655,15 @@ def _follow(k, px, py, paths, counts, segments, lookahead):
     return best_distance, carrot_x, carrot_y, min(s, last - 1)
 
 
+def follow_path(path: np.ndarray, position: np.ndarray, lookahead: float) -> np.ndarray:
+    """The pure-pursuit subgoal on one path ((M, 2), M >= 2): `lookahead` metres along it beyond its point nearest to
+    `position`, searched over the whole path (`_follow`, as for a stored path; its last vertex at most)."""
+    paths = np.ascontiguousarray(path, dtype=np.float64)[None]
+    counts, segments = np.array([len(path)], dtype=np.int64), np.zeros(1, dtype=np.int64)
+    _, x, y, _ = _follow(0, float(position[0]), float(position[1]), paths, counts, segments, float(lookahead))
+    return np.array([x, y])
+
+
 @numba.njit(cache=True)
 def _steer(asked, fill, positions, goals, mode, view_at, view_goal, view_spare, paths, path_nodes, counts, segments,
            path_goal, fallback_at, anchors, seg_start, seg_end, clearance, direct_clearance, lookahead,

@@ -38,6 +38,7 @@ from socnav.sim.noise import (
 )
 from socnav.sim.orca import default_social_arrays
 from socnav.sim.planning import PathFollower, planner_for
+from socnav.sim.route import observed_goals
 from socnav.sim.scenarios import GoalRedrawingScenario, InitialState, RoutedScenario, get_scenario, n_slots
 from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons
 
@@ -810,11 +811,7 @@ class CrowdWorld:
         positions, goals = self.positions[:, 0], self.goals[:, 0]
         subgoals, _ = self.robot_path.update(positions, goals, asked)
         rows = slice(None) if envs is None else envs
-        toward = subgoals[rows] - positions[rows]
-        length = np.linalg.norm(toward, axis=1, keepdims=True)
-        distance = np.linalg.norm(goals[rows] - positions[rows], axis=1, keepdims=True)
-        unit = np.divide(toward, length, out=np.zeros_like(toward), where=length > 1e-9)
-        return np.where(length > 1e-9, positions[rows] + unit * distance, goals[rows])
+        return observed_goals(positions[rows], subgoals[rows], goals[rows])
 
     def episode_summary(self, env: int, outcome: int) -> dict[str, float | int | str]:
         """End-of-episode metrics of environment `env` (call before it is reset); with ``metrics=True`` followed by
