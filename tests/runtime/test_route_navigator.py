@@ -181,3 +181,27 @@ def test_the_fallback_heads_for_the_goal_itself(route_file):
     assert abs(real_goal["robot"][0, GOAL_HEADING] - decision.observation["robot"][0, GOAL_HEADING]) > 0.1
     expected = CautiousController(config).predict(real_goal)[0][0]
     np.testing.assert_allclose(decision.action, expected, atol=1e-6)
+
+
+def test_a_map_that_arrives_later_replaces_the_walls(route_file):
+    """`set_walls` (a nav_msgs/OccupancyGrid that arrives): no walls, then the doorway's again, decides as the file's
+    own map; invalid walls are refused and leave the map as it was."""
+    robot = {"position": [-3.0, 3.0], "velocity": [0.0, 0.0], "heading": 0.0, "goal": [4.0, 3.0], "v_pref": 1.0,
+             "radius": 0.3}
+    scan = np.full(36, 8.0)
+    navigator = SafeNavigator.load(route_file, thresholds=NEVER, seed=0)
+    walls = [wall.copy() for wall in navigator.walls]
+    with_file_map = navigator.act(robot, None, scan=scan)
+    navigator.set_walls([])
+    assert navigator.walls is None and navigator.route is None
+    navigator.reset()
+    open_plane = navigator.act(robot, None, scan=scan)
+    assert open_plane.subgoal is None and open_plane.observation["robot"][0, GOAL_HEADING] == pytest.approx(0.0)
+    navigator.set_walls(walls)
+    navigator.reset()
+    again = navigator.act(robot, None, scan=scan)
+    np.testing.assert_array_equal(again.subgoal, with_file_map.subgoal)
+    np.testing.assert_array_equal(again.action, with_file_map.action)
+    with pytest.raises(ValueError, match=r"walls\[0\]: a polygon needs at least 2 vertices"):
+        navigator.set_walls([[[0.0, 0.0]]])
+    assert navigator.route is not None and len(navigator.walls) == len(walls)

@@ -320,26 +320,44 @@ class SafeNavigator:
             self.k = int(k)
         self.uniforms = DropoutStream(seed) if uniforms is None else uniforms
         self._window = WindowedUncertainty(1, window=record.safety.window)
-        polygons = network.walls if walls is None else validate_polygons(walls, name="walls")
-        #: the walls the fallback keeps off (polygons (k, 2), map frame), None without walls
-        self.walls = polygons or None
-        self.cautious = CautiousController(self.config, radius_scale=record.safety.radius_scale,
-                                           walls=polygons or [])
-        planner = self.config.planner
         #: whether the policy observes its route (``planner.observe``): `act` plans it, or follows a given path
-        self.observes_route = bool(planner.observe)
-        #: the robot's own path on the map (a route-observing policy among walls), else None
+        self.observes_route = bool(self.config.planner.observe)
+        self.walls: list[np.ndarray] | None = None
         self.route: PathFollower | None = None
-        if self.observes_route and polygons:
-            self.route = PathFollower(planner_for(polygons, self.config.robot_radius + planner.margin), 1,
-                                      planner.lookahead, planner.replan_distance,
-                                      direct_clearance=self.config.robot_radius)
+        self._use_walls(network.walls if walls is None else validate_polygons(walls, name="walls"))
         # v_pref above the trained range would give the policy an observation it never saw (and faster commands)
         self.max_speed = float(self.config.preferred_speed[1])
         self._previous_gap = np.full(1, np.nan)  # d(t-1) of this episode; NaN: none yet (c_ap holds)
         self._hold_left = np.zeros(1, dtype=np.int64)  # held fallback steps still owed (thresholds.hold_steps)
         self._batches: dict[tuple[int, int, bool], MCBatch] = {}  # per (K, human rows, any human)
         self._warm_up()
+
+    def _use_walls(self, polygons: list[np.ndarray] | None) -> None:
+        """Walls (validated; None or empty: none) for the fallback and for a route-observing policy's path."""
+        #: the walls the fallback keeps off (polygons (k, 2), map frame), None without walls
+        self.walls = polygons or None
+        self.cautious = CautiousController(self.config, radius_scale=self.network.record.safety.radius_scale,
+                                           walls=polygons or [])
+        planner = self.config.planner
+        #: the robot's own path on the map (a route-observing policy among walls), else None
+        self.route = None
+        if self.observes_route and polygons:
+            self.route = PathFollower(planner_for(polygons, self.config.robot_radius + planner.margin), 1,
+                                      planner.lookahead, planner.replan_distance,
+                                      direct_clearance=self.config.robot_radius)
+
+    def set_walls(self, walls: Sequence[Any]) -> None:
+        """Replace the map (e.g. a nav_msgs/OccupancyGrid that arrived, as polygons in the map frame; an empty
+        list: no walls): the fallback keeps off these walls and a route-observing policy's path is planned on them
+        from the next decision; the episode's state (uncertainty window, held fallback) is kept.
+
+        :raises ValueError: invalid ``walls`` (naming the polygon); the navigator's map is then unchanged."""
+        polygons = validate_polygons(walls, name="walls")
+        self._use_walls(polygons)
+        if self.walls is not None:
+            self.cautious.predict(observe_robot(np.zeros(2), np.zeros(2), 0.0, np.ones(2), 1.0, 0.3,
+                                                np.full((1, 2), 2.0), np.zeros((1, 2)), np.full(1, 0.3),
+                                                self.network.max_humans, pose=np.zeros(3)))
 
     @staticmethod
     def file_decision(record: Any) -> Thresholds | TriggerSpec:
