@@ -207,3 +207,41 @@ def test_human_viewer_shows_each_frame_pixel_for_pixel_headless(monkeypatch):
     assert "socnav test viewer" in plt.get_figlabels()
     viewer.close()
     assert "socnav test viewer" not in plt.get_figlabels()
+
+
+def test_the_planned_path_and_its_subgoal_are_drawn(renderer):
+    """A route (dashed line) and a subgoal (diamond) in the route colour where the geometry puts them, nothing of
+    them without."""
+    from socnav.viz.render import ROUTE_COLOR
+
+    route = np.array([[-6.0, -6.0], [-6.0, 6.0], [-2.0, 6.0]])
+    subgoal = np.array([-6.0, -3.0])
+    plain = renderer.render(make_frame())
+    drawn = renderer.render(make_frame(route=route, subgoal=subgoal))
+    assert color_fraction(drawn, to_pixel(*subgoal), ROUTE_COLOR, half=1) > 0.5
+    assert color_fraction(drawn, to_pixel(-4.0, 6.0), ROUTE_COLOR, half=4) > 0.0  # on the last leg
+    assert color_fraction(plain, to_pixel(*subgoal), ROUTE_COLOR, half=4) == 0.0
+    assert color_fraction(drawn, to_pixel(2.0, -6.0), ROUTE_COLOR, half=4) == 0.0  # not where the path is not
+
+
+def test_a_map_scene_shows_the_robots_planned_path():
+    """`scene_frame` of a doorway: the robot's shortest path from where it is to its goal, through the door, and
+    the subgoal `lookahead` metres along it; none in the open plane."""
+    import socnav
+
+    env = socnav.make_env({"scenario": "doorway", "n_humans": 0})
+    env.reset(seed=3)
+    world = env.unwrapped.world
+    frame = env.unwrapped.scene_frame()
+    start, goal = world.positions[0, 0], world.goals[0, 0]
+    np.testing.assert_allclose(frame.route[0], start)
+    np.testing.assert_allclose(frame.route[-1], goal)
+    assert np.sign(start[0]) != np.sign(goal[0])  # rooms either side of the wall at x = 0 ...
+    crossings = [a[1] + (b[1] - a[1]) * (0.0 - a[0]) / (b[0] - a[0])
+                 for a, b in zip(frame.route[:-1], frame.route[1:], strict=True) if a[0] * b[0] < 0.0]
+    assert len(crossings) == 1 and abs(crossings[0]) < 0.55  # ... crossed once, through the door (|y| < 0.55)
+    along = np.linalg.norm(frame.subgoal - start)
+    assert 0.0 < along <= 1.0 + 1e-9  # planner.lookahead: 1 m along the path, never farther as the crow flies
+    open_plane = socnav.make_env({"scenario": "circle_crossing"})
+    open_plane.reset(seed=0)
+    assert open_plane.unwrapped.scene_frame().route is None

@@ -127,8 +127,27 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
         walls=None if walls is None else walls.polygons,
         hidden=~walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
         if world.occlusion and walls is not None else None,
+        **dict(zip(("route", "subgoal"), robot_route(world, env) or (None, None), strict=True)),
         **extra,
     )
+
+
+def robot_route(world: CrowdWorld, env: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """What the global planner shows for the robot of environment `env`: its shortest path from where it is to its
+    goal (`socnav.sim.planning`, at the robot's clearance) and the subgoal ``planner.lookahead`` metres along it;
+    None in the open plane, with the planner off, or where no path reaches the goal."""
+    from socnav.sim.planning import planner_for
+    from socnav.sim.route import subgoal_on_path
+
+    planner = world.config.planner
+    if world.walls is None or not planner.enabled:
+        return None
+    graph = planner_for(world.walls.polygons, world.config.robot_radius + planner.margin)
+    position = world.positions[env, 0]
+    path = graph.shortest_path(position, world.goals[env, 0])
+    if path is None:
+        return None
+    return path, subgoal_on_path(path, position, planner.lookahead)
 
 
 def scene_extent(config: EnvConfig) -> float:

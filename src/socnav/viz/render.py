@@ -36,6 +36,7 @@ INATTENTIVE_EDGE_COLOR = "#555555"
 THRESHOLD_COLOR = "#d62828"
 ROBOT_GOAL_COLOR = "#2a9d8f"
 PANEL_BAR_COLOR = "#6c5b7b"
+ROUTE_COLOR = "#7b3294"  # the robot's planned path and its subgoal
 WALL_COLOR = "#4a4a4a"  # walls: solid polygons filled, wall segments as thick lines
 HIDDEN_VEIL = (1.0, 1.0, 1.0, 0.65)  # a human the robot cannot see (behind a wall): drawn faded, dotted outline
 
@@ -115,6 +116,10 @@ class SceneFrame:
     walls: Sequence[np.ndarray] | None = None
     #: (N,) bool: the humans the robot cannot see (behind a wall, ``occlusion``), drawn faded; None: all seen
     hidden: np.ndarray | None = None
+    #: the robot's planned path from where it is to its goal, (M, 2) vertices (a dashed line); None: not shown
+    route: np.ndarray | None = None
+    #: the subgoal on that path the robot heads for, (2,) (a diamond); None: not shown
+    subgoal: np.ndarray | None = None
 
 
 class SceneRenderer:
@@ -227,6 +232,8 @@ class SceneRenderer:
         if walls:
             handles += [
                 Line2D([], [], color=WALL_COLOR, linewidth=4.0, label="wall"),
+                Line2D([], [], color=ROUTE_COLOR, linewidth=1.2, linestyle="--", marker="D", markersize=5,
+                       label="planned path, subgoal"),
                 Line2D([], [], marker="o", linestyle="", markersize=10, markerfacecolor=to_rgba(HUMAN_COLOR, 0.35),
                        markeredgecolor=HUMAN_EDGE_COLOR, label="human behind a wall (faded: unseen)"),
             ]
@@ -270,6 +277,8 @@ class SceneRenderer:
         ax.add_collection(self.wall_lines)
         self.trail_lines = LineCollection([], linewidths=1.5, joinstyle="round")
         ax.add_collection(self.trail_lines)
+        (self.route_line,) = ax.plot([], [], "--", color=ROUTE_COLOR, linewidth=1.2)
+        (self.subgoal_mark,) = ax.plot([], [], "D", color=ROUTE_COLOR, markersize=5)
         self.personal_space = discs(facecolors="none", edgecolors=to_rgba(HUMAN_COLOR, 0.45),
                                     linestyles="--", linewidths=0.9)
         (self.human_goals,) = ax.plot([], [], "x", color=HUMAN_COLOR, alpha=0.35, markersize=4)
@@ -309,7 +318,7 @@ class SceneRenderer:
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
             self.wall_blocks, self.wall_lines,
-            self.trail_lines, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
+            self.trail_lines, self.route_line, self.subgoal_mark, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
             self.hidden_humans,
             self.robot_goal, self.robot, self.heading_line, self.time_text, self.caption_text, self.title_text,
             self.outcome_text,
@@ -415,6 +424,10 @@ class SceneRenderer:
         self.wall_lines.set_segments([polygon for polygon in walls if len(polygon) == 2])
         self.human_goals.set_data(goals[humans, 0], goals[humans, 1])
         self._update_models(f, models, pos, seeing, ignoring)
+        route = np.zeros((0, 2)) if f.route is None else np.asarray(f.route, dtype=float).reshape(-1, 2)
+        self.route_line.set_data(route[:, 0], route[:, 1])
+        subgoal = np.zeros((0, 2)) if f.subgoal is None else np.asarray(f.subgoal, dtype=float).reshape(-1, 2)
+        self.subgoal_mark.set_data(subgoal[:, 0], subgoal[:, 1])
 
         # Robot: disc, heading line, goal star.
         robot_on = n > 0 and bool(active[0])
