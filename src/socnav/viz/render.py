@@ -318,7 +318,8 @@ class SceneRenderer:
         # Drawn in this order (back to front).
         self._dynamic: list[Artist] = [
             self.wall_blocks, self.wall_lines,
-            self.trail_lines, self.route_line, self.subgoal_mark, self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
+            self.trail_lines, self.route_line, self.subgoal_mark,
+            self.personal_space, self.human_goals, self.humans, self.inattentive, self.human_vel,
             self.hidden_humans,
             self.robot_goal, self.robot, self.heading_line, self.time_text, self.caption_text, self.title_text,
             self.outcome_text,
