@@ -20,54 +20,37 @@ The ratio column is ours / reference on the same actions-per-step workload; the 
 
 from __future__ import annotations
 
-# ---- single-thread pinning: must happen before numpy / numba / torch are imported ---------------------------------
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / numba load
 
-THREAD_VARIABLES = (
-    "NUMBA_NUM_THREADS",
-    "OMP_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-)
-for _variable in THREAD_VARIABLES:
-    os.environ[_variable] = "1"
-if hasattr(os, "sched_setaffinity"):
-    try:
-        os.sched_setaffinity(0, {0})
-        PINNED = f"os.sched_setaffinity(0, {{0}}) -> running on CPU(s) {sorted(os.sched_getaffinity(0))}"
-    except OSError as _error:  # e.g. CPU 0 not in this container's cpuset
-        PINNED = f"os.sched_setaffinity(0, {{0}}) failed ({_error}); NOT pinned"
-else:
-    PINNED = "os.sched_setaffinity unavailable on this platform; NOT pinned to a core"
+_bench.single_thread()
+PINNED = _bench.pin_to_one_core()
 
 import argparse  # noqa: E402
 import math  # noqa: E402
+import os  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, Callable  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 try:  # the reference loop and the ORCA comparison run RVO2 itself: without it there is nothing to compare against
-    import pyrvo  # noqa: E402
+    import pyrvo
 except ImportError:
     sys.exit('error: benchmarks/bench_env.py needs the RVO2 reference pyrvo: pip install "pyrvo>=0.4.3" '
              '(or the test extras: pip install -e ".[test]")')
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-BENCH_DIR = Path(__file__).resolve().parent
 try:
-    import socnav  # noqa: E402
+    import socnav
 except ImportError:  # a checkout without `pip install -e .`
-    sys.path.insert(0, str(BENCH_DIR.parent / "src"))
-    import socnav  # noqa: E402
-sys.path.insert(0, str(BENCH_DIR))
-from bench_orca import measure_orca_cost  # noqa: E402
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+    import socnav
+from bench_orca import measure_orca_cost  # noqa: E402  (benchmarks/ is on sys.path: the script's directory)
 
 from socnav.config import EnvConfig  # noqa: E402
 
@@ -118,8 +101,9 @@ class JointState:
 
 
 class ReferenceORCA:
-    """CrowdNav `ORCA` policy: owns one RVO2 simulator, rewrites every agent's state into it each step, runs doStep for
-    the whole simulator and returns its own (agent 0's) new velocity. Other agents' goals are unknown: pref velocity 0."""
+    """CrowdNav `ORCA` policy: owns one RVO2 simulator, rewrites every agent's state into it each step, runs
+    doStep for the whole simulator and returns its own (agent 0's) new velocity. Other agents' goals are unknown:
+    pref velocity 0."""
 
     def __init__(self, world: EnvConfig):
         self.time_step = world.time_step
@@ -200,7 +184,8 @@ class Human(Agent):
 
 
 class Robot(Agent):
-    """Unicycle robot; action [-1, 1]^2 -> v = v_pref (a0 + 1) / 2, dtheta = max_heading_change a1 (socnav's mapping)."""
+    """Unicycle robot; action [-1, 1]^2 -> v = v_pref (a0 + 1) / 2, dtheta = max_heading_change a1
+    (socnav's mapping)."""
 
     def __init__(self, world: EnvConfig, v_pref: float):
         super().__init__(world.robot_radius, v_pref)
@@ -233,7 +218,8 @@ def _point_to_segment_dist(x1, y1, x2, y2, x3, y3) -> float:
 
 
 class ReferenceCrowdSim:
-    """REFERENCE single environment, CrowdNav `CrowdSim` style: reset() -> obs; step(action) -> obs, reward, done, info."""
+    """REFERENCE single environment, CrowdNav `CrowdSim` style: reset() -> obs;
+    step(action) -> obs, reward, done, info."""
 
     ROBOT_ANGLES = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
 
@@ -277,7 +263,7 @@ class ReferenceCrowdSim:
             gx = -radius * math.cos(angle) + rng.uniform(-jitter, jitter)
             gy = -radius * math.sin(angle) + rng.uniform(-jitter, jitter)
             collide = False
-            for agent in [self.robot] + self.humans:
+            for agent in [self.robot, *self.humans]:
                 if math.hypot(px - agent.px, py - agent.py) < 1.0 or math.hypot(gx - agent.gx, gy - agent.gy) < 1.0:
                     collide = True
                     break
@@ -302,7 +288,7 @@ class ReferenceCrowdSim:
 
         # collision detection: closest approach during the step, human by human (CrowdNav point_to_segment_dist)
         closest_gap = math.inf
-        for human, (hvx, hvy) in zip(self.humans, human_actions):
+        for human, (hvx, hvy) in zip(self.humans, human_actions, strict=True):
             px, py = human.px - robot.px, human.py - robot.py
             ex, ey = px + (hvx - rvx) * dt, py + (hvy - rvy) * dt
             gap = _point_to_segment_dist(px, py, ex, ey, 0.0, 0.0) - human.radius - robot.radius
@@ -311,7 +297,7 @@ class ReferenceCrowdSim:
         # update all agents
         old_goal_distance = math.hypot(robot.gx - robot.px, robot.gy - robot.py)
         robot.step(speed, theta, dt)
-        for human, velocity in zip(self.humans, human_actions):
+        for human, velocity in zip(self.humans, human_actions, strict=True):
             human.step(velocity, dt)
         self.global_time += dt
         goal_distance = math.hypot(robot.gx - robot.px, robot.gy - robot.py)
@@ -461,7 +447,7 @@ def _calibrate(step: Callable[[np.ndarray], Any], n_envs: int, seconds: float, r
             step(action)
         elapsed = time.perf_counter() - start
         calls *= 2
-    return max(1, int(math.ceil(seconds * (calls // 2) / elapsed)))
+    return max(1, math.ceil(seconds * (calls // 2) / elapsed))
 
 
 def _measure_interleaved(steppers: dict[str, tuple[Callable[[np.ndarray], Any], float]], n_envs: int, repeats: int,
@@ -548,13 +534,13 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     console.print(f"[bold]socnav VecEnv benchmark[/] ({'quick' if args.quick else 'full'} run)")
-    console.print("single thread: " + ", ".join(f"{v}={os.environ[v]}" for v in THREAD_VARIABLES)
+    console.print("single thread: " + ", ".join(f"{v}={os.environ[v]}" for v in _bench.THREAD_VARIABLES)
                   + f" (numba.config.NUMBA_NUM_THREADS={numba.config.NUMBA_NUM_THREADS})")
     console.print(f"single core:   {PINNED}")
     console.print(f"world: {ENV_CONFIG} (1 robot + 5 humans); python {sys.version.split()[0]}, numpy {np.__version__}, "
                   f"numba {numba.__version__}, pyrvo {_version('pyrvo')}")
-    console.print(f"timing: time.perf_counter; after warm-up, {repeats} samples of ~{seconds:g} s per stepper, samples of "
-                  f"the compared steppers interleaved; median \\[min-max] env-steps/s reported")
+    console.print(f"timing: time.perf_counter; after warm-up, {repeats} samples of ~{seconds:g} s per stepper, "
+                  f"samples of the compared steppers interleaved; median \\[min-max] env-steps/s reported")
 
     t_warm = time.perf_counter()
     warmed_vec_env(2, 5).close()  # loads (or compiles) every numba kernel the step uses
@@ -562,9 +548,9 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"warm-up (numba compile / cache load, pyrvo): {time.perf_counter() - t_warm:.1f} s\n")
 
     obs_diff, reward_diff, compared = check_reference()
-    console.print(f"REFERENCE faithfulness check (cooperation=0.5, no disturbance term; same initial state and actions as "
-                  f"the VecEnv): max |obs diff| {obs_diff:.1e}, max |reward diff| {reward_diff:.1e} over {compared} steps "
-                  f"{_verdict(obs_diff < 1e-4 and reward_diff < 1e-4)}\n")
+    console.print(f"REFERENCE faithfulness check (cooperation=0.5, no disturbance term; same initial state and actions "
+                  f"as the VecEnv): max |obs diff| {obs_diff:.1e}, max |reward diff| {reward_diff:.1e} over {compared} "
+                  f"steps {_verdict(obs_diff < 1e-4 and reward_diff < 1e-4)}\n")
     world = socnav.load_config(dict(ENV_CONFIG))
 
     # ---- table 1: ours vs reference --------------------------------------------------------------------------------

@@ -21,41 +21,32 @@ What is measured (everything on ONE core: thread pools capped to 1, the process 
 
 from __future__ import annotations
 
-# ---- single-thread pinning: must happen before numpy / numba are imported -----------------------------------------
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / numba load
 
-THREAD_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-for _variable in THREAD_VARIABLES:
-    os.environ[_variable] = "1"
-if hasattr(os, "sched_setaffinity"):
-    try:
-        os.sched_setaffinity(0, {0})
-        PINNED = f"os.sched_setaffinity(0, {{0}}) -> running on CPU(s) {sorted(os.sched_getaffinity(0))}"
-    except OSError as _error:
-        PINNED = f"os.sched_setaffinity(0, {{0}}) failed ({_error}); NOT pinned"
-else:
-    PINNED = "os.sched_setaffinity unavailable on this platform; NOT pinned to a core"
+_bench.single_thread()
+PINNED = _bench.pin_to_one_core()
 
 import argparse  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
+import os  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, Callable  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 try:
-    import socnav  # noqa: E402
+    import socnav
 except ImportError:  # a checkout without `pip install -e .`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    import socnav  # noqa: E402
+    import socnav
 from socnav.config import load_config  # noqa: E402
 from socnav.sim.humans import Crowd, SocialForceHumans  # noqa: E402
 
@@ -182,18 +173,6 @@ def crowd_of(state: dict[str, np.ndarray]) -> tuple[Crowd, np.ndarray]:
     return crowd, active
 
 
-def best_of(call: Callable[[], Any], repeats: int, agent_steps: int) -> float:
-    """Best seconds per call, each timing sample long against the timer's resolution."""
-    inner = max(1, 20_000 // agent_steps)
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(inner):
-            call()
-        best = min(best, (time.perf_counter() - start) / inner)
-    return best
-
-
 def pysocialforce_simulators(psf, state: dict[str, np.ndarray]) -> list[tuple[Any, np.ndarray]]:
     """One PySocialForce simulator per environment, stepping by TIME_STEP, max speeds 1.3 v_pref (as the tests)."""
     sims = []
@@ -223,13 +202,15 @@ def measure_kernel(psf, configs=KERNEL_CONFIGS, repeats: int = 20) -> list[dict]
         crowd, compute = crowd_of(state)
         agent_steps = n_envs * n_agents
         out = np.empty_like(crowd.velocities)
-        arguments = (crowd.positions, crowd.velocities, crowd.goals, crowd.max_speeds, crowd.active, compute,
-                     crowd.radius_pad, crowd.sees, model.time_step, *model._arguments, out)
+        no_walls = (np.zeros((n_envs, 0, 2)), np.zeros((n_envs, 0, 2)), np.zeros(n_envs, dtype=np.int64))
+        arguments = (crowd.positions, crowd.velocities, crowd.goals, crowd.radii, crowd.max_speeds, crowd.active,
+                     compute, crowd.radius_pad, crowd.sees, *no_walls, model.time_step, *model._arguments, out)
         ours_velocities = model.velocities(crowd, compute)  # loads the numba cache outside the timing
         from socnav.sim.humans.social_force import social_force_velocities_kernel as kernel
 
-        kernel_s = best_of(lambda: kernel(*arguments), repeats, agent_steps)
-        wrapper_s = best_of(lambda: model.velocities(crowd, compute), repeats, agent_steps)
+        kernel_s = _bench.best_of(lambda arguments=arguments: kernel(*arguments), repeats, agent_steps)
+        wrapper_s = _bench.best_of(lambda crowd=crowd, compute=compute: model.velocities(crowd, compute), repeats,
+                                   agent_steps)
 
         sims = pysocialforce_simulators(psf, state)
         reset(sims)
@@ -276,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     console.print(f"[bold]socnav human models benchmark[/] ({'quick' if args.quick else 'full'} run)")
-    console.print("single thread: " + ", ".join(f"{v}={os.environ[v]}" for v in THREAD_VARIABLES)
+    console.print("single thread: " + ", ".join(f"{v}={os.environ[v]}" for v in _bench.THREAD_VARIABLES)
                   + f" (numba.config.NUMBA_NUM_THREADS={numba.config.NUMBA_NUM_THREADS})")
     console.print(f"single core:   {PINNED}")
     console.print(f"python {sys.version.split()[0]}, numpy {np.__version__}, numba {numba.__version__}, "
@@ -295,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     scratch.cleanup()
     reference = measured["ORCA (reference)"]["median"]
     table = Table(title=f"Env-steps/s, one core, {N_ENVS} envs of {ENV_CONFIG['scenario']} (1 robot + "
-                        f"{ENV_CONFIG['n_humans']} humans): median [min-max] of {repeats} interleaved samples")
+                        f"{ENV_CONFIG['n_humans']} humans): median \\[min-max] of {repeats} interleaved samples")
     for column in ("humans", "env-steps/s", "ratio to ORCA", f"target >= {TARGET_ENV_RATIO:g}x"):
         table.add_column(column, justify="right")
     for label, result in measured.items():

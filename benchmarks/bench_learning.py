@@ -88,8 +88,8 @@ def main() -> None:
                          "collision_pct": reached["collision_pct"] if reached else None})
             console.print(f"  {algo} seed {seed}: {rows[-1]}")
     frame = pd.DataFrame(rows)
-    table = Table(title=f"Steps and training wall time to >= {GOAL_PCT:.0f} % goal and <= {COLLISION_PCT:.0f} % collisions "
-                        f"on {EPISODES} test episodes (position swap, 1 human)")
+    table = Table(title=f"Steps and training wall time to >= {GOAL_PCT:.0f} % goal and <= {COLLISION_PCT:.0f} % "
+                        f"collisions on {EPISODES} test episodes (position swap, 1 human)")
     for column in ("algo", "seeds reaching", "timesteps (per seed)", "train wall s (per seed)", "max train s"):
         table.add_column(column, justify="left" if column == "algo" else "right")
     for algo, group in frame.groupby("algo", sort=False):

@@ -19,35 +19,24 @@ one after the other share the machine's load). Target: >= 0.90 at 256 environmen
 
 from __future__ import annotations
 
-# ---- single-thread pinning: must happen before numpy / numba are imported -----------------------------------------
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / numba load
 
-THREAD_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-for _variable in THREAD_VARIABLES:
-    os.environ[_variable] = "1"
-if hasattr(os, "sched_setaffinity"):
-    try:
-        os.sched_setaffinity(0, {0})
-        PINNED = f"os.sched_setaffinity(0, {{0}}) -> running on CPU(s) {sorted(os.sched_getaffinity(0))}"
-    except OSError as _error:
-        PINNED = f"os.sched_setaffinity(0, {{0}}) failed ({_error}); NOT pinned"
-else:
-    PINNED = "os.sched_setaffinity unavailable on this platform; NOT pinned to a core"
+_bench.single_thread()
+PINNED = _bench.pin_to_one_core()
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 try:
-    import socnav  # noqa: E402, F401
+    import socnav  # noqa: F401
 except ImportError:  # a checkout without `pip install -e .`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 from socnav.config import load_config  # noqa: E402
@@ -111,7 +100,7 @@ def interleaved(off: Callable[[], float], on: Callable[[], float], repeats: int)
     for _ in range(repeats):
         offs.append(off())
         ons.append(on())
-    ratios = [b / a for a, b in zip(offs, ons)]
+    ratios = [b / a for a, b in zip(offs, ons, strict=True)]
     return statistics.median(offs), statistics.median(ons), statistics.median(ratios)
 
 

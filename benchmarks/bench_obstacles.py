@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import _bench  # benchmarks/_bench.py (benchmarks/ is on sys.path: the script's directory)
 import numpy as np
 
 try:
@@ -54,18 +55,6 @@ def _crowds(n_envs: int, n_agents: int, seed: int = 0) -> dict:
     return {key: value.astype(np.float32).astype(np.float64) for key, value in state.items()}
 
 
-def _best_of(call, agent_steps: int, repeats: int) -> float:
-    """Best seconds per call over `repeats` samples, each long enough to be far above the timer's resolution."""
-    inner = max(1, 20_000 // agent_steps)
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(inner):
-            call()
-        best = min(best, (time.perf_counter() - start) / inner)
-    return best
-
-
 def time_ours(state: dict, obstacles: ObstacleBatch | None, repeats: int) -> float:
     """Best seconds per `orca_velocities` call (the validating wrapper) on the batch."""
     n_envs, n_agents = state["radii"].shape
@@ -76,7 +65,7 @@ def time_ours(state: dict, obstacles: ObstacleBatch | None, repeats: int) -> flo
     scalars = (TIME_HORIZON, NEIGHBOR_DIST, MAX_NEIGHBORS, TIME_STEP)
     keywords = {} if obstacles is None else dict(obstacles=obstacles, time_horizon_obst=TIME_HORIZON_OBST)
     orca_velocities(*arrays, *scalars, **keywords)  # compile / load the numba cache outside the timing
-    return _best_of(lambda: orca_velocities(*arrays, *scalars, **keywords), n_envs * n_agents, repeats)
+    return _bench.best_of(lambda: orca_velocities(*arrays, *scalars, **keywords), repeats, n_envs * n_agents)
 
 
 def time_pyrvo(state: dict, polygons: list[np.ndarray], repeats: int) -> float:

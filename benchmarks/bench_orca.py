@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import _bench  # benchmarks/_bench.py (benchmarks/ is on sys.path: the script's directory, or bench_env.py's)
 import numpy as np
 
 try:
@@ -65,19 +66,8 @@ def _time_ours(state: dict, repeats: int) -> tuple[float, float]:
     scalars = (TIME_HORIZON, NEIGHBOR_DIST, MAX_NEIGHBORS, TIME_STEP)
     out = np.empty((n_envs, n_agents, 2))
     orca_velocities(*arrays, *scalars)  # compile / load the numba cache outside the timing
-
-    def best_of(call) -> float:
-        inner = max(1, 20_000 // (n_envs * n_agents))  # calls per timing sample, so samples are >> timer resolution
-        best = float("inf")
-        for _ in range(repeats):
-            start = time.perf_counter()
-            for _ in range(inner):
-                call()
-            best = min(best, (time.perf_counter() - start) / inner)
-        return best
-
-    kernel = best_of(lambda: orca_velocities_kernel(*arrays, *scalars, out))
-    wrapper = best_of(lambda: orca_velocities(*arrays, *scalars))
+    kernel = _bench.best_of(lambda: orca_velocities_kernel(*arrays, *scalars, out), repeats, n_envs * n_agents)
+    wrapper = _bench.best_of(lambda: orca_velocities(*arrays, *scalars), repeats, n_envs * n_agents)
     return kernel, wrapper
 
 

@@ -25,36 +25,22 @@ What is measured (everything on ONE core: thread pools capped to 1, the process 
 
 from __future__ import annotations
 
-# ---- single-thread pinning: must happen before numpy / numba are imported -----------------------------------------
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / numba load
 
-THREAD_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-for _variable in THREAD_VARIABLES:
-    os.environ[_variable] = "1"
-if hasattr(os, "sched_setaffinity"):
-    try:
-        os.sched_setaffinity(0, {0})
-        PINNED = f"os.sched_setaffinity(0, {{0}}) -> running on CPU(s) {sorted(os.sched_getaffinity(0))}"
-    except OSError as _error:
-        PINNED = f"os.sched_setaffinity(0, {{0}}) failed ({_error}); NOT pinned"
-else:
-    PINNED = "os.sched_setaffinity unavailable on this platform; NOT pinned to a core"
+_bench.single_thread()
+PINNED = _bench.pin_to_one_core()
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-from rich.console import Console  # noqa: E402
-from rich.table import Table  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_humans import _spread, _verdict  # noqa: E402  (same verdicts)
 from bench_walls import PILLARS  # noqa: E402  (its 20-edge map)
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
 
 from socnav.config import load_config  # noqa: E402
 from socnav.controllers import make_controller  # noqa: E402

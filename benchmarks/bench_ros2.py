@@ -22,13 +22,13 @@ Median and p99 over ``--decisions`` decisions (after 20 of warm-up).
 
 from __future__ import annotations
 
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / torch load
 
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_variable] = "1"
+_bench.single_thread()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import random  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402

@@ -24,14 +24,13 @@ decides, beside that of a process that loads the torch policy and its SafePolicy
 
 from __future__ import annotations
 
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / torch load
 
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_variable] = "1"
+_bench.single_thread()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import statistics  # noqa: E402
+import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -82,24 +81,6 @@ for _ in range(200):
     safe.predict(obs)
 print(json.dumps({"rss_mib": int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20}))
 """
-
-
-def time_call(fn: Callable[[], Any], repeats: int, min_time: float, clock: Callable[[], float]) -> float:
-    """Median seconds per call over ``repeats`` timed blocks of >= ``min_time`` seconds each (after warm-up)."""
-    for _ in range(3):
-        fn()
-    start, calls = clock(), 0
-    while clock() - start < min_time:
-        fn()
-        calls += 1
-    number = max(1, calls)
-    samples = []
-    for _ in range(repeats):
-        start = clock()
-        for _ in range(number):
-            fn()
-        samples.append((clock() - start) / number)
-    return statistics.median(samples)
 
 
 def scene(n_humans: int) -> tuple[dict[str, Any], dict[str, Any], dict[str, np.ndarray]]:
@@ -156,7 +137,29 @@ def breakdown(navigator: SafeNavigator, robot: dict[str, Any], crowd: dict[str, 
         ("nearest human + rule + command", rule),
         ("whole decision: SafeNavigator.act", lambda: navigator.act(robot, crowd)),
     ]
-    return [(label, time_call(fn, repeats, min_time, clock)) for label, fn in stages]
+    return [(label, _bench.time_call(fn, repeats, min_time, clock)) for label, fn in stages]
+
+
+def decisions(policy: Any, navigator_file: Path, robot: dict[str, Any], crowd: dict[str, Any],
+              obs: dict[str, np.ndarray]) -> list[tuple[str, Callable[[], Any], Callable[[], Any]]]:
+    """(label, one runtime decision, the same decision on the torch path) of each row, on one scene."""
+    config = policy.socnav_metadata["env_config"]
+    network = SafeNavigator.load(navigator_file, seed=0).network
+    v_pref, max_turn = robot["v_pref"], socnav.load_config(config).max_heading_change
+
+    def deterministic() -> tuple[float, float]:
+        observation = observe_robot(np.asarray(robot["position"]), np.asarray(robot["velocity"]),
+                                    robot["heading"], np.asarray(robot["goal"]), v_pref, robot["radius"],
+                                    np.asarray(crowd["positions"]), np.asarray(crowd["velocities"]),
+                                    np.asarray(crowd["radii"]), network.max_humans)
+        return robot_command(network.predict(observation)[0][0], v_pref, max_turn)
+
+    rows = [("deterministic", deterministic, lambda: policy.predict(obs, deterministic=True))]
+    for label, thresholds in (("MC + rule + fallback", "mc"), ("MC + rule + fallback acting", ALWAYS)):
+        navigator = SafeNavigator.load(navigator_file, thresholds=thresholds, seed=0)
+        safe = SafePolicy(policy, MCDropoutEstimator(policy, k=K, seed=0), thresholds, config, n_envs=1)
+        rows.append((label, lambda nav=navigator: nav.act(robot, crowd), lambda s=safe: s.predict(obs)))
+    return rows
 
 
 def memory(code: str, *args: str) -> dict[str, Any]:
@@ -178,7 +181,6 @@ def main() -> None:
     console = Console(width=150)
 
     policy = socnav.load_policy(args.model)
-    config = policy.socnav_metadata["env_config"]
     navigator_file = Path(tempfile.mkdtemp()) / "navigator.onnx"
     socnav.export_onnx(policy, navigator_file, thresholds="mc", k=K)
     console.print(f"torch {th.__version__} (1 thread), onnxruntime 1 thread, K = {K}, batch 1, "
@@ -189,25 +191,9 @@ def main() -> None:
     for column in ("decision", "humans", "runtime µs", "torch µs", "speed-up", "target", "result"):
         table.add_column(column, justify="left" if column in ("decision", "target") else "right")
     for n_humans in (1, 5, 10):
-        robot, crowd, obs = scene(n_humans)
-        network = SafeNavigator.load(navigator_file, seed=0).network
-        v_pref, max_turn = robot["v_pref"], socnav.load_config(config).max_heading_change
-
-        def deterministic() -> tuple[float, float]:
-            observation = observe_robot(np.asarray(robot["position"]), np.asarray(robot["velocity"]),
-                                        robot["heading"], np.asarray(robot["goal"]), v_pref, robot["radius"],
-                                        np.asarray(crowd["positions"]), np.asarray(crowd["velocities"]),
-                                        np.asarray(crowd["radii"]), network.max_humans)
-            return robot_command(network.predict(observation)[0][0], v_pref, max_turn)
-
-        rows = [("deterministic", deterministic, lambda: policy.predict(obs, deterministic=True))]
-        for label, thresholds in (("MC + rule + fallback", "mc"), ("MC + rule + fallback acting", ALWAYS)):
-            navigator = SafeNavigator.load(navigator_file, thresholds=thresholds, seed=0)
-            safe = SafePolicy(policy, MCDropoutEstimator(policy, k=K, seed=0), thresholds, config, n_envs=1)
-            rows.append((label, lambda nav=navigator: nav.act(robot, crowd), lambda s=safe: s.predict(obs)))
-        for label, runtime_fn, torch_fn in rows:
-            runtime_s = time_call(runtime_fn, repeats, min_time, clock)
-            torch_s = time_call(torch_fn, repeats, min_time, clock)
+        for label, runtime_fn, torch_fn in decisions(policy, navigator_file, *scene(n_humans)):
+            runtime_s = _bench.time_call(runtime_fn, repeats, min_time, clock)
+            torch_s = _bench.time_call(torch_fn, repeats, min_time, clock)
             speedup = torch_s / runtime_s
             if label == "MC + rule + fallback" and n_humans == 5:
                 target = f"≤{TARGET_US:.0f} µs, ≥{TARGET_SPEEDUP:.0f}x"

@@ -22,8 +22,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch as th
 from rich.console import Console
@@ -126,7 +127,8 @@ def main() -> None:
 
     rows = []
     for algo in ALGOS:
-        rows.append(measure(algo, lambda: make_model(algo, socnav.make_vec_env(ENV, n_envs=N_ENVS), seed=0), rollouts))
+        rows.append(measure(algo, lambda algo=algo: make_model(algo, socnav.make_vec_env(ENV, n_envs=N_ENVS), seed=0),
+                            rollouts))
         console.print(f"  measured {algo}")
     rows.append(measure("SB3 PPO + MLP (reference)", _sb3_mlp, rollouts))
     console.print("  measured SB3 PPO + MLP")

@@ -15,10 +15,9 @@ size (5 members, 2 hidden layers of 64): its cost does not depend on its weights
 
 from __future__ import annotations
 
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / torch load
 
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_variable] = "1"
+_bench.single_thread()
 
 import argparse  # noqa: E402
 import math  # noqa: E402

@@ -21,17 +21,13 @@ reported, and only the per-decision target applies.
 
 from __future__ import annotations
 
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / torch load
 
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_variable] = "1"
+_bench.single_thread()
 
 import argparse  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
+import os  # noqa: E402
 import warnings  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch as th  # noqa: E402
@@ -54,27 +50,9 @@ def mc_loop(estimator: MCDropoutEstimator, obs: dict[str, np.ndarray]) -> Uncert
     tensors = obs_to_tensors(policy, obs)
     with policy.mc_dropout(estimator.p_test):
         samples = [policy.action_stats(tensors) for _ in range(estimator.k)]
-    h, mu, log_std = (th.stack(t) for t in zip(*samples))
+    h, mu, log_std = (th.stack(t) for t in zip(*samples, strict=True))
     mean, u_ep, u_al, feat_var = summarise_samples(mu, log_std, h)
     return Uncertainty(mean, u_ep, u_al, feature_uncertainty(feat_var, *policy.feature_range))
-
-
-def time_call(fn: Callable[[], Any], repeats: int, min_time: float) -> float:
-    """Median seconds per call over ``repeats`` timed blocks of >= ``min_time`` seconds each (after warm-up)."""
-    for _ in range(3):
-        fn()
-    start, calls = time.perf_counter(), 0
-    while time.perf_counter() - start < min_time:
-        fn()
-        calls += 1
-    number = max(1, calls)
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(number):
-            fn()
-        samples.append((time.perf_counter() - start) / number)
-    return statistics.median(samples)
 
 
 def observations(n_humans: int, batch: int) -> dict[str, np.ndarray]:
@@ -120,8 +98,8 @@ def main() -> None:
     for kind, n_humans, batch in rows:
         obs = observations(n_humans, batch)
         if kind == "MC-dropout":
-            fast = time_call(lambda: mc(obs), repeats, min_time)
-            slow = time_call(lambda: mc_loop(mc, obs), repeats, min_time)
+            fast = _bench.time_call(lambda obs=obs: mc(obs), repeats, min_time)
+            slow = _bench.time_call(lambda obs=obs: mc_loop(mc, obs), repeats, min_time)
             per_decision = fast / batch * 1e6
             speedup = slow / fast
             if batch == 1:
@@ -132,8 +110,8 @@ def main() -> None:
                 ok = per_decision <= TARGET_US_PER_DECISION
             result = "[green]PASS[/]" if ok else "[red]FAIL[/]"
         else:
-            fast = time_call(lambda: stacked(obs), repeats, min_time)
-            slow = time_call(lambda: looped(obs), repeats, min_time)
+            fast = _bench.time_call(lambda obs=obs: stacked(obs), repeats, min_time)
+            slow = _bench.time_call(lambda obs=obs: looped(obs), repeats, min_time)
             per_decision, speedup = fast / batch * 1e6, slow / fast
             target, result = "— (info)", "stacked" if stacked.stacked else "fell back to loop"
         table.add_row(

@@ -22,34 +22,19 @@ kernel against pyrvo's `do_step` on the same map is in benchmarks/bench_obstacle
 
 from __future__ import annotations
 
-# ---- single-thread pinning: must happen before numpy / numba are imported -----------------------------------------
-import os
+import _bench  # benchmarks/_bench.py: first, so that the thread pools are capped before numpy / numba load
 
-THREAD_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-for _variable in THREAD_VARIABLES:
-    os.environ[_variable] = "1"
-if hasattr(os, "sched_setaffinity"):
-    try:
-        os.sched_setaffinity(0, {0})
-        PINNED = f"os.sched_setaffinity(0, {{0}}) -> running on CPU(s) {sorted(os.sched_getaffinity(0))}"
-    except OSError as _error:
-        PINNED = f"os.sched_setaffinity(0, {{0}}) failed ({_error}); NOT pinned"
-else:
-    PINNED = "os.sched_setaffinity unavailable on this platform; NOT pinned to a core"
+_bench.single_thread()
+PINNED = _bench.pin_to_one_core()
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
-import numpy as np  # noqa: E402
+from bench_humans import _verdict, measure_interleaved, warmed_vec_env  # noqa: E402  (same sampling and verdicts)
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_humans import _verdict, measure_interleaved, warmed_vec_env  # noqa: E402  (same sampling and verdicts)
 
 N_ENVS = 256
 TARGET_RATIO = 0.5
@@ -88,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         vec.close()
     reference = measured["open plane (reference)"]["median"]
     table = Table(title=f"Env-steps/s, one core, {N_ENVS} envs of circle crossing (1 robot + 5 humans): median "
-                        f"[min-max] of {repeats} interleaved samples")
+                        f"\\[min-max] of {repeats} interleaved samples")
     for column in ("world", "env-steps/s", "ratio to the open plane", f"target >= {TARGET_RATIO:g}x"):
         table.add_column(column, justify="right")
     for label, result in measured.items():
