@@ -131,13 +131,15 @@ def navigator(
                                                         "FILE (default: the navigator file's)"),
     k: int | None = typer.Option(None, min=2, help="MC-dropout samples per decision (default: the file's)"),
     seed: int | None = typer.Option(None, min=0, help="seed of the MC-dropout masks (default: fresh entropy)"),
-    lockstep: bool = typer.Option(False, "--lockstep", help="decide once per set of odometry, humans and goal with "
-                                                            "one stamp (for `socnav ros2 sim --lockstep`)"),
+    lockstep: bool = typer.Option(False, "--lockstep", help="decide once per set of odometry, humans, goal (and "
+                                                            "scan) with one stamp (for `socnav ros2 sim --lockstep`)"),
     use_sim_time: bool = typer.Option(False, "--use-sim-time", help="read the time from /clock"),
 ) -> None:
-    """Run the safe navigator node: odometry, goal and humans in; cmd_vel, diagnostics and markers out.
+    """Run the safe navigator node: odometry, goal and humans (and a scan, map, pose, path) in; cmd_vel,
+    diagnostics and markers out.
 
-    Other parameters: --ros-args -p rate:=4.0 -p odom_topic:=/robot/odom ... (docs/ros2.md lists them)."""
+    Other parameters: --ros-args -p rate:=4.0 -p odom_topic:=/robot/odom -p pose_topic:=amcl_pose ... (docs/ros2.md
+    lists them)."""
     rclpy = _rclpy()
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -199,7 +201,8 @@ def sim(
     real_time_factor: float = typer.Option(1.0, min=1e-3, max=1e3, help="simulated seconds per wall second"),
     force: bool = typer.Option(False, "--force", help="replace an existing --record file"),
 ) -> None:
-    """Run the crowd simulator node: odometry, humans, goal and /clock out; cmd_vel in; episode records written."""
+    """Run the crowd simulator node: odometry, humans, goal, /clock (and scan, map) out; cmd_vel in; episode records
+    written."""
     from socnav.io import TABLE_FORMATS, OutputPathError, check_output_file
 
     if model is not None and config is not None:

@@ -1,12 +1,16 @@
 """`NavigatorNode`: the torch-free `SafeNavigator` as a ROS 2 node (``socnav ros2 navigator``).
-Odometry, goal and tracked humans in; geometry_msgs/Twist on ``cmd_vel`` out, with diagnostics, state and markers.
+Odometry, goal and tracked humans in (and, as the navigator needs them, a range scan, a map, the robot's map pose and
+a path); geometry_msgs/Twist on ``cmd_vel`` out, with diagnostics, state and markers.
 
 Each decision (every ``1 / rate`` s of the node's clock — simulated time with ``use_sim_time`` — or, with
-``lockstep``, once per set of odometry, humans and goal carrying one stamp, as a lock-step simulator sends them):
+``lockstep``, once per set of odometry, humans, goal and, for a policy that reads one, scan carrying one stamp, as a
+lock-step simulator sends them):
 
 1. the inputs are checked: present, not older than ``max_input_age`` (nor stamped that far in the future: another
    clock), in the configured frames, finite (`socnav.ros2.messages`); the goal not yet reached (``goal_tolerance``);
-2. `SafeNavigator.act` decides (policy, MC-dropout uncertainty, collision-probability rule, cautious fallback);
+2. `SafeNavigator.act` decides (policy, MC-dropout uncertainty, collision-probability rule, cautious fallback), with
+   the scan (sensor_msgs/LaserScan on ``scan_topic``, turned into the policy's beams), the robot's map pose and the
+   path (nav_msgs/Path on ``path_topic``) where they are configured;
 3. the command goes out on ``cmd_vel``; the decision's state on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray),
    ``~/fallback`` (std_msgs/Bool), ``~/uncertainty`` (std_msgs/Float64MultiArray: :data:`UNCERTAINTY_NAMES`),
    ``~/latency`` (std_msgs/Float64: seconds from the triggering callback to the command's publication) and
@@ -25,12 +29,22 @@ Whenever step 1 fails, or `act` refuses its input, the node publishes a zero Twi
 message makes a callback raise: a message is parsed once, when it arrives, and a bad one is kept as its error, so the
 next decision stops the robot until a good one replaces it. A goal at a new position starts a new navigation task
 (`SafeNavigator.reset`: empty uncertainty window, no held fallback).
+
+The map: the navigator file's walls, or the map_server YAML ``map_file`` (loaded at start), replaced by every
+nav_msgs/OccupancyGrid that arrives on ``map_topic`` (the latest map received wins; `SafeNavigator.set_walls`). The
+robot's map pose: without ``pose_topic`` the odometry frame is the map frame; with it, each pose
+(geometry_msgs/PoseWithCovarianceStamped, e.g. AMCL's ``amcl_pose``) gives the map-from-odometry correction at its
+stamp (paired with the odometry nearest that stamp), which places every later odometry on the map until the next
+pose, as tf's map -> odom -> base_link chain does: AMCL publishes a pose only when it updates (after the robot moved),
+so a pose's age is not held against it. With a route-observing policy, the decision's subgoal goes out on
+``~/subgoal``.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,14 +52,15 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, PoseStamped, Twist
-from nav_msgs.msg import Odometry
+from geometry_msgs.msg import Point, PointStamped, PoseStamped, PoseWithCovarianceStamped, Twist
+from nav_msgs.msg import OccupancyGrid, Odometry
+from nav_msgs.msg import Path as PathMessage
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import PointCloud2
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import LaserScan, PointCloud2
 from std_msgs.msg import Bool, ColorRGBA, Float64, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -56,10 +71,16 @@ from socnav.ros2.messages import (
     cloud_to_humans,
     command_to_twist,
     goal_to_position,
+    grid_to_walls,
     odometry_to_robot,
+    path_to_waypoints,
+    point_stamped,
+    pose_to_map_pose,
+    scan_to_ranges,
     stamp_to_ns,
 )
 from socnav.runtime import InputError, SafeNavigator
+from socnav.sim.maps import MapError, load_map
 
 __all__ = ["DEFAULT_NODE_NAME", "UNCERTAINTY_NAMES", "NavigatorNode", "NavigatorSetupError", "Outcome"]
 
@@ -75,6 +96,11 @@ CLOCK_MISMATCH_S = 3600.0
 REPEAT_LOG_S = 60.0
 #: Default of parameter ``marker_humans``: how many of the nearest humans get a marker.
 MARKER_HUMANS = 50
+#: Odometry messages kept (with ``pose_topic``) to pair a pose with the odometry nearest its stamp: 5 s at 50 Hz.
+ODOMETRY_HISTORY = 256
+#: What a map and a pose are received with: reliable and transient local, as map_server and AMCL publish them (a late
+#: subscriber still gets the last one; a volatile publisher does not match it).
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _NS = 1_000_000_000
 
 
@@ -108,10 +134,25 @@ class Outcome:
     goal_distance: float = math.nan
     #: What the stop's log line is keyed on: the cause without its changing numbers (None: the message itself).
     cause: str | None = None
+    #: A route-observing policy's subgoal (map frame, (2,)), None otherwise.
+    subgoal: np.ndarray | None = None
 
 
 def _descriptor(description: str, read_only: bool = True) -> ParameterDescriptor:
     return ParameterDescriptor(description=description, read_only=read_only)
+
+
+def _map_correction(map_pose: np.ndarray, odometry: RobotOdometry) -> np.ndarray:
+    """The rigid motion ``(x, y, angle)`` that takes odometry-frame coordinates to the map frame, from the robot's
+    map pose and its odometry at the same time: ``p_map = R(angle) p_odom + (x, y)``, ``yaw = heading + angle``."""
+    angle = float(map_pose[2]) - odometry.heading
+    rotated = _rotate(odometry.position, angle)
+    return np.array([map_pose[0] - rotated[0], map_pose[1] - rotated[1], angle])
+
+
+def _rotate(point: np.ndarray, angle: float) -> np.ndarray:
+    cos_a, sin_a = math.cos(angle), math.sin(angle)
+    return np.array([cos_a * point[0] - sin_a * point[1], sin_a * point[0] + cos_a * point[1]])
 
 
 class NavigatorNode(Node):
@@ -136,8 +177,10 @@ class NavigatorNode(Node):
                                                            "`socnav calibrate` file")).value
         k = declare("k", 0, _descriptor("MC-dropout samples per decision (0: the file's)")).value
         seed = declare("seed", -1, _descriptor("seed of the MC-dropout masks (-1: fresh entropy)")).value
+        self.map_file = declare("map_file", "", _descriptor(
+            "map_server YAML (or socnav polygon map) loaded at start as the walls ('': the navigator file's)")).value
         self.navigator = SafeNavigator.load(path, thresholds=thresholds or None, k=k or None,
-                                            seed=None if seed < 0 else seed)
+                                            seed=None if seed < 0 else seed, walls=self._file_walls())
         config = self.navigator.config
         self.time_step = float(config.time_step)
         self.rate = float(declare("rate", 1.0 / self.time_step,
@@ -151,13 +194,32 @@ class NavigatorNode(Node):
                       ("humans", "humans", "tracked humans (sensor_msgs/PointCloud2: x, y, vx, vy[, radius])"),
                       ("goal", "goal_pose", "goal (geometry_msgs/PoseStamped)"),
                       ("cmd_vel", "cmd_vel", "command (geometry_msgs/Twist)"),
-                      ("diagnostics", "/diagnostics", "diagnostics (diagnostic_msgs/DiagnosticArray)"))}
+                      ("diagnostics", "/diagnostics", "diagnostics (diagnostic_msgs/DiagnosticArray)"),
+                      ("scan", "scan", "range scan (sensor_msgs/LaserScan), read when the policy reads one"),
+                      ("map", "map", "map (nav_msgs/OccupancyGrid, transient local; '': none)"),
+                      ("pose", "", "robot's map pose (geometry_msgs/PoseWithCovarianceStamped, e.g. amcl_pose; '': "
+                                   "the odometry frame is the map frame)"),
+                      ("path", "", "path to follow (nav_msgs/Path) for a route-observing policy ('': it plans "
+                                   "its own)"))}
         self.odom_frame = declare("odom_frame", "odom", _descriptor("the odometry frame: odometry, humans and goal "
                                                                     "are in it")).value
         self.base_frame = declare("base_frame", "base_link", _descriptor("the robot's frame (odometry's "
                                                                          "child_frame_id)")).value
+        self.scan_frame = declare("scan_frame", "", _descriptor(
+            "the scan's frame ('': base_frame); the scanner is taken at the robot's centre, facing its "
+            "heading")).value or self.base_frame
+        self.map_frame = declare("map_frame", "map", _descriptor("the map frame: map, pose, path and subgoal are in "
+                                                                 "it")).value
+        self.map_free_thresh = declare("map_free_thresh", 0.25, _descriptor(
+            "a map cell is free when its occupancy (0-100) is below 100 x this; others (and unknown) are walls")).value
+        self.reads_scan = self.navigator.scan_beams is not None
+        self.pose_topic, self.path_topic = topics["pose"], topics["path"]
+        if self.path_topic and not self.navigator.observes_route:
+            raise NavigatorSetupError(
+                f"parameter path_topic is {self.path_topic!r}, but this navigator's policy does not observe a route "
+                "(its env config's planner.observe is false): leave path_topic empty")
         dynamic = {
-            "max_input_age": (0.5, "seconds: older odometry or humans (by header stamp) stop the robot"),
+            "max_input_age": (0.5, "seconds: older odometry, humans or scan (by header stamp) stop the robot"),
             "preferred_speed": (float(config.preferred_speed[1]), "the robot's preferred speed v_pref (m/s), at "
                                                                    "most the navigator's largest"),
             "robot_radius": (float(config.robot_radius), "the robot's radius (m)"),
@@ -172,13 +234,20 @@ class NavigatorNode(Node):
             "markers are drawn for this many humans, the nearest to the robot (bounds the markers' cost)")).value
         if isinstance(self.marker_humans, bool) or not isinstance(self.marker_humans, int) or self.marker_humans < 0:
             raise NavigatorSetupError(f"parameter marker_humans must be an integer >= 0, got {self.marker_humans!r}")
-        for name, value in [("rate", self.rate), *self.settings.items()]:
+        for name, value in [("rate", self.rate), *self.settings.items(), ("map_free_thresh", self.map_free_thresh)]:
             problem = self._problem(name, value)
             if problem:
                 raise NavigatorSetupError(problem)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.odometry, self.humans, self.goal = _Latest(), _Latest(), _Latest()
+        self.scan, self.map, self.pose, self.path = _Latest(), _Latest(), _Latest(), _Latest()
+        #: where the navigator's walls come from, for the diagnostics
+        self.walls_source = f"map_file {self.map_file}" if self.map_file else "the navigator file"
+        # with pose_topic: recent odometry (to pair a pose with) and the correction of the latest pose, with its
+        # stamp and whether odometry at or after that stamp was there (no nearer odometry can then come)
+        self._odometry_history: deque[RobotOdometry] = deque(maxlen=ODOMETRY_HISTORY)
+        self._correction: tuple[int, np.ndarray, bool] | None = None
         self._last_decided_stamp: int | None = None
         self._pending_trigger: float | None = None  # lock-step: a decision waiting for cmd_vel's first subscriber
         self._logged_cause: str | None = None  # the stop cause last logged, and when (time.monotonic)
@@ -188,21 +257,45 @@ class NavigatorNode(Node):
         # sensor drivers' best-effort publishers.
         sensor_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE) if self.lockstep \
             else qos_profile_sensor_data
+        # The map first: an executor takes a node's ready subscriptions in creation order, so a map that is waiting
+        # is in use before the inputs that arrived with it are decided on.
+        if topics["map"]:
+            self.create_subscription(OccupancyGrid, topics["map"], self._on_map, LATCHED_QOS)
+        if self.pose_topic:
+            self.create_subscription(PoseWithCovarianceStamped, self.pose_topic, self._on_pose, LATCHED_QOS)
+        if self.path_topic:
+            self.create_subscription(PathMessage, self.path_topic, self._on_path, 10)
         self.create_subscription(Odometry, topics["odom"], self._on_odometry, sensor_qos)
         self.create_subscription(PointCloud2, topics["humans"], self._on_humans, sensor_qos)
         self.create_subscription(PoseStamped, topics["goal"], self._on_goal, 10)
+        if self.reads_scan:
+            self.create_subscription(LaserScan, topics["scan"], self._on_scan, sensor_qos)
         self.cmd_vel = self.create_publisher(Twist, topics["cmd_vel"], 10)
         self.diagnostics = self.create_publisher(DiagnosticArray, topics["diagnostics"], 10)
         self.fallback_topic = self.create_publisher(Bool, "~/fallback", 10)
         self.uncertainty_topic = self.create_publisher(Float64MultiArray, "~/uncertainty", 10)
         self.latency_topic = self.create_publisher(Float64, "~/latency", 10)
         self.markers = self.create_publisher(MarkerArray, "~/markers", 10) if self.publish_markers else None
+        self.subgoal_topic = self.create_publisher(PointStamped, "~/subgoal", 10) \
+            if self.navigator.observes_route else None
         if self.lockstep:
             self.create_timer(_PENDING_RETRY_S, self._retry_pending, clock=Clock(clock_type=ClockType.STEADY_TIME))
         else:
             self.create_timer(1.0 / self.rate, self._on_timer)
+        used = {name: topic for name, topic in topics.items() if topic and (name != "scan" or self.reads_scan)}
         self.get_logger().info(f"{self.navigator!r}; {'lock-step' if self.lockstep else f'{self.rate:g} Hz'}, "
-                               f"topics {topics}")
+                               f"topics {used}, frames odom {self.odom_frame!r}, base {self.base_frame!r}, map "
+                               f"{self.map_frame!r}" + (f", scan {self.scan_frame!r}" if self.reads_scan else "")
+                               + f"; walls from {self.walls_source}")
+
+    def _file_walls(self) -> list[np.ndarray] | None:
+        """The walls of parameter ``map_file`` (None: none named, the navigator file's walls stay)."""
+        if not self.map_file:
+            return None
+        try:
+            return load_map(self.map_file)
+        except MapError as exc:
+            raise NavigatorSetupError(f"parameter map_file: {exc}") from None
 
     # ------------------------------------------------------------------------------------------------- parameters
 
@@ -217,6 +310,8 @@ class NavigatorNode(Node):
             return f"parameter {name} must be >= 0, got {value}"
         if name in ("rate", "max_input_age", "goal_tolerance") and value <= 0.0:
             return f"parameter {name} must be > 0, got {value}"
+        if name == "map_free_thresh" and not 0.0 < value <= 1.0:
+            return f"parameter map_free_thresh must be > 0 and <= 1, got {value}"
         return None
 
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -235,6 +330,8 @@ class NavigatorNode(Node):
     def _on_odometry(self, message: Odometry) -> None:
         self._store(self.odometry, message, "odometry",
                     lambda: odometry_to_robot(message, self.odom_frame, self.base_frame))
+        if self.pose_topic and self.odometry.value is not None:
+            self._odometry_history.append(self.odometry.value)
 
     def _on_humans(self, message: PointCloud2) -> None:
         self._store(self.humans, message, "humans",
@@ -246,9 +343,40 @@ class NavigatorNode(Node):
         if self.goal.value is not None and (previous is None or not np.array_equal(previous, self.goal.value)):
             self.navigator.reset()  # a new navigation task
 
+    def _on_scan(self, message: LaserScan) -> None:
+        scan = self.navigator.network.scan
+        assert scan is not None  # subscribed only for a policy that reads a scan
+        self._store(self.scan, message, "scan", lambda: scan_to_ranges(message, self.scan_frame, scan.beams, scan.fov))
+
+    def _on_map(self, message: OccupancyGrid) -> None:
+        self._keep(self.map, message, "map", lambda: self._use_map(message))
+
+    def _use_map(self, message: OccupancyGrid) -> int:
+        """Make the map's walls the navigator's; their number of polygons."""
+        walls = grid_to_walls(message, self.map_frame, self.map_free_thresh)
+        try:
+            self.navigator.set_walls(walls)
+        except ValueError as exc:
+            raise MessageError(f"map: {exc}") from None
+        self.walls_source = f"map topic ({len(walls)} polygons)"
+        return len(walls)
+
+    def _on_pose(self, message: PoseWithCovarianceStamped) -> None:
+        self._keep(self.pose, message, "pose", lambda: pose_to_map_pose(message, self.map_frame))
+
+    def _on_path(self, message: PathMessage) -> None:
+        self._keep(self.path, message, "path", lambda: path_to_waypoints(message, self.map_frame))
+
     def _store(self, latest: _Latest, message: Any, what: str, parse: Callable[[], Any]) -> None:
         """Keep ``message`` parsed, or its problem; then, in lock-step, decide if the inputs now share a stamp."""
         started = time.perf_counter()
+        self._keep(latest, message, what, parse)
+        if self.lockstep:
+            self._pending_trigger = started
+            self._decide_if_complete()
+
+    def _keep(self, latest: _Latest, message: Any, what: str, parse: Callable[[], Any]) -> None:
+        """Keep ``message`` parsed, or its problem (never raises)."""
         latest.received += 1
         try:
             latest.stamp_ns = stamp_to_ns(message.header.stamp)
@@ -257,14 +385,13 @@ class NavigatorNode(Node):
             latest.value, latest.error = None, str(exc)
         except Exception as exc:
             latest.value, latest.error = None, f"{what} message could not be read ({type(exc).__name__}: {exc})"
-        if self.lockstep:
-            self._pending_trigger = started
-            self._decide_if_complete()
 
     def _decide_if_complete(self) -> None:
         if not self.context.ok():  # shut down (signal): the graph queries below would raise
             return
         stamps = {self.odometry.stamp_ns, self.humans.stamp_ns, self.goal.stamp_ns}
+        if self.reads_scan:
+            stamps.add(self.scan.stamp_ns)
         if len(stamps) != 1 or self._pending_trigger is None:
             return
         stamp = stamps.pop()
@@ -348,10 +475,9 @@ class NavigatorNode(Node):
 
     def _outcome(self, now_ns: int) -> Outcome:
         stop = DiagnosticStatus.ERROR
-        for latest, what in ((self.odometry, "odometry"), (self.humans, "humans")):
-            problem = self._input_problem(latest, what, now_ns)
-            if problem:
-                return Outcome(0.0, 0.0, True, stop, f"stopped: {problem[0]}", cause=problem[1])
+        problem = self._inputs_problem(now_ns)
+        if problem:
+            return Outcome(0.0, 0.0, True, stop, f"stopped: {problem[0]}", cause=problem[1])
         if self.goal.error is not None:
             return Outcome(0.0, 0.0, True, stop, f"stopped: {self.goal.error}")
         if self.goal.value is None:
@@ -367,7 +493,8 @@ class NavigatorNode(Node):
                  "goal": self.goal.value, "v_pref": self.settings["preferred_speed"],
                  "radius": self.settings["robot_radius"]}
         try:
-            decision = self.navigator.act(state, humans.as_mapping())
+            decision = self.navigator.act(state, humans.as_mapping(), scan=self.scan.value if self.reads_scan else None,
+                                          pose=self._map_pose(robot), path=self._given_path())
         except InputError as exc:
             return Outcome(0.0, 0.0, True, stop, f"stopped: {exc}", humans=len(humans.radii),
                            goal_distance=goal_distance)
@@ -377,7 +504,67 @@ class NavigatorNode(Node):
         message = (f"stopped: {decision.fault}" if stopped else
                    "fallback: the cautious controller drives" if decision.fallback else "policy drives")
         return Outcome(decision.speed, decision.turn, stopped, level, message, decision.fallback,
-                       dict(decision.windowed), decision.fault, len(humans.radii), goal_distance)
+                       dict(decision.windowed), decision.fault, len(humans.radii), goal_distance,
+                       subgoal=decision.subgoal)
+
+    def _inputs_problem(self, now_ns: int) -> tuple[str, str] | None:
+        """Why the inputs cannot be decided on now (the first problem, and its cause without numbers for the log);
+        None: they can. Odometry, humans and a scan must be fresh; a map or a path that was refused stops the robot
+        until a good one arrives; with ``pose_topic``, the robot's map pose must be known."""
+        stamped = [(self.odometry, "odometry"), (self.humans, "humans")]
+        if self.reads_scan:
+            stamped.append((self.scan, "scan"))
+        for latest, what in stamped:
+            problem = self._input_problem(latest, what, now_ns)
+            if problem:
+                return problem
+        for latest in (self.map, self.path):
+            if latest.error is not None:
+                return latest.error, latest.error
+        return self._pose_problem() if self.pose_topic else None
+
+    def _pose_problem(self) -> tuple[str, str] | None:
+        """Why the robot's map pose is not known (None: ``_correction`` holds the latest pose's map-from-odometry
+        correction). A pose is paired with the odometry nearest its stamp, within ``max_input_age``; the pairing is
+        kept once odometry at or after that stamp was there (none nearer can come), until the next pose."""
+        pose = self.pose
+        if pose.error is not None:
+            return pose.error, pose.error
+        if pose.value is None or pose.stamp_ns is None:
+            return "no pose received yet", "no pose"
+        stamp = pose.stamp_ns
+        if self._correction is not None and self._correction[0] == stamp and self._correction[2]:
+            return None
+        limit = self.settings["max_input_age"]
+        nearest = min(self._odometry_history, key=lambda odometry: abs(odometry.stamp_ns - stamp), default=None)
+        if nearest is None or abs(nearest.stamp_ns - stamp) > limit * _NS:
+            return (f"no odometry within max_input_age ({limit:g} s) of the pose's stamp to place the robot on the map",
+                    "pose: no odometry at its stamp")
+        self._correction = (stamp, _map_correction(pose.value, nearest), self._odometry_history[-1].stamp_ns >= stamp)
+        return None
+
+    def _map_pose(self, robot: RobotOdometry) -> np.ndarray | None:
+        """The robot's map pose (x, y, yaw): its odometry moved by the latest pose's correction; None without
+        ``pose_topic`` (the odometry frame is the map frame)."""
+        if not self.pose_topic or self._correction is None:
+            return None
+        correction = self._correction[1]
+        position = _rotate(robot.position, float(correction[2])) + correction[:2]
+        return np.array([position[0], position[1], robot.heading + correction[2]])
+
+    def _given_path(self) -> np.ndarray | None:
+        """The waypoints of the latest path on ``path_topic``; None without one, or for an empty path (the
+        navigator then plans its own)."""
+        waypoints = self.path.value if self.path_topic else None
+        return waypoints if waypoints is not None and len(waypoints) else None
+
+    def _in_odometry_frame(self, point: np.ndarray) -> np.ndarray:
+        """A map-frame point in the odometry frame (the inverse of the latest pose's correction; the same point
+        without ``pose_topic``)."""
+        if not self.pose_topic or self._correction is None:
+            return point
+        correction = self._correction[1]
+        return _rotate(point - correction[:2], -float(correction[2]))
 
     # ------------------------------------------------------------------------------------------------- reports
 
@@ -394,9 +581,11 @@ class NavigatorNode(Node):
     def _publish_state(self, outcome: Outcome, latency: float) -> None:
         stamp = self.get_clock().now().to_msg()
         self._log_stop(outcome)
+        subgoal = "" if outcome.subgoal is None else f"{outcome.subgoal[0]:.3f}, {outcome.subgoal[1]:.3f}"
         values = {"stopped": outcome.stopped, "fallback": outcome.fallback, "speed": outcome.speed,
                   "turn_rate": outcome.turn / self.time_step, "latency_s": latency, "humans": outcome.humans,
-                  "goal_distance": outcome.goal_distance, "fault": outcome.fault or "", **outcome.windowed}
+                  "goal_distance": outcome.goal_distance, "fault": outcome.fault or "", **outcome.windowed,
+                  "walls": len(self.navigator.walls or ()), "walls_from": self.walls_source, "subgoal": subgoal}
         status = DiagnosticStatus(level=outcome.level, name=f"{self.get_name()}: safe navigator",
                                   message=outcome.message, hardware_id=self.get_fully_qualified_name(),
                                   values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
@@ -409,13 +598,16 @@ class NavigatorNode(Node):
                                                       stride=len(UNCERTAINTY_NAMES))]
         self.uncertainty_topic.publish(uncertainty)
         self.latency_topic.publish(Float64(data=latency))
+        if self.subgoal_topic is not None and outcome.subgoal is not None:
+            self.subgoal_topic.publish(point_stamped(outcome.subgoal, stamp, self.map_frame))
         if self.markers is not None:
             self.markers.publish(self._marker_array(outcome, stamp))
 
     def _marker_array(self, outcome: Outcome, stamp: Any) -> MarkerArray:
-        """The ``marker_humans`` humans nearest the robot (grey cylinders), goal (green disc), robot (blue: policy,
-        orange: fallback, red: stopped) and a text with the windowed uncertainties, in the odometry frame; a DELETEALL
-        first drops humans no longer seen."""
+        """The ``marker_humans`` humans nearest the robot (grey cylinders), goal (green disc), subgoal (purple
+        sphere, a route-observing policy's), robot (blue: policy, orange: fallback, red: stopped) and a text with the
+        windowed uncertainties (and the number of wall polygons), in the odometry frame; a DELETEALL first drops
+        humans no longer seen."""
         markers = [Marker(action=Marker.DELETEALL)]
 
         def marker(namespace: str, ident: int, kind: int, x: float, y: float, diameter: float, height: float,
@@ -442,6 +634,9 @@ class NavigatorNode(Node):
         if goal is not None:
             markers.append(marker("goal", 0, Marker.CYLINDER, goal[0], goal[1], 2 * self.settings["goal_tolerance"],
                                   0.02, (0.1, 0.8, 0.2, 0.8)))
+        if outcome.subgoal is not None:
+            subgoal = self._in_odometry_frame(outcome.subgoal)
+            markers.append(marker("subgoal", 0, Marker.SPHERE, subgoal[0], subgoal[1], 0.2, 0.2, (0.6, 0.2, 0.9, 0.9)))
         if robot is not None:
             color = (0.9, 0.1, 0.1, 0.9) if outcome.stopped else (1.0, 0.55, 0.0, 0.9) if outcome.fallback \
                 else (0.2, 0.4, 1.0, 0.9)
@@ -455,6 +650,8 @@ class NavigatorNode(Node):
                          f"  u_feat {outcome.windowed['u_feat']:.3f}")
             if humans is not None and len(drawn) < len(humans.radii):
                 text.text += f"  ({len(drawn)} nearest of {len(humans.radii)} humans drawn)"
+            if self.navigator.walls:
+                text.text += f"  walls: {len(self.navigator.walls)} polygons"
             markers.append(text)
         return MarkerArray(markers=markers)
 

@@ -4,8 +4,10 @@ tracker: it publishes what they would, steps the world with ``cmd_vel``, and wri
 Each step of ``dt`` (the env config's ``time_step``), stamped with the simulated time it starts at:
 
 * ``/clock`` (rosgraph_msgs/Clock: the simulated time, for nodes with ``use_sim_time``), the goal
-  (geometry_msgs/PoseStamped), the robot's odometry (nav_msgs/Odometry, twist in ``base_link``), the humans
-  (sensor_msgs/PointCloud2, FLOAT64 fields x, y, vx, vy, radius: the world's exact state) and ``~/markers``;
+  (geometry_msgs/PoseStamped), the robot's odometry (nav_msgs/Odometry, twist in ``base_link``), in a world with a
+  range scan the scan (sensor_msgs/LaserScan in ``base_link``: the world's own, the layout the policy trained with),
+  the humans (sensor_msgs/PointCloud2, FLOAT64 fields x, y, vx, vy, radius: the world's exact state; in a world with
+  occlusion, those the robot sees, as the policy's observation has them) and ``~/markers``;
 * then the world steps with the latest command: ``v = linear.x``, ``dtheta = angular.z dt`` turned into the
   environment's action ``a = (2 v / v_pref - 1, dtheta / max_heading_change)`` (clipped to [-1, 1] by the world).
 
@@ -14,6 +16,11 @@ once it is older than ``command_timeout`` s of simulated time, as a robot base's
 (``lockstep``): after publishing a step, the node waits for the navigator's command for it (the navigator runs with
 ``lockstep:=true`` and answers each set of inputs exactly once), so the episode is the one an in-process evaluation
 plays, whatever the machine's load.
+
+A world with walls publishes them once, at start, as a nav_msgs/OccupancyGrid on ``map`` (transient local, as
+map_server does; frame ``map_frame``, ``map_resolution`` m per cell: `socnav.ros2.messages.walls_to_grid`), and waits
+(at most ``wait_timeout``) for the navigator to have it before the first step. Its odometry frame is the map frame:
+a navigator leaves its ``pose_topic`` empty.
 
 Episode ``k`` is seeded ``seed + k`` (as `socnav.envs.rollout.rollout_episodes` seeds it); its record
 (`EPISODE_COLUMNS`, as ``socnav evaluate`` writes them) is appended to ``out`` when it ends. Before each episode
@@ -34,16 +41,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from geometry_msgs.msg import Point, PoseStamped, Twist
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.client import Client
+from rclpy.duration import Duration
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import LaserScan, PointCloud2
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -55,8 +64,10 @@ from socnav.ros2.messages import (
     humans_to_cloud,
     ns_to_stamp,
     position_to_goal,
+    ranges_to_scan,
     robot_to_odometry,
     twist_to_command,
+    walls_to_grid,
 )
 from socnav.ros2.recording import McapRecorder
 from socnav.sim.world import CrowdWorld
@@ -71,7 +82,10 @@ RESEND_PERIOD = 1.0
 WAIT_REPORT_PERIOD = 10.0
 #: Navigator topics recorded besides the simulator's own (relative to the navigator node's name).
 _NAVIGATOR_TOPICS = (("fallback", "std_msgs/msg/Bool"), ("uncertainty", "std_msgs/msg/Float64MultiArray"),
-                     ("latency", "std_msgs/msg/Float64"), ("markers", "visualization_msgs/msg/MarkerArray"))
+                     ("latency", "std_msgs/msg/Float64"), ("markers", "visualization_msgs/msg/MarkerArray"),
+                     ("subgoal", "geometry_msgs/msg/PointStamped"))
+#: The map's publisher: reliable and transient local, as map_server's (a navigator that starts later still gets it).
+MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class SimulatorError(RuntimeError):
@@ -103,9 +117,12 @@ class SimulatorNode(Node):
         declare = self.declare_parameter
         topics = {name: declare(f"{name}_topic", default, _descriptor(f"topic of the {name}")).value
                   for name, default in (("odom", "odom"), ("humans", "humans"), ("goal", "goal_pose"),
-                                        ("cmd_vel", "cmd_vel"))}
+                                        ("cmd_vel", "cmd_vel"), ("scan", "scan"), ("map", "map"))}
         self.odom_frame = declare("odom_frame", "odom", _descriptor("the world's frame")).value
-        self.base_frame = declare("base_frame", "base_link", _descriptor("the robot's frame")).value
+        self.base_frame = declare("base_frame", "base_link", _descriptor("the robot's frame (and the scan's)")).value
+        self.map_frame = declare("map_frame", "map", _descriptor(
+            "the map's frame (the world's frame under another name: the odometry frame is the map frame)")).value
+        map_resolution = declare("map_resolution", 0.05, _descriptor("metres per cell of the published map")).value
         self.navigator_node = declare("navigator_node", "socnav_navigator", _descriptor(
             "node whose preferred_speed and robot_radius are set before each episode ('': none)")).value
         self.command_timeout = float(declare("command_timeout", 0.5, _descriptor(
@@ -119,6 +136,7 @@ class SimulatorNode(Node):
         self.time_step = float(config.time_step)
         self._step_ns = round(self.time_step * _NS)
         self.now_ns = self._step_ns  # simulated time of the current step (never 0: ROS reads 0 as "no time yet")
+        self.grid = None if self.world.walls is None else self._grid(map_resolution)
         self.records: list[dict[str, Any]] = []
         self.episode = -1
         self._command: tuple[float, float] | None = None
@@ -130,6 +148,8 @@ class SimulatorNode(Node):
         self.goal = self.create_publisher(PoseStamped, topics["goal"], 10)
         self.odometry = self.create_publisher(Odometry, topics["odom"], 10)
         self.humans = self.create_publisher(PointCloud2, topics["humans"], 10)
+        self.scan = None if config.scan is None else self.create_publisher(LaserScan, topics["scan"], 10)
+        self.map = None if self.grid is None else self.create_publisher(OccupancyGrid, topics["map"], MAP_QOS)
         self.markers = self.create_publisher(MarkerArray, "~/markers", 10)
         self.create_subscription(Twist, topics["cmd_vel"], self._on_cmd_vel, 10)
         self.cmd_vel_topic = self.resolve_topic_name(topics["cmd_vel"])
@@ -142,6 +162,18 @@ class SimulatorNode(Node):
                 for topic, type_name in (*((f"{name}/{topic}", kind) for topic, kind in _NAVIGATOR_TOPICS),
                                          ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")):
                     self._record_topic(self.recorder, topic, type_name)
+
+    def _grid(self, resolution: Any) -> OccupancyGrid:
+        """The world's walls as the occupancy grid the node publishes on ``map``.
+
+        :raises ValueError: naming parameter ``map_resolution``: not a number > 0, or too fine for the walls."""
+        assert self.world.walls is not None
+        if isinstance(resolution, bool) or not isinstance(resolution, (int, float)):
+            raise ValueError(f"parameter map_resolution must be a number of metres per cell > 0, got {resolution!r}")
+        try:
+            return walls_to_grid(self.world.walls.polygons, float(resolution), self.now_ns, self.map_frame)
+        except ValueError as exc:
+            raise ValueError(f"parameter map_resolution: {exc}") from None
 
     # ------------------------------------------------------------------------------------------------- inputs
 
@@ -175,7 +207,10 @@ class SimulatorNode(Node):
             executor = SingleThreadedExecutor(context=self.context)
             executor.add_node(self)
         try:
+            if self.map is not None:
+                self._publish(self.map, self.grid)
             self._wait_for_navigator(executor)
+            self._wait_for_map_delivery(executor)
             self._begin_episode(executor)
             (self._run_lockstep if self.lockstep else self._run_real_time)(executor)
         finally:
@@ -238,6 +273,17 @@ class SimulatorNode(Node):
                          waiting=lambda seconds: f"still waiting for a navigator after {seconds:.0f} s; missing: "
                                                  f"{', '.join(self._navigator_missing())}")
         self.get_logger().info("navigator found: starting")
+
+    def _wait_for_map_delivery(self, executor: Executor) -> None:
+        """Until every subscriber of the map acknowledged it (spinning meanwhile, for a navigator in this process),
+        so that the first step is decided on the map: at most ``wait_timeout`` s, then a warning and on."""
+        if self.map is None or self.map.get_subscription_count() == 0:
+            return
+        try:
+            self._spin_until(executor, lambda: self.map.wait_for_all_acked(Duration(seconds=0)), self.wait_timeout,
+                             f"the map on {self.map.topic_name} was not acknowledged by its subscribers")
+        except SimulatorError as exc:
+            self.get_logger().warning(f"{exc}: starting all the same")
 
     def _begin_episode(self, executor: Executor) -> None:
         """Start the next episode (seed ``seed + k``), tell the navigator its robot, publish its first state."""
@@ -344,18 +390,32 @@ class SimulatorNode(Node):
             self.recorder.write(publisher.topic_name, message, self.now_ns)
 
     def _publish_state(self, record: bool = True) -> None:
-        """This step's clock, goal, odometry, humans and markers, all stamped with the simulated time; the humans
-        last, so that a navigator deciding on them has the rest."""
+        """This step's clock, goal, odometry, scan, humans and markers, all stamped with the simulated time; the
+        humans last, so that a navigator deciding on them has the rest."""
         world, stamp = self.world, self.now_ns
         humans = np.flatnonzero(world.active[0, 1:]) + 1
+        seen = humans[world.in_sight[0, humans]] if world.occlusion else humans  # a tracker sees no one behind walls
         self._publish(self.clock, Clock(clock=ns_to_stamp(stamp)), record)
         self._publish(self.goal, position_to_goal(world.goals[0, 0], stamp, self.odom_frame), record)
         self._publish(self.odometry, robot_to_odometry(world.positions[0, 0], world.velocities[0, 0],
                                                        float(world.heading[0]), self._turn_rate, stamp,
                                                        self.odom_frame, self.base_frame), record)
-        self._publish(self.humans, humans_to_cloud(world.positions[0, humans], world.velocities[0, humans],
-                                                   world.radii[0, humans], stamp, self.odom_frame), record)
+        if self.scan is not None:
+            self._publish(self.scan, self._scan_message(), record)
+        self._publish(self.humans, humans_to_cloud(world.positions[0, seen], world.velocities[0, seen],
+                                                   world.radii[0, seen], stamp, self.odom_frame), record)
         self._publish(self.markers, self._marker_array(humans), record)
+
+    def _scan_message(self) -> LaserScan:
+        """The robot's range scan now, as the world's observation has it (`CrowdWorld.observe`'s ``scan``: the walls'
+        ranges, the full range in the open plane), computed without observing (which would move the robot's path)."""
+        world, scan = self.world, self.config.scan
+        assert scan is not None
+        if world.walls is None:
+            ranges = np.full(scan.beams, scan.range)
+        else:
+            ranges = world.walls.scan(world.positions[:1, 0], world.heading[:1], scan.beams, scan.range, scan.fov)[0]
+        return ranges_to_scan(ranges, self.now_ns, self.base_frame, scan.fov, scan.range, self.time_step)
 
     def _marker_array(self, humans: np.ndarray) -> MarkerArray:
         """The world as the simulator has it: humans and their personal spaces, the robot and its heading, the
