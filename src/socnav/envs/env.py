@@ -111,6 +111,7 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
     from socnav.viz.render import SceneFrame
 
     walls = world.walls
+    route, subgoal = robot_route(world, env) or (None, None)
     return SceneFrame(
         positions=world.positions[env].copy(),
         velocities=world.velocities[env].copy(),
@@ -127,7 +128,8 @@ def scene_frame(world: CrowdWorld, env: int, trail: list[np.ndarray] | None = No
         walls=None if walls is None else walls.polygons,
         hidden=~walls.in_sight_of_robot(world.positions[env:env + 1], world.active[env:env + 1])[0]
         if world.occlusion and walls is not None else None,
-        **dict(zip(("route", "subgoal"), robot_route(world, env) or (None, None), strict=True)),
+        route=route,
+        subgoal=subgoal,
         **extra,
     )
 
