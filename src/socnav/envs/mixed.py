@@ -8,6 +8,7 @@ mixture with s seeds environment i with s + i, as for one world.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from typing import Any
 
@@ -45,7 +46,7 @@ class MixedVecEnv(VecEnv):
                                  f"({self.parts[0].config.scenario}): {sorted(keys)} differ; the worlds of a mixture "
                                  "need the same max_humans, scan, and walls in all or in none")
         bounds = np.cumsum([0, *(part.num_envs for part in self.parts)])
-        self._slices = [slice(int(start), int(end)) for start, end in zip(bounds[:-1], bounds[1:], strict=True)]
+        self._slices = [slice(int(start), int(end)) for start, end in itertools.pairwise(bounds)]
         super().__init__(int(bounds[-1]), first, self.parts[0].action_space)
 
     def _owners(self, indices: VecEnvIndices) -> list[tuple[SocialNavVecEnv, int]]:
