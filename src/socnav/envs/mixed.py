@@ -38,10 +38,13 @@ class MixedVecEnv(VecEnv):
             raise ValueError(f"n_envs: one count per world ({len(configs)}), got {len(counts)}")
         self.parts = [SocialNavVecEnv(config, n_envs=count) for config, count in zip(configs, counts, strict=True)]
         first = self.parts[0].observation_space
+        assert isinstance(first, gym.spaces.Dict)
         for index, part in enumerate(self.parts[1:], start=1):
-            if part.observation_space != first:
-                keys = set(first.spaces) ^ set(part.observation_space.spaces) or {
-                    key for key in first.spaces if first[key] != part.observation_space[key]}
+            other = part.observation_space
+            assert isinstance(other, gym.spaces.Dict)
+            if other != first:
+                keys = set(first.spaces) ^ set(other.spaces) or {key for key in first.spaces
+                                                                  if first[key] != other[key]}
                 raise ValueError(f"configs[{index}] ({part.config.scenario}) observes another layout than configs[0] "
                                  f"({self.parts[0].config.scenario}): {sorted(keys)} differ; the worlds of a mixture "
                                  "need the same max_humans, scan, and walls in all or in none")
@@ -72,7 +75,7 @@ class MixedVecEnv(VecEnv):
         return self._concatenated(observations)
 
     def step_async(self, actions: np.ndarray) -> None:
-        expected = (self.num_envs, *self.action_space.shape)
+        expected = (self.num_envs, *(self.action_space.shape or ()))
         if np.shape(actions) != expected:
             raise ActionError(f"actions must have shape {expected} (one row of speed, heading change per "
                               f"environment), got shape {np.shape(actions)}")
@@ -81,7 +84,7 @@ class MixedVecEnv(VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         results = [part.step_wait() for part in self.parts]
-        observations = self._concatenated([result[0] for result in results])
+        observations = self._concatenated([result[0] for result in results])  # type: ignore[misc]
         rewards = np.concatenate([result[1] for result in results])
         dones = np.concatenate([result[2] for result in results])
         infos = [info for result in results for info in result[3]]
