@@ -128,7 +128,7 @@ def find_cycle(edges: list[Edge]) -> list[str] | None:
         path.append(node)
         for target in sorted(graph.get(node, ())):
             if state.get(target) == 1:
-                return path[path.index(target):] + [target]
+                return [*path[path.index(target):], target]
             if target not in state and (cycle := visit(target)) is not None:
                 return cycle
         path.pop()

@@ -49,8 +49,7 @@ def test_demo_writes_tables_and_animation(tmp_path):
     # The safety layer's part: the same perturbed episodes without and with each layer.
     plain = pd.read_csv(tmp_path / "perturbed_position_swap.csv")
     words = " ".join(result.output.split())
-    for name, label in [("safety", "safety layer"), ("proximity_only", "proximity-only"),
-                        ("time_to_collision", "time to collision")]:
+    for name in ("safety", "proximity_only", "time_to_collision"):
         layer = pd.read_csv(tmp_path / f"perturbed_position_swap_{name}.csv")
         assert list(plain["seed"]) == list(layer["seed"])
         prevented = int((plain["outcome"] == "collision").sum() - (layer["outcome"] == "collision").sum())

@@ -156,7 +156,7 @@ def test_counts_are_strict_integers(data, field):
 
 BOMB = "\n".join(
     ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
-    + [f"{b}: &{b} [{','.join([f'*{a}'] * 9)}]" for a, b in zip("abcdefgh", "bcdefghi")]
+    + [f"{b}: &{b} [{','.join([f'*{a}'] * 9)}]" for a, b in zip("abcdefgh", "bcdefghi", strict=True)]
 ) + "\n"
 
 
@@ -294,5 +294,6 @@ def test_the_one_formatter_names_path_problem_allowed_values_and_value():
                for line in lines)
     assert any(line.startswith("  - study.kk: unknown field; allowed fields: estimators, perturbations, k")
                and line.endswith("did you mean k? (got 3)") for line in lines)  # through Optional[Study]
-    assert "  - budgets.quick.seedz: unknown field; did you mean seeds or mc_seed? (got 2)" in lines  # dict[str, Budget]
+    # through dict[str, Budget]
+    assert "  - budgets.quick.seedz: unknown field; did you mean seeds or mc_seed? (got 2)" in lines
     assert not any("Value error" in line for line in lines)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 from _extras import ALLOW_MISSING, TEST_EXTRAS, require
 
 

@@ -358,8 +358,8 @@ def test_a_directory_given_as_thresholds_to_the_python_api_says_so(tmp_path):
 
 
 def test_report_out_under_a_file_is_one_line(afile, tmp_path):
-    from socnav.experiments.spec import load_experiment
     from socnav.experiments.runner import prepare_run_dir
+    from socnav.experiments.spec import load_experiment
 
     smoke = REPO / "configs" / "experiments" / "smoke.yaml"
     root = tmp_path / "run"

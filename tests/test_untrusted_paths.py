@@ -149,9 +149,8 @@ def test_a_run_lock_planted_as_a_link_is_refused_with_one_line(sweep, tmp_path):
     with pytest.raises(RunnerError, match="symbolic link") as error:
         run_experiment(experiment, root, workers=0)
     assert "\n" not in str(error.value) and not target.exists() and calls == []
-    with pytest.raises(UnsafePathError):
-        with file_lock(root / ".lock"):
-            pass
+    with pytest.raises(UnsafePathError), file_lock(root / ".lock"):
+        pass
     assert not target.exists()
 
 

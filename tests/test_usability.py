@@ -124,7 +124,7 @@ def test_model_is_evaluated_in_its_own_training_world(tmp_path):
     trained_in = socnav.load_config(policy.socnav_metadata["env_config"])
     code, output = run("evaluate", "--model", "pretrained", "--episodes", "3", "--out", tmp_path / "r.csv")
     assert code == 0, output
-    low, high = trained_in.humans_range()
+    low, _ = trained_in.humans_range()
     assert f"world: {trained_in.scenario}, {low} human" in flat(output)
     expected = rollout_episodes(policy, trained_in, 3, seed=0)
     np.testing.assert_allclose(pd.read_csv(tmp_path / "r.csv")["return"], expected["return"])

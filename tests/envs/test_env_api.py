@@ -44,7 +44,7 @@ def test_vec_env_matches_single_envs_across_resets(scenario):
     vec_obs = [vec.reset()]
     vec_rewards, vec_dones = [], []
     for t in range(n_steps):
-        obs, rewards, dones, infos = vec.step(actions[t])
+        obs, rewards, dones, _ = vec.step(actions[t])
         vec_obs.append(obs)
         vec_rewards.append(rewards)
         vec_dones.append(dones)

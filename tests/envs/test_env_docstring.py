@@ -16,13 +16,13 @@ from socnav.sim.world import HUMAN_FEATURES, OUTCOME_NAMES, ROBOT_FEATURES
 def sections() -> dict[str, str]:
     """The docstring's `## Heading` sections by heading."""
     parts = re.split(r"^\s*## (.+)$", SocialNavEnv.__doc__, flags=re.MULTILINE)
-    return {title.strip(): body for title, body in zip(parts[1::2], parts[2::2])}
+    return {title.strip(): body for title, body in zip(parts[1::2], parts[2::2], strict=True)}
 
 
 def tables(text: str) -> list[list[list[str]]]:
     """The Markdown tables of `text`: a list of row lists (header and separator rows dropped), cells stripped."""
     found, rows = [], []
-    for line in text.splitlines() + [""]:
+    for line in [*text.splitlines(), ""]:
         line = line.strip()
         if line.startswith("|"):
             rows.append([cell.strip() for cell in line.strip("|").split("|")])

@@ -180,8 +180,9 @@ def test_training_curves_mean_and_band_over_seeds(handmade_run):
         np.testing.assert_allclose(got["std"], direct.iloc[:, 1], rtol=1e-12, atol=1e-12)
         assert (got["n_seeds"] == len(SEEDS)).all()
     # seeds logged at different steps are interpolated onto a common grid inside the range all cover
-    a = pd.DataFrame({"train_scenario": "x", "algo": "ppo", "seed": 0, "timesteps": [0, 10, 20], "ep_rew_mean": [0., 1., 2.]})
-    b = pd.DataFrame({"train_scenario": "x", "algo": "ppo", "seed": 1, "timesteps": [5, 15], "ep_rew_mean": [1., 3.]})
+    run = {"train_scenario": "x", "algo": "ppo"}
+    a = pd.DataFrame({**run, "seed": 0, "timesteps": [0, 10, 20], "ep_rew_mean": [0., 1., 2.]})
+    b = pd.DataFrame({**run, "seed": 1, "timesteps": [5, 15], "ep_rew_mean": [1., 3.]})
     mixed = training_curve_frame(pd.concat([a, b]))
     assert mixed["timesteps"].tolist() == [10.0]
     assert mixed["mean"].tolist() == pytest.approx([(1.0 + 2.0) / 2])
@@ -218,12 +219,13 @@ def test_paper_table_holds_the_spec_excerpt(handmade_run):
 
     paper = paper_table1().set_index(["train_scenario", "algo", "eval_scenario"])
     assert len(paper) == 5 * 3 * 3
-    assert tuple(paper.loc[("circle_crossing", "ppo", "circle_crossing"), ["goal_pct", "collision_pct"]]) == (86.1, 7.07)
-    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "circle_crossing"), ["goal_pct", "collision_pct"]]) == (99.1, 0.83)
-    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "random"), ["goal_pct", "collision_pct"]]) == (88.07, 2.10)
+    outcomes = ["goal_pct", "collision_pct"]
+    assert tuple(paper.loc[("circle_crossing", "ppo", "circle_crossing"), outcomes]) == (86.1, 7.07)
+    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "circle_crossing"), outcomes]) == (99.1, 0.83)
+    assert tuple(paper.loc[("circle_crossing", "odv-ppo-drop", "random"), outcomes]) == (88.07, 2.10)
     total = paper["goal_pct"] + paper["collision_pct"] + paper["timeout_pct"]
     assert ((total - 100).abs() <= 0.3 + 1e-9).all()  # the paper's own rounding (one row sums to 100.3)
-    root, records, _, _ = handmade_run
+    root = handmade_run[0]
     text = build_report(root).read_text()
     assert "## Comparison with the paper" in text
     compared = pd.read_csv(root / "report" / "table1_vs_paper.csv")

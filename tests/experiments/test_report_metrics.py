@@ -46,11 +46,11 @@ def _records(rng: np.random.Generator, metrics: bool) -> pd.DataFrame:
 
 def _direct_table1_seed_frame(records, pv_per=200):
     """Table 1's per-seed metrics by a direct pandas aggregation, without the metrics registry: the oracle."""
-    columns = ID + ["train_seed", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
+    columns = [*ID, "train_seed", "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]
     outcome = records["outcome"]
     per_episode = records.assign(goal=(outcome == "goal") * 100.0, collision=(outcome == "collision") * 100.0,
                                  timeout=(outcome == "timeout") * 100.0)
-    per_seed = per_episode.groupby(ID + ["train_seed"], sort=False).agg(
+    per_seed = per_episode.groupby([*ID, "train_seed"], sort=False).agg(
         episodes=("return", "size"), goal_pct=("goal", "mean"), collision_pct=("collision", "mean"),
         timeout_pct=("timeout", "mean"), events=("intrusion_events", "sum"), return_mean=("return", "mean"),
     ).reset_index()

@@ -49,7 +49,8 @@ def _check_complete(root: Path, experiment) -> dict[str, dict]:
             validation = read_table(unit_dir(root, unit) / "eval.csv")
             assert validation["timesteps"].is_unique
     table = pd.read_csv(build_report(root) .parent / "table1.csv")
-    n_evals = len(experiment.grid.algorithms) * len(experiment.grid.train_scenarios) * len(experiment.evaluation.scenarios)
+    grid = experiment.grid
+    n_evals = len(grid.algorithms) * len(grid.train_scenarios) * len(experiment.evaluation.scenarios)
     assert len(table) == n_evals
     assert (table["episodes"] == experiment.evaluation.episodes * len(experiment.grid.seeds)).all()
     return markers
@@ -83,7 +84,7 @@ def test_running_units_report_their_progress_from_the_worker(local_run):
         reports = PROGRESS_REPORTS[unit.id]
         assert {(total, what) for _, total, what in reports} == {(experiment.grid.timesteps, "steps")}
         done = [d for d, _, _ in reports]
-        assert done == sorted(done) and 0 <= done[0] and done[-1] <= experiment.grid.timesteps
+        assert done == sorted(done) and 0 <= done[0] <= done[-1] <= experiment.grid.timesteps
     for unit in plan_units(experiment):  # a finished unit leaves no progress file behind
         assert not (unit_dir(local_run, unit) / "progress.json").exists()
 
@@ -269,9 +270,8 @@ def test_busy_or_foreign_run_directory_is_refused(tmp_path):
     experiment = load_experiment(SMOKE, "quick")
     root = tmp_path / "run"
     root.mkdir()
-    with file_lock(root / ".lock"):
-        with pytest.raises(RunnerError, match="another socnav run is working"):
-            run_experiment(experiment, root, workers=0)
+    with file_lock(root / ".lock"), pytest.raises(RunnerError, match="another socnav run is working"):
+        run_experiment(experiment, root, workers=0)
     (root / "resolved.json").write_text(json.dumps({"experiment": {"name": "smoke", "budget": None}}))
     with pytest.raises(RunnerError, match="holds experiment 'smoke' with budget None"):
         run_experiment(experiment, root, workers=0)

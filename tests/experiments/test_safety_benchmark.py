@@ -42,14 +42,14 @@ def test_the_plan_trains_then_benchmarks_each_seed():
     assert [unit.deps for unit in benchmarks] == [(train.id,) for train in trains]
     assert benchmarks[0].params["budgets"] == [0.05]
     quick = plan_units(load_experiment(CONFIG, "quick"))
-    assert [u for u in quick if u.kind == "safety_benchmark"][0].params["budgets"] == [0.01, 0.02, 0.05, 0.1]
+    assert next(u for u in quick if u.kind == "safety_benchmark").params["budgets"] == [0.01, 0.02, 0.05, 0.1]
     assert len([u for u in quick if u.kind == "safety_benchmark"]) == 20
 
 
 def test_unknown_trigger_in_a_config_names_the_closest():
     import yaml
 
-    data = yaml.safe_load(open(CONFIG))
+    data = yaml.safe_load(Path(CONFIG).read_text())
     data["safety"]["triggers"] = ["conformall"]
     with pytest.raises(ExperimentError, match="did you mean 'conformal'"):
         parse_experiment(data)
@@ -186,8 +186,8 @@ def test_the_verdict_keeps_its_error_rate_under_the_null():
     simulated benchmarks of 20 seeds the one-sided 5 % verdict says 'fewer collisions' in about 5 % of them."""
     rng = np.random.default_rng(0)
     trials = 1000
-    claims = sum(int((verdicts(_differences(rng, 20, 0.2, 0.2)).set_index("layer").loc["conformal", "verdict"]
-                      == "fewer collisions")) for _ in range(trials))
+    claims = sum(int(verdicts(_differences(rng, 20, 0.2, 0.2)).set_index("layer").loc["conformal", "verdict"]
+                     == "fewer collisions") for _ in range(trials))
     # binomial(1000, 0.05): mean 50, sd 6.9; 65 is the mean + 2.2 sd
     assert claims / trials <= 0.065
 
@@ -275,7 +275,8 @@ def test_the_row_to_deploy_is_chosen_on_the_calibration_scores():
               layer("conformal", 0.9, 0.9, "brake")],
              [layer("proximity-only", 0.4, 0.5), layer("conformal", 0.7, 0.6), layer("ttc", 0.5, 0.7)]]
     table = calibration_table(seeds).set_index(["layer", "fallback"])
-    assert table.loc[("conformal", "cautious"), "calibration_prevented_worst"] == pytest.approx(60.0)  # the mean of 50 and 70
+    # the mean of 50 and 70
+    assert table.loc[("conformal", "cautious"), "calibration_prevented_worst"] == pytest.approx(60.0)
     # worst type first (conformal 60 > ttc 50), whatever the mean; the brake row is not a candidate
     assert deployment_choice(calibration_table(seeds), 0.05) == "conformal"
     assert deployment_choice(calibration_table(seeds[:1]), 0.05) == "ttc"  # tie on the worst type: the mean

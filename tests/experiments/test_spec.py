@@ -3,6 +3,7 @@ before any work starts with a message naming the field and the allowed values.""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -152,7 +153,7 @@ def test_algo_override_preset_file_is_inlined(tmp_path):
     assert unit.params["overrides"] == {"n_epochs": 4, "gamma": 0.95, "learning_rate": 0.0001}
     data["grid"]["algo_overrides"] = {"ppo": "presets/missing.yaml"}
     path.write_text(yaml.safe_dump(data))
-    with pytest.raises(ExperimentError, match="grid.algo_overrides.ppo: preset file not found"):
+    with pytest.raises(ExperimentError, match=re.escape("grid.algo_overrides.ppo: preset file not found")):
         load_experiment(path)
 
 
@@ -325,7 +326,7 @@ def test_budget_evaluation_seed_and_acting_policy_apply():
             "budgets": {"b": {"seeds": [3, 4], "mc_seed": 4, "eval_seed": 77}}}
     chosen = resolve_budget(parse_experiment(data, "test"), "b")
     assert (chosen.evaluation.seed, chosen.safety.mc_seed, chosen.study.mc_seed) == (77, 4, 4)
-    acting = [u for u in plan_units(chosen) if u.id == "safety/mc/heading_noise"][0]
+    acting = next(u for u in plan_units(chosen) if u.id == "safety/mc/heading_noise")
     assert acting.deps[0] == "train/position_swap/odv-ppo-drop/seed4" and acting.params["seed"] == 77
 
 

@@ -39,8 +39,8 @@ from socnav.experiments.uncertainty_table2_claims import (
 
 def _pairs_auroc(scores, labels):
     """Reference: count every (positive, negative) pair, ties as one half."""
-    positives = [s for s, y in zip(scores, labels) if y]
-    negatives = [s for s, y in zip(scores, labels) if not y]
+    positives = [s for s, y in zip(scores, labels, strict=True) if y]
+    negatives = [s for s, y in zip(scores, labels, strict=True) if not y]
     wins = sum((p > n) + 0.5 * (p == n) for p, n in itertools.product(positives, negatives))
     return wins / (len(positives) * len(negatives))
 
@@ -111,7 +111,7 @@ def test_resampled_metrics_equal_the_metrics_of_the_repeated_episodes():
         clusters = rng.integers(0, episodes, n)
         counts = rng.integers(0, 3, (4, episodes))
         areas, precisions = ranking_draws(scores, labels, clusters, counts)
-        for row, area, precision in zip(counts, areas, precisions):
+        for row, area, precision in zip(counts, areas, precisions, strict=True):
             # the data set this resample stands for: each episode's steps repeated `count` times
             rows = np.concatenate([np.tile(np.flatnonzero(clusters == e), c) for e, c in enumerate(row)]).astype(int)
             expected_area, expected_ap = auroc(scores[rows], labels[rows]), average_precision(scores[rows],

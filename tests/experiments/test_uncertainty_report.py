@@ -517,7 +517,7 @@ def test_ablation_and_tradeoff_sections(tmp_path):
     text, out = page.read_text(), page.parent
     # Table 3 and its cost: the main rows only (no ablation rule, no trade-off budget, no estimator-free unit)
     table3 = pd.read_csv(out / "table3.csv")
-    assert set(zip(table3["estimator"], table3["variant"])) == {("mc", "paper"), ("mc", "calibrated")}
+    assert set(zip(table3["estimator"], table3["variant"], strict=True)) == {("mc", "paper"), ("mc", "calibrated")}
     assert table3.set_index("variant").loc["calibrated", "collisions_variant"] == 2  # budget 5 %, not 2 %
     assert "Warning" not in text  # every rule and budget played the plain policy's seeds
     assert "seeds 3,000,000–3,000,019" in text and "held out" in text and "not held out" not in text
@@ -539,7 +539,8 @@ def test_ablation_and_tradeoff_sections(tmp_path):
     assert points[("none", "calibrated", 0.05)] == pytest.approx((20.0, 100 * 3 / 15))
     assert points[("mc", "calibrated", 0.02)] == pytest.approx((10.0, 100 * 9 / 15))
     assert points[("mc", "paper", None)] == pytest.approx((0.0, 100 * 3 / 15))
-    assert ("mc", "uncertainty-only") not in set(zip(curve["estimator"], curve["rule"]))  # one budget: no curve
+    # one budget: no curve
+    assert ("mc", "uncertainty-only") not in set(zip(curve["estimator"], curve["rule"], strict=True))
     # a trade-off budget played on the first repeat only: every point of the curve on that repeat alone
     from socnav.experiments.uncertainty_tradeoff import tradeoff_frame
 
@@ -612,7 +613,8 @@ def test_vetoes_are_counted_per_setting_with_the_unperturbed_episodes_together()
     from socnav.experiments.uncertainty_ablation import vetoes_frame, vetoes_markdown
 
     rows = []
-    for perturbation, strength, proximity, vetoed in [("observation_noise", 0.0, 10, 3), ("observation_noise", 2.0, 8, 0),
+    for perturbation, strength, proximity, vetoed in [("observation_noise", 0.0, 10, 3),
+                                                      ("observation_noise", 2.0, 8, 0),
                                                       ("more_humans", 2.0, 5, 2), ("more_humans", 7.0, 4, 1)]:
         for variant in ("calibrated", "proximity-only", "none"):
             rows.append({"estimator": "mc" if variant == "calibrated" else "none", "variant": variant,

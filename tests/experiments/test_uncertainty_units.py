@@ -42,7 +42,7 @@ def test_tiny_uncertainty_experiment_runs_end_to_end(tmp_path):
     safety = pd.read_parquet(tmp_path / "safety" / "mc" / "heading_noise" / "episodes.parquet")
     assert set(safety["variant"]) == {"none", "paper", "calibrated"}
     per_block = safety.groupby(["strength", "repeat", "variant"])["seed"].apply(lambda s: tuple(sorted(s)))
-    for (strength, repeat), block in per_block.groupby(level=[0, 1]):
+    for _, block in per_block.groupby(level=[0, 1]):
         assert len(set(block)) == 1  # every variant played the same episode seeds
     assert (safety.loc[safety["variant"] == "none", "fallback_steps"] == 0).all()
     assert (tmp_path / "calibrate" / "mc" / "thresholds.yaml").is_file()
@@ -191,7 +191,7 @@ def test_ablation_safety_units_play_every_rule_on_the_same_episodes(tmp_path):
     assert set(proximity["budget"].dropna()) == {0.02, 0.05} and set(proximity["sensing"]) == {"", "true"}
     # both units played the plain policy on the same episodes, and so every rule
     key = ["strength", "repeat", "seed"]
-    plain = [frame[frame["variant"] == "none"].sort_values(key)[key + ["outcome", "length"]].reset_index(drop=True)
+    plain = [frame[frame["variant"] == "none"].sort_values(key)[[*key, "outcome", "length"]].reset_index(drop=True)
              for frame in (gated, proximity)]
     pd.testing.assert_frame_equal(plain[0], plain[1])
     for frame in (gated, proximity):
@@ -281,11 +281,11 @@ def test_behaviour_shift_grids_are_validated_and_not_a_default():
 
     assert "behaviour_shift" not in Study().perturbations and "behaviour_shift" not in Safety().perturbations
     for bad in ([0, 0.5], [0, 3]):
-        with pytest.raises(ExperimentError, match="behaviour_shift: strength .* names no level"):
+        with pytest.raises(ExperimentError, match=r"behaviour_shift: strength .* names no level"):
             parse_experiment({**SHIFT, "study": {"perturbations": {"behaviour_shift": bad}}})
     # a world whose humans already walk by social force: strength 1 (social force) would shift nothing
     same = {**SHIFT, "env": {"humans": {"model": "social_force"}}}
-    with pytest.raises(ExperimentError, match="strength 1.0 gives an invalid env:\n.*so nothing shifts"):
+    with pytest.raises(ExperimentError, match=r"strength 1.0 gives an invalid env:\n.*so nothing shifts"):
         parse_experiment(same)
     # the calibration unit is the same with or without a behaviour shift column: it never sees the shift
     plain = {**SHIFT, "safety": {**SHIFT["safety"], "perturbations": {"heading_noise": [0.0, 1.5]}}}

@@ -281,7 +281,7 @@ def test_scan_ranges_are_bounded_land_on_walls_and_grow_as_walls_go(wall_list, o
     origins, headings = np.array([origin], dtype=float), np.array([heading])
     max_range = 6.0
     ranges = range_scan(origins, headings, seg_start, seg_end, n_segments, n_beams, max_range, fov)[0]
-    assert ((0.0 <= ranges) & (ranges <= max_range)).all()
+    assert ((ranges >= 0.0) & (ranges <= max_range)).all()
     angle_min, increment = scan_angles(n_beams, fov)
     angles = heading + angle_min + increment * np.arange(n_beams)
     ends = origins + ranges[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
@@ -387,7 +387,7 @@ def test_skipping_the_edges_facing_away_changes_no_range_from_free_space(seed):
         x, y, w, h = rng.uniform(-5, 4), rng.uniform(-5, 4), rng.uniform(0.3, 2), rng.uniform(0.3, 2)
         boxes.append(np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]]))
     room = np.array([[-8.0, -8.0], [-8.0, 8.0], [8.0, 8.0], [8.0, -8.0]])
-    polygons = boxes + [room, rng.uniform(-6, 6, (2, 2))]
+    polygons = [*boxes, room, rng.uniform(-6, 6, (2, 2))]
     walls = Walls(polygons, 8)
     origins = rng.uniform(-7.5, 7.5, (8, 2))
     free = np.array([walls.misplaced(o[None], np.array([1e-6])) is None for o in origins])
@@ -409,7 +409,7 @@ def test_skipping_the_edges_facing_away_changes_no_sight_line_from_free_space(se
     for _ in range(4):
         x, y, w, h = rng.uniform(-5, 4), rng.uniform(-5, 4), rng.uniform(0.3, 2), rng.uniform(0.3, 2)
         boxes.append(np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]]))
-    polygons = boxes + [np.array([[-8.0, -8.0], [-8.0, 8.0], [8.0, 8.0], [8.0, -8.0]]), rng.uniform(-6, 6, (2, 2))]
+    polygons = [*boxes, np.array([[-8.0, -8.0], [-8.0, 8.0], [8.0, 8.0], [8.0, -8.0]]), rng.uniform(-6, 6, (2, 2))]
     walls = Walls(polygons, 6)
     positions = rng.uniform(-7.5, 7.5, (6, 7, 2))
     active = np.ones((6, 7), dtype=bool)

@@ -20,8 +20,15 @@ from gymnasium.utils.env_checker import check_env
 import socnav
 import socnav.sim.humans as humans_registry
 from socnav.config import ConfigError, describe_world, load_config
-from socnav.sim.humans import (Crowd, HumanModel, OrcaHumans, SocialForceHumans, human_model_names,
-                               make_human_model, register_human_model)
+from socnav.sim.humans import (
+    Crowd,
+    HumanModel,
+    OrcaHumans,
+    SocialForceHumans,
+    human_model_names,
+    make_human_model,
+    register_human_model,
+)
 from socnav.sim.scenarios import InitialState
 from socnav.sim.world import CrowdWorld
 

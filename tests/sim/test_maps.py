@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ def test_valid_polygons_come_back_as_float_arrays_with_their_orientation():
 
 
 def test_a_closing_repeat_of_the_first_vertex_is_dropped():
-    (checked,) = validate_polygons([SQUARE_CCW + [SQUARE_CCW[0]]])
+    (checked,) = validate_polygons([[*SQUARE_CCW, SQUARE_CCW[0]]])
     np.testing.assert_array_equal(checked, SQUARE_CCW)
 
 
@@ -82,7 +83,7 @@ def test_the_vertex_bounds():
     many = [_regular_polygon(MAX_POLYGON_VERTICES, centre=(3.0 * k, 0.0)) for k in range(MAX_TOTAL_VERTICES // 512)]
     validate_polygons(many)
     with pytest.raises(MapError, match=rf"obstacles: {MAX_TOTAL_VERTICES + 2} vertices in all"):
-        validate_polygons(many + [[[0, 5], [1, 5]]])
+        validate_polygons([*many, [[0, 5], [1, 5]]])
 
 
 def test_a_string_is_not_a_polygon_list():
@@ -162,7 +163,7 @@ def _write_yaml(path: Path, document) -> Path:
 
 def test_polygon_map_is_oriented_for_rvo2(tmp_path):
     path = _write_yaml(tmp_path / "map.yaml", {
-        "obstacles": [SQUARE_CCW[::-1] + [SQUARE_CCW[-1]], [[3, -1], [3, 2]]],  # clockwise, written closed
+        "obstacles": [[*SQUARE_CCW[::-1], SQUARE_CCW[-1]], [[3, -1], [3, 2]]],  # clockwise, written closed
         "boundaries": [[[-5, -5], [5, -5], [5, 5], [-5, 5]]],  # counter-clockwise as written
     })
     square, wall, boundary = load_map(path)
@@ -203,17 +204,17 @@ def test_non_finite_yaml_coordinates_are_refused(tmp_path):
 
 def test_the_total_bound_counts_obstacles_and_boundaries(tmp_path):
     half = [_regular_polygon(512, 1.0, (3.0 * k, 0.0)) for k in range(MAX_TOTAL_VERTICES // 1024)]
-    path = _write_yaml(tmp_path / "map.yaml", {"obstacles": half, "boundaries": half + [[[0, 9], [1, 9]]]})
+    path = _write_yaml(tmp_path / "map.yaml", {"obstacles": half, "boundaries": [*half, [[0, 9], [1, 9]]]})
     with pytest.raises(MapError, match=rf"{MAX_TOTAL_VERTICES + 2} vertices in obstacles and boundaries"):
         load_map(path)
 
 
 def test_missing_and_unparsable_map_files(tmp_path):
-    with pytest.raises(MapError, match="map file not found: .*nowhere.yaml"):
+    with pytest.raises(MapError, match=r"map file not found: .*nowhere.yaml"):
         load_map(tmp_path / "nowhere.yaml")
     broken = tmp_path / "broken.yaml"
     broken.write_text("obstacles: [[[0, 0], [1, 1]]\n")
-    with pytest.raises(MapError, match="broken.yaml: cannot read the map YAML"):
+    with pytest.raises(MapError, match=re.escape("broken.yaml: cannot read the map YAML")):
         load_map(broken)
 
 
@@ -384,6 +385,6 @@ def test_diagonal_and_staircase_outlines_stay_within_half_a_cell(tmp_path):
     rows, columns = np.indices(blocked.shape)
     blocked[rows > 10 + columns // 4] = True
     (polygon,) = maps.occupancy_to_polygons(blocked, 1.0)
-    cells = union_all([box(c, 39 - r, c + 1, 40 - r) for r, c in zip(*np.nonzero(blocked))])
+    cells = union_all([box(c, 39 - r, c + 1, 40 - r) for r, c in zip(*np.nonzero(blocked), strict=True)])
     assert Polygon(polygon).hausdorff_distance(cells) <= 0.5 + 1e-9
     assert len(polygon) < len(cells.exterior.coords) // 4

@@ -15,8 +15,16 @@ from socnav.config import load_config
 from socnav.controllers import OrcaController
 from socnav.envs.rollout import EPISODE_COLUMNS, rollout_episodes, summarize
 from socnav.sim.metrics import (
-    ALL_METRICS, DEFAULT_METRICS, METRIC_RECORD_COLUMNS, METRICS, TTC_HORIZON, episode_values, select_metrics,
-    summarize_episodes, summarize_groups, time_to_collision,
+    ALL_METRICS,
+    DEFAULT_METRICS,
+    METRIC_RECORD_COLUMNS,
+    METRICS,
+    TTC_HORIZON,
+    episode_values,
+    select_metrics,
+    summarize_episodes,
+    summarize_groups,
+    time_to_collision,
 )
 from socnav.sim.scenarios import InitialState
 from socnav.sim.world import OUTCOME_GOAL, CrowdWorld
@@ -103,7 +111,7 @@ def test_polyline_path_irregularity_and_path_ratio():
     world = staged((0.0, 0.0), (10.0, 0.0))
     summary, _ = play(world, [[1.0, 1.0], [1.0, -1.0], STAND, STAND])
     p1 = 0.25 * np.array([math.cos(math.pi / 6), math.sin(math.pi / 6)])
-    p2 = p1 + [0.25, 0.0]
+    p2 = p1 + np.array([0.25, 0.0])
     off_1 = abs(math.atan2(0.0 - p1[1], 10.0 - p1[0]))
     off_2 = abs(math.atan2(0.0 - p2[1], 10.0 - p2[0]))
     assert summary["path_irregularity"] == pytest.approx((math.pi / 6 + off_1 + 2 * off_2) / 4, rel=1e-12)
@@ -142,7 +150,7 @@ def test_head_on_time_to_collision():
     assert world.episode_summary(0, 0)["min_time_to_collision"] == pytest.approx(1.95)
     world.step(np.array([FULL_SPEED]))
     assert world.episode_summary(0, 0)["min_time_to_collision"] == pytest.approx(1.7)
-    summary, outcome = play(world, [FULL_SPEED] * 20)
+    summary, _ = play(world, [FULL_SPEED] * 20)
     assert summary["outcome"] == "collision" and summary["collision_human"]
     assert summary["min_time_to_collision"] == 0.0 and not summary["success"]
 
@@ -252,7 +260,7 @@ def test_every_metric_is_defined_once_with_unit_direction_and_source():
 
 def test_docs_list_every_metric():
     text = (Path(__file__).resolve().parents[2] / "docs" / "metrics.md").read_text()
-    for name, metric in METRICS.items():
+    for name in METRICS:
         assert f"`{name}`" in text, f"docs/metrics.md does not list {name}"
 
 
@@ -297,7 +305,7 @@ def _direct_table1_seed_frame(records, by, pv_per=200):
         timeout_pct=("timeout", "mean"), events=("intrusion_events", "sum"), return_mean=("return", "mean"),
     ).reset_index()
     per_seed["pv"] = per_seed["events"] * pv_per / per_seed["episodes"]
-    return per_seed[by + ["episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]]
+    return per_seed[[*by, "episodes", "goal_pct", "collision_pct", "timeout_pct", "pv", "return_mean"]]
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -9,11 +9,11 @@ import math
 
 import numpy as np
 import pytest
+from _extras import require
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from _extras import require
 from socnav.sim.orca import default_social_arrays, orca_velocities, orca_velocities_kernel
 
 pyrvo = require("pyrvo")  # the RVO2 oracle (test extra): missing fails the module, never skips it

@@ -10,6 +10,7 @@ its own humans, determinism; the default config stays bit-identical (test_human_
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +19,7 @@ from gymnasium.utils.env_checker import check_env
 
 import socnav
 from socnav.config import ConfigError, load_config
-from socnav.sim.humans import OrcaHumans, SocialForceHumans, TrajectoryFileError, make_human_model
-from socnav.sim.humans import replay
+from socnav.sim.humans import OrcaHumans, SocialForceHumans, TrajectoryFileError, make_human_model, replay
 from socnav.sim.humans.replay import interpolate_tracks, load_replay, read_trajectories
 from socnav.sim.scenarios import get_scenario
 from socnav.sim.world import CrowdWorld
@@ -69,7 +69,7 @@ def test_the_loader_reads_back_what_was_written(tmp_path):
     first_frame = min(row[0] for row in rows)
     seen_order = list(dict.fromkeys(row[1] for row in rows))  # pedestrians in order of first appearance
     assert recording.ids.tolist() == seen_order
-    for ped, samples, positions in zip(recording.ids, recording.samples, recording.positions):
+    for ped, samples, positions in zip(recording.ids, recording.samples, recording.positions, strict=True):
         mine = [row for row in rows if row[1] == ped]
         assert samples.tolist() == [(row[0] - first_frame) / 10 for row in mine]
         assert positions.tolist() == [[row[2], row[3]] for row in mine]
@@ -101,7 +101,8 @@ def test_interpolation_to_the_time_step_by_hand(tmp_path):
     # ped 4: only frame 20 (u = 2): no step falls on it: an empty track
     path = write_text(tmp_path / "hand.txt", "0 1 0 0\n10 1 1 0\n10 2 4 4\n10 3 0 0\n20 1 1 2\n20 3 1 1\n"
                                              "20 4 9 9\n30 2 2 0\n")
-    tracks = dict(zip(read_trajectories(path).ids, interpolate_tracks(read_trajectories(path), DT, 2.5)))
+    recording = read_trajectories(path)
+    tracks = dict(zip(recording.ids, interpolate_tracks(recording, DT, 2.5), strict=True))
     first, xy = tracks[1.0]
     assert first == 0 and xy == pytest.approx(np.array([[0, 0], [0.625, 0], [1, 0.5], [1, 1.75]]), abs=1e-12)
     first, xy = tracks[2.0]
@@ -110,7 +111,7 @@ def test_interpolation_to_the_time_step_by_hand(tmp_path):
     assert first == 2 and xy == pytest.approx(np.array([[0.25, 0.25], [0.875, 0.875]]), abs=1e-12)
     assert len(tracks[4.0][1]) == 0
     # on the grid of dt = 0.4 s (one step per sample) the samples come back exactly
-    first, xy = dict(zip(read_trajectories(path).ids, interpolate_tracks(read_trajectories(path), 0.4, 2.5)))[1.0]
+    first, xy = dict(zip(recording.ids, interpolate_tracks(recording, 0.4, 2.5), strict=True))[1.0]
     assert first == 0 and np.array_equal(xy, [[0, 0], [1, 0], [1, 2]])
 
     # the env's scenes: centred on the file's bounding box ([0, 9] x [0, 9]: centre (4.5, 4.5)), ped 4 left out
@@ -181,11 +182,11 @@ def test_config_errors(tmp_path, scene, monkeypatch):
             load_config(config)
         assert expected in str(error.value), str(error.value)
     # the scenario and the model go together, both ways
-    with pytest.raises(ConfigError, match="scenario: replay needs humans.model: replay"):
+    with pytest.raises(ConfigError, match=re.escape("scenario: replay needs humans.model: replay")):
         load_config({"scenario": "replay"})
-    with pytest.raises(ConfigError, match="humans.model: replay humans need scenario: replay"):
+    with pytest.raises(ConfigError, match=re.escape("humans.model: replay humans need scenario: replay")):
         load_config({**replay_config([scene]), "scenario": "circle_crossing"})
-    with pytest.raises(ConfigError, match="perturbation.human_model: replay humans need scenario: replay"):
+    with pytest.raises(ConfigError, match=re.escape("perturbation.human_model: replay humans need scenario: replay")):
         load_config({"perturbation": {"human_model": "replay"}})
     with pytest.raises(ConfigError, match="cannot walk by 'social_force'"):
         load_config({**replay_config([scene]), "perturbation": {"human_model": "social_force"}})
@@ -423,7 +424,7 @@ def test_mixed_episodes_are_deterministic_and_pass_the_checker():
         rng = np.random.default_rng(seed)
         rows = [observation["humans"]]
         for _ in range(80):
-            observation, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 2))
+            observation, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 2))
             rows.append(observation["humans"])
             if terminated or truncated:
                 observation, _ = env.reset()

@@ -8,13 +8,10 @@ field of view are checked against PySocialForce scenes built to mean the same.
 
 from __future__ import annotations
 
-import logging
 import math
-import os
 
 import numpy as np
 import pytest
-from _extras import require
 
 from socnav.config import SocialForceConfig, load_config
 from socnav.sim.humans import Crowd, SocialForceHumans
@@ -22,25 +19,6 @@ from socnav.sim.humans import Crowd, SocialForceHumans
 DT = 0.25
 ONE_STEP_TOLERANCE = 1e-5
 TRAJECTORY_TOLERANCE = 1e-3  # metres, after 50 steps
-
-
-@pytest.fixture(scope="module")
-def psf(tmp_path_factory):
-    """The pysocialforce package, imported without its side effects: on import it opens ``file.log`` in the
-    working directory and sets the root logger to DEBUG with a console handler."""
-    root = logging.getLogger()
-    level, handlers, cwd = root.level, list(root.handlers), os.getcwd()
-    os.chdir(tmp_path_factory.mktemp("pysocialforce"))
-    try:
-        module = require("pysocialforce")
-    finally:
-        os.chdir(cwd)
-        for handler in [h for h in root.handlers if h not in handlers]:
-            root.removeHandler(handler)
-            handler.close()
-        root.setLevel(level)
-    assert module.__version__ == "1.1.2", "the oracle is PySocialForce 1.1.2"
-    return module
 
 
 def model(**parameters) -> SocialForceHumans:
@@ -196,7 +174,7 @@ def robot_scene(rng, n_humans=8):
     """Slot 0 a robot driving through a crowd of humans (slots 1..), as in the world."""
     humans = random_crowd(rng, n_humans, density=0.6)
     robot = (np.array([[0.2, -0.4]]), np.array([[0.6, 0.3]]), np.array([[5.0, 5.0]]), np.array([1.0]))
-    state = tuple(np.concatenate([r, h]) for r, h in zip(robot, humans))
+    state = tuple(np.concatenate([r, h]) for r, h in zip(robot, humans, strict=True))
     crowd = batch([state])
     compute = crowd.active.copy()
     compute[0, 0] = False  # the policy moves the robot

@@ -15,8 +15,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_social_force import (  # tests/sim is on sys.path; psf is the oracle's fixture
-    DT, ONE_STEP_TOLERANCE, TRAJECTORY_TOLERANCE, batch, model, psf, random_crowd,  # noqa: F401
+from test_social_force import (  # tests/sim is on sys.path; psf, the oracle, is conftest.py's fixture
+    DT,
+    ONE_STEP_TOLERANCE,
+    TRAJECTORY_TOLERANCE,
+    batch,
+    model,
+    random_crowd,
 )
 
 from socnav.config import SocialForceConfig, load_config
@@ -56,13 +61,14 @@ def outside_the_box(state, centre: np.ndarray, half_size: float) -> tuple:
     reach = np.abs(offsets).max(axis=1)
     inside = reach < half_size + 0.5
     positions[inside] = centre + offsets[inside] / reach[inside, None] * (half_size + 0.5)
-    return (positions,) + tuple(state[1:])
+    return (positions, *state[1:])
 
 
 def lines(polygons: list[np.ndarray]) -> list[tuple[float, float, float, float]]:
     """The polygons' edges as PySocialForce's line obstacles (startx, endx, starty, endy), in the same order."""
     seg_start, seg_end, n_segments = polygon_segments([polygons])
-    return [(a[0], b[0], a[1], b[1]) for a, b in zip(seg_start[0, : n_segments[0]], seg_end[0, : n_segments[0]])]
+    count = n_segments[0]
+    return [(a[0], b[0], a[1], b[1]) for a, b in zip(seg_start[0, :count], seg_end[0, :count], strict=True)]
 
 
 def with_walls(crowd: Crowd, polygons_per_env: list[list[np.ndarray]], radii: np.ndarray | None = None) -> Crowd:
@@ -287,8 +293,8 @@ def test_humans_walking_at_a_wall_do_not_pass_through_it(n, angle, seed):
     rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
     offset = rng.uniform(-5.0, 5.0, 2)
     c, d = rotation @ np.array([-4.0, 0.0]) + offset, rotation @ np.array([4.0, 0.0]) + offset
-    state = tuple(array @ rotation.T + shift for array, shift in
-                  ((local_positions, offset), (local_velocities, 0.0), (local_goals, offset))) + (v_pref,)
+    state = (local_positions @ rotation.T + offset, local_velocities @ rotation.T, local_goals @ rotation.T + offset,
+             v_pref)
     crowd = batch([state])
     crowd.radii[0, :n] = radii
     crowd = with_walls(crowd, [[np.stack([c, d])]])

@@ -191,7 +191,7 @@ def test_the_compiled_placement_check_agrees_with_the_shapely_rule(seed):
     polygons = [np.array(p, dtype=float) for p in (room, pillar, wall)][: 1 + seed % 3]
     walls = Walls(polygons, 1)
     points, radii = rng.uniform(-8.0, 8.0, (60, 2)), rng.uniform(0.1, 0.6, 60)
-    for point, radius in zip(points, radii):
+    for point, radius in zip(points, radii, strict=True):
         fits = clearance_violation(polygons, point, radius, name="walls") is None
         assert discs_clear(point[None], np.array([radius]), walls.seg_start[0], walls.seg_end[0],
                            int(walls.n_segments[0]), walls._closed_vertices, walls._closed_offsets,

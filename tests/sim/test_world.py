@@ -116,7 +116,7 @@ def test_action_noise_perturbs_motion():
 
     plain, plain_path = final_position({})
     turned, _ = final_position({"heading_noise": 0.5})
-    slowed, slowed_path = final_position({"speed_noise": 0.8})
+    _, slowed_path = final_position({"speed_noise": 0.8})
     assert not np.allclose(plain, turned)
     assert slowed_path < plain_path
 
