@@ -17,7 +17,7 @@ shared one it leaves out the time spent waiting for a core); `--clock wall` meas
   command); torch = `SafePolicy(policy, MCDropoutEstimator(policy, k=20), "mc").predict(obs)`;
 * the same with thresholds that make the rule fire on every step (the cautious ORCA controller always computes).
 
-Target (issue 14): <= 300 µs per MC-dropout decision with 5 humans and >= 5x faster than the torch path.
+Target: <= 300 µs per MC-dropout decision with 5 humans and >= 5x faster than the torch path.
 Memory: the resident set (RSS) of a fresh process that imports only `socnav.runtime`, loads the navigator and
 decides, beside that of a process that loads the torch policy and its SafePolicy.
 """
