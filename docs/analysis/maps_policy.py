@@ -1,0 +1,91 @@
+"""One ODV-PPO-Drop policy for the four map scenarios (docs/maps.md, "Learning among walls"): trained on all of them
+at once (`socnav.envs.mixed.MixedVecEnv`, 4 environments each) with the 72-beam scan, the route in the observation
+and a collision penalty of 20; first without humans, then with the default crowd, saved every ``--chunk`` steps so
+that a later session continues with ``--start``; evaluated per scenario.
+
+    python docs/analysis/maps_policy.py --humans 0 --steps 200000 --out runs/maps/empty.zip
+    python docs/analysis/maps_policy.py --start runs/maps/empty.zip --steps 2000000 --out runs/maps/crowd.zip
+    python docs/analysis/maps_policy.py --evaluate runs/maps/crowd.zip --episodes 200 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+from socnav.config import load_config
+from socnav.envs.mixed import MixedVecEnv
+from socnav.envs.rollout import rollout_episodes
+from socnav.rl.convert import to_sb3
+from socnav.rl.persistence import load_policy, save_policy
+from socnav.rl.presets import make_model
+
+SCENARIOS = ("corridor", "doorway", "intersection", "room")
+#: What every world of the mixture shares besides its scenario (configs/env/doorway_route_collision20.yaml's).
+WORLD = {"scan": {"beams": 72, "range": 8.0, "fov": 360}, "planner": {"observe": True}, "reward": {"collision": 20.0}}
+ENVS_PER_WORLD = 4
+
+
+def worlds(humans: int | None) -> list[dict[str, Any]]:
+    """The env config of each scenario; `humans`: humans per episode (None: the scenario's default crowd)."""
+    return [{"scenario": name, **WORLD, **({} if humans is None else {"n_humans": humans})} for name in SCENARIOS]
+
+
+def train(args: argparse.Namespace) -> None:
+    configs = worlds(args.humans)
+    env = MixedVecEnv(configs, ENVS_PER_WORLD)
+    if args.start is not None:
+        model = to_sb3(args.start, env=env, seed=args.seed)
+        metadata = dict(load_policy(args.start).socnav_metadata)
+    else:
+        model = make_model("odv-ppo-drop", env, seed=args.seed)
+        metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
+    # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
+    metadata.update(env_config=load_config(configs[SCENARIOS.index("doorway")]).model_dump(mode="json"))
+    started, done, base = time.monotonic(), 0, int(metadata.get("timesteps", 0))
+    while done < args.steps:
+        chunk = min(args.chunk, args.steps - done)
+        model.learn(chunk, reset_num_timesteps=False)
+        done += chunk
+        metadata["timesteps"] = base + done
+        save_policy(model.policy, args.out, metadata)
+        print(f"{base + done:,} steps, {time.monotonic() - started:.0f} s -> {args.out}", flush=True)
+
+
+def evaluate(args: argparse.Namespace) -> None:
+    policy = load_policy(args.evaluate)
+    print("| scenario | Goal % | Collision % (people) | Wall % | Time-out % |")
+    print("|:--|--:|--:|--:|--:|")
+    for config in worlds(None):
+        records = rollout_episodes(policy, load_config(config), args.episodes, seed=args.seed, n_envs=50,
+                                   progress=False)
+        counts = records["outcome"].value_counts()
+        share = {name: 100.0 * counts.get(name, 0) / len(records)
+                 for name in ("goal", "collision", "collision_wall", "timeout")}
+        print(f"| {config['scenario']} | {share['goal']:.1f} | {share['collision']:.1f} | "
+              f"{share['collision_wall']:.1f} | {share['timeout']:.1f} |", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--start", type=Path, help="continue from this policy file")
+    parser.add_argument("--humans", type=int, default=None, help="humans per episode (default: the crowd)")
+    parser.add_argument("--steps", type=int, default=200_000)
+    parser.add_argument("--chunk", type=int, default=250_000, help="steps between saves")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--evaluate", type=Path, help="evaluate this policy in each scenario instead")
+    parser.add_argument("--episodes", type=int, default=200)
+    args = parser.parse_args()
+    if args.evaluate is not None:
+        evaluate(args)
+    else:
+        if args.out is None:
+            parser.error("--out is needed to train")
+        train(args)
+
+
+if __name__ == "__main__":
+    main()
