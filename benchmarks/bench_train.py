@@ -3,6 +3,7 @@
     python benchmarks/bench_train.py            # 8 rollouts per run after one warm-up rollout (~2 min)
     python benchmarks/bench_train.py --quick    # 3 rollouts per run
     python benchmarks/bench_train.py --scenario circle_crossing --humans 5   # a crowd instead of one human
+    python benchmarks/bench_train.py --maps     # odv-ppo-drop among walls (scan + route) beside the open plane
 
 Every run trains on the same env (default: position swap, one human, 16 environments, n_steps 128 => 2,048 steps per
 rollout) in this process, one after another. Time is split by wrapping the VecEnv's `step_wait` (simulation) and
@@ -43,6 +44,9 @@ from socnav.rl import ALGOS, make_model
 
 ENV = {"scenario": "position_swap", "n_humans": 1}
 N_ENVS = 16
+#: ``--maps``: the world of docs/maps.md's learned policies (72-beam scan, the route observed) and its open plane
+MAP_WORLD = Path(__file__).resolve().parents[1] / "configs" / "env" / "doorway_route.yaml"
+OPEN_PLANE = {"scenario": "circle_crossing"}
 TARGET_ALGO, TARGET_STEPS_PER_S = "odv-ppo-drop", 2000
 
 
@@ -118,7 +122,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="3 rollouts per run instead of 8")
     parser.add_argument("--scenario", default=ENV["scenario"])
     parser.add_argument("--humans", type=int, default=ENV["n_humans"])
+    parser.add_argument("--maps", action="store_true",
+                        help="only odv-ppo-drop in the doorway with scan and route, beside the open plane")
     args = parser.parse_args()
+    if args.maps:
+        maps_beside_open_plane(3 if args.quick else 8, Console(width=150))
+        return
     ENV.update(scenario=args.scenario, n_humans=args.humans)
     rollouts = 3 if args.quick else 8
     console = Console(width=150)
@@ -151,6 +160,26 @@ def main() -> None:
     console.print(f"target: {TARGET_ALGO} >= {TARGET_STEPS_PER_S:,} env-steps/s end to end: "
                   f"{target['steps_per_s']:,.0f} -> {verdict}; "
                   f"{target['steps_per_s'] / lstm['steps_per_s']:.1f}x SB3 PPO + packed LSTM")
+
+
+def maps_beside_open_plane(rollouts: int, console: Console) -> None:
+    """odv-ppo-drop's end-to-end env-steps/s in `MAP_WORLD` (walls, occlusion, the planner, a 72-beam scan and its
+    encoder, the route) and in the open plane of circle crossing (same crowd size), measured one after the other."""
+    from socnav.sim.scenarios import get_scenario
+
+    walls = socnav.load_config(MAP_WORLD)
+    humans = walls.n_humans if walls.n_humans is not None else get_scenario(walls.scenario).default_humans
+    plane = socnav.load_config(OPEN_PLANE, n_humans=humans)
+    rows = [measure(f"odv-ppo-drop, {name}", lambda world=world: make_model(
+        "odv-ppo-drop", socnav.make_vec_env(world, n_envs=N_ENVS), seed=0), rollouts)
+        for name, world in (("open plane (circle crossing)", plane), ("doorway + scan + route", walls))]
+    table = Table(title=f"Training among walls beside the open plane ({humans} humans, {N_ENVS} envs)")
+    for column in ("run", "env-steps/s", "vs open plane", "simulation", "rollout inference", "gradient updates"):
+        table.add_column(column, justify="left" if column == "run" else "right")
+    for row in rows:
+        table.add_row(row["name"], f"{row['steps_per_s']:,.0f}", f"{row['steps_per_s'] / rows[0]['steps_per_s']:.2f}x",
+                      f"{100 * row['sim']:.1f}%", f"{100 * row['inference']:.1f}%", f"{100 * row['grad']:.1f}%")
+    console.print(table)
 
 
 if __name__ == "__main__":
