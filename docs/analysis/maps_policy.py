@@ -6,6 +6,7 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --humans 0 --steps 200000 --out runs/maps/empty.zip
     python docs/analysis/maps_policy.py --start runs/maps/empty.zip --steps 2000000 --out runs/maps/crowd.zip
     python docs/analysis/maps_policy.py --evaluate runs/maps/crowd.zip --episodes 200 --seed 0
+    # smooth driving (docs/training.md): --action-change-penalty 0.05 on the crowd stage
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from socnav.envs.rollout import rollout_episodes
 from socnav.rl.convert import to_sb3
 from socnav.rl.persistence import load_policy, save_policy
 from socnav.rl.presets import make_model
+from socnav.rl.smoothing import SmoothnessPenalty
 
 SCENARIOS = ("corridor", "doorway", "intersection", "room")
 #: What every world of the mixture shares besides its scenario (configs/env/doorway_route_collision20.yaml's).
@@ -35,13 +37,21 @@ def worlds(humans: int | None) -> list[dict[str, Any]]:
 
 def train(args: argparse.Namespace) -> None:
     configs = worlds(args.humans)
-    env = MixedVecEnv(configs, ENVS_PER_WORLD)
-    if args.start is not None:
+    env: Any = MixedVecEnv(configs, ENVS_PER_WORLD)
+    start = None if args.start is None else dict(load_policy(args.start).socnav_metadata)
+    # the smoothing cost of docs/training.md ("Smooth driving"); None: the start policy's (0 for a fresh one)
+    penalty = args.action_change_penalty
+    if penalty is None:
+        penalty = 0.0 if start is None else float(start["algo_config"].get("action_change_penalty", 0.0))
+    if penalty:
+        env = SmoothnessPenalty(env, action_change_penalty=penalty)
+    if start is not None:
         model = to_sb3(args.start, env=env, seed=args.seed)
-        metadata = dict(load_policy(args.start).socnav_metadata)
+        metadata = start
     else:
         model = make_model("odv-ppo-drop", env, seed=args.seed)
         metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
+    metadata["algo_config"] = {**metadata["algo_config"], "action_change_penalty": penalty}
     # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
     metadata.update(env_config=load_config(configs[SCENARIOS.index("doorway")]).model_dump(mode="json"))
     started, done, base = time.monotonic(), 0, int(metadata.get("timesteps", 0))
@@ -76,6 +86,8 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=250_000, help="steps between saves")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--action-change-penalty", type=float, default=None,
+                        help="smoothing cost per step (docs/training.md); default: the start policy's, else 0")
     parser.add_argument("--evaluate", type=Path, help="evaluate this policy in each scenario instead")
     parser.add_argument("--episodes", type=int, default=200)
     args = parser.parse_args()
