@@ -5,7 +5,7 @@ that a later session continues with ``--start``; evaluated per scenario.
 
     python docs/analysis/maps_policy.py --humans 0 --steps 200000 --out runs/maps/empty.zip
     python docs/analysis/maps_policy.py --start runs/maps/empty.zip --steps 2000000 --out runs/maps/crowd.zip
-    python docs/analysis/maps_policy.py --evaluate runs/maps/crowd.zip --episodes 200 --seed 0
+    python docs/analysis/maps_policy.py --evaluate maps=runs/maps/crowd.zip --episodes 200 --seed 0
     # smooth driving (docs/training.md): --action-change-penalty 0.05 on the crowd stage
 """
 
@@ -16,7 +16,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from scipy.stats import binomtest
+
 from socnav.config import load_config
+from socnav.controllers import make_controller
 from socnav.envs.mixed import MixedVecEnv
 from socnav.envs.rollout import rollout_episodes
 from socnav.rl.convert import to_sb3
@@ -64,18 +67,39 @@ def train(args: argparse.Namespace) -> None:
         print(f"{base + done:,} steps, {time.monotonic() - started:.0f} s -> {args.out}", flush=True)
 
 
+def _rate(hits: int, n: int) -> str:
+    """``p [low, high]`` in %, the 95 % Clopper-Pearson interval."""
+    interval = binomtest(hits, n).proportion_ci(0.95, method="exact")
+    return f"{100 * hits / n:.1f} [{100 * interval.low:.1f}, {100 * interval.high:.1f}]"
+
+
 def evaluate(args: argparse.Namespace) -> None:
-    policy = load_policy(args.evaluate)
-    print("| scenario | Goal % | Collision % (people) | Wall % | Time-out % |")
-    print("|:--|--:|--:|--:|--:|")
-    for config in worlds(None):
-        records = rollout_episodes(policy, load_config(config), args.episodes, seed=args.seed, n_envs=50,
-                                   progress=False)
-        counts = records["outcome"].value_counts()
-        share = {name: 100.0 * counts.get(name, 0) / len(records)
-                 for name in ("goal", "collision", "collision_wall", "timeout")}
-        print(f"| {config['scenario']} | {share['goal']:.1f} | {share['collision']:.1f} | "
-              f"{share['collision_wall']:.1f} | {share['timeout']:.1f} |", flush=True)
+    """Per map scenario (the default crowd) and in the open plane's position swap and circle crossing: the ORCA
+    robot (with the planner) and each policy on the same episodes; in the open plane also the shipped policy."""
+    policies = {}
+    for item in args.evaluate:
+        label, _, path = item.rpartition("=")
+        policies[label or path] = load_policy(path)
+    open_plane = [{"scenario": name, **WORLD} for name in ("position_swap", "circle_crossing")]
+    open_plane[0]["n_humans"] = 1  # the shipped policy's world
+    print("| scenario | controller | Goal % [95 % CI] | people % [95 % CI] | wall % [95 % CI] | time-out % "
+          "| jerk x ORCA | path irregularity x ORCA |")
+    print("|:--|:--|--:|--:|--:|--:|--:|--:|")
+    for config in [*worlds(None), *open_plane]:
+        world = load_config(config)
+        actors = {"ORCA robot": make_controller("orca", world), **policies}
+        if not world.obstacles and world.scenario in ("position_swap", "circle_crossing"):
+            actors["shipped policy (open plane)"] = load_policy("pretrained")
+        rows = {label: rollout_episodes(actor, world, args.episodes, seed=args.seed, n_envs=50, progress=False)
+                for label, actor in actors.items()}
+        orca = rows["ORCA robot"]
+        for label, records in rows.items():
+            n, outcome = len(records), records["outcome"]
+            print(f"| {world.scenario} | {label} | {_rate(int((outcome == 'goal').sum()), n)} | "
+                  f"{_rate(int((outcome == 'collision').sum()), n)} | "
+                  f"{_rate(int((outcome == 'collision_wall').sum()), n)} | {100 * (outcome == 'timeout').mean():.1f} | "
+                  f"{records['jerk_mean'].mean() / orca['jerk_mean'].mean():.1f} | "
+                  f"{records['path_irregularity'].mean() / orca['path_irregularity'].mean():.1f} |", flush=True)
 
 
 def main() -> None:
@@ -88,7 +112,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--action-change-penalty", type=float, default=None,
                         help="smoothing cost per step (docs/training.md); default: the start policy's, else 0")
-    parser.add_argument("--evaluate", type=Path, help="evaluate this policy in each scenario instead")
+    parser.add_argument("--evaluate", nargs="+", metavar="[LABEL=]POLICY",
+                        help="evaluate these policies in each scenario (and the open plane) instead")
     parser.add_argument("--episodes", type=int, default=200)
     args = parser.parse_args()
     if args.evaluate is not None:
