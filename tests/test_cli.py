@@ -39,6 +39,7 @@ def test_demo_writes_tables_and_animation(tmp_path):
     result = runner.invoke(app, ["demo", "--episodes", "2", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "orca_circle_crossing.gif").stat().st_size > 10_000
+    assert (tmp_path / "orca_doorway.gif").stat().st_size > 10_000  # the global planner's path drawn
     assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
     from socnav.sim.scenarios import scenario_names
 

@@ -1247,6 +1247,9 @@ def demo(
     console.print(metrics_table(rows, f"Baseline controllers, {episodes} episodes each (seeds {seed}..)"))
     gif, summary = steps.animate_baseline(out, seed)
     console.print(f"animation of one ORCA episode ({summary.get('outcome')}): {escape(str(gif))}", highlight=False)
+    gif, summary = steps.animate_map_baseline(out, seed)
+    console.print(f"animation of one ORCA episode among walls, its planned path and subgoal drawn "
+                  f"({summary.get('outcome')}): {escape(str(gif))}", highlight=False)
 
     if train_steps:
         from socnav.rl.training import TrainingInterrupted

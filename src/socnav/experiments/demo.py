@@ -30,10 +30,10 @@ from socnav.config import EnvConfig, load_config
 if TYPE_CHECKING:
     from socnav.rl.training import TrainResult
 
-__all__ = ["BASELINES", "COMPARISONS", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar", "SafetyDemo",
-           "animate_baseline", "animate_learned_policy", "animate_saved_episode", "baseline_rows", "choose_strength",
-           "comparison_file", "describe", "find_saved_episode", "learned_policy_row", "safety_demo", "summary_rows",
-           "train_policy", "write_safety_records"]
+__all__ = ["BASELINES", "COMPARISONS", "MAP_SCENARIO", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar",
+           "SafetyDemo", "animate_baseline", "animate_learned_policy", "animate_map_baseline", "animate_saved_episode",
+           "baseline_rows", "choose_strength", "comparison_file", "describe", "find_saved_episode",
+           "learned_policy_row", "safety_demo", "summary_rows", "train_policy", "write_safety_records"]
 
 #: ``progress(label, total)``: a context manager showing one progress bar, yielding its ``advance(n)`` callback.
 ProgressBar = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
@@ -43,6 +43,7 @@ Row = tuple[str, dict[str, Any]]
 BASELINES = ("orca", "straight")  # the non-learned controllers run in every scenario
 N_ENVS = 32  # environments stepped together in the demo's evaluations
 TRAINING_WORLD = {"scenario": "position_swap", "n_humans": 1}  # where `socnav demo --train-steps` trains a policy
+MAP_SCENARIO = "doorway"  # the map scenario the demo animates, the planned path drawn
 
 PERTURBATION = "heading_noise"
 STRENGTHS = (0.2, 0.4, 0.8)  # rad; above ~1 the robot rarely reaches its goal at all, with or without the layer
@@ -124,6 +125,17 @@ def animate_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
     config = load_config({"scenario": "circle_crossing"})
     return animate_episode(make_controller("orca", config), None, config, Path(out) / "orca_circle_crossing.gif",
                            seed=seed, policy_label="ORCA robot")
+
+
+def animate_map_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
+    """One ORCA episode (seed `seed`) of `MAP_SCENARIO` as OUT/orca_<scenario>.gif, the robot's planned path and its
+    subgoal drawn (the global planner, docs/maps.md); returns `animate_episode`'s (path, summary)."""
+    from socnav.controllers import make_controller
+    from socnav.experiments.animate import animate_episode
+
+    config = load_config({"scenario": MAP_SCENARIO})
+    return animate_episode(make_controller("orca", config), None, config, Path(out) / f"orca_{MAP_SCENARIO}.gif",
+                           seed=seed, policy_label="ORCA robot, global planner")
 
 
 def train_policy(out: Path, seed: int, timesteps: int) -> TrainResult:
