@@ -84,3 +84,27 @@ def _tracked_state(world, env: int = 0) -> tuple[dict, dict]:
 def tracked_state():
     """`(robot, humans)` of one environment of a world: ``tracked_state(world, env=0)``."""
     return _tracked_state
+
+
+def _navigator_steps(env, navigator, seeds, on_episode=None):
+    """Drive `env` (a `SocialNavEnv` with a scan) with `navigator` from the world's state arrays, one episode per seed:
+    yields ``(observation, robot, decision)`` at every step, the environment's observation beside the navigator's
+    decision, then steps the environment with the decision's action. `on_episode()` runs at each episode's start."""
+    for seed in seeds:
+        observation, _ = env.reset(seed=seed)
+        navigator.reset()
+        if on_episode is not None:
+            on_episode()
+        done = False
+        while not done:
+            robot, humans = _tracked_state(env.world)
+            decision = navigator.act(robot, humans, scan=observation["scan"])
+            yield observation, robot, decision
+            observation, _, terminated, truncated, _ = env.step(decision.action)
+            done = terminated or truncated
+
+
+@pytest.fixture
+def navigator_steps():
+    """``navigator_steps(env, navigator, seeds, on_episode=None)``: the steps of a navigator driving an environment."""
+    return _navigator_steps

@@ -68,7 +68,7 @@ def test_a_route_observing_navigator_is_a_version_5_file(route_file, tmp_path):
             ExportedPolicy.load(edited)
 
 
-def test_the_navigator_observes_the_route_the_simulator_observes(route_policy, route_file, tracked_state):
+def test_the_navigator_observes_the_route_the_simulator_observes(route_policy, route_file, navigator_steps):
     """Driving the doorway from the world's state arrays, the scan and nothing else: at every step the navigator's
     observation (its own path planned on the file's walls) is the environment's, and its action the torch
     policy's."""
@@ -77,23 +77,15 @@ def test_the_navigator_observes_the_route_the_simulator_observes(route_policy, r
     navigator = SafeNavigator.load(route_file, thresholds=NEVER, seed=0)
     env = SocialNavEnv(socnav.load_config(DOORWAY))
     steps = turned = 0
-    for episode in range(3):
-        observation, _ = env.reset(seed=40 + episode)
-        navigator.reset()
-        done = False
-        while not done:
-            robot, humans = tracked_state(env.world)
-            decision = navigator.act(robot, humans, scan=observation["scan"])
-            for key, value in observation.items():
-                np.testing.assert_allclose(decision.observation[key][0], value, rtol=0, atol=1e-5, err_msg=key)
-            expected, _ = route_policy.predict(observation, deterministic=True)
-            np.testing.assert_allclose(decision.action, expected, rtol=0, atol=TOLERANCE)
-            bearing_to_goal = math.atan2(*(np.asarray(robot["goal"]) - robot["position"])[::-1])
-            bearing_to_subgoal = math.atan2(*(decision.subgoal - robot["position"])[::-1])
-            turned += abs(math.remainder(bearing_to_subgoal - bearing_to_goal, math.tau)) > 0.05
-            steps += 1
-            observation, _, terminated, truncated, _ = env.step(decision.action)
-            done = terminated or truncated
+    for observation, robot, decision in navigator_steps(env, navigator, [40, 41, 42]):
+        for key, value in observation.items():
+            np.testing.assert_allclose(decision.observation[key][0], value, rtol=0, atol=1e-5, err_msg=key)
+        expected, _ = route_policy.predict(observation, deterministic=True)
+        np.testing.assert_allclose(decision.action, expected, rtol=0, atol=TOLERANCE)
+        bearing_to_goal = math.atan2(*(np.asarray(robot["goal"]) - robot["position"])[::-1])
+        bearing_to_subgoal = math.atan2(*(decision.subgoal - robot["position"])[::-1])
+        turned += abs(math.remainder(bearing_to_subgoal - bearing_to_goal, math.tau)) > 0.05
+        steps += 1
     assert steps > 30 and turned > 0  # the route was not the straight line to the goal at every step
 
 

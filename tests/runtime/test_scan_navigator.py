@@ -195,7 +195,7 @@ def test_actions_values_and_mc_samples_match_torch(scan_policy, scan_file, obser
 
 @pytest.mark.parametrize("seed,hold", [(1, 0), (2, 2)])
 def test_navigator_reproduces_safe_policy_in_a_corridor_with_scan(scan_policy, scan_file, seed, hold,
-                                                                 tracked_state):
+                                                                 navigator_steps):
     """The navigator drives the corridor from the world's state arrays, the scan and the pose; at every step it
     builds the environment's observation, and the torch SafePolicy (its fallback planning around the config's
     walls), fed that observation and the same mask stream, decides the same."""
@@ -209,25 +209,16 @@ def test_navigator_reproduces_safe_policy_in_a_corridor_with_scan(scan_policy, s
     navigator = SafeNavigator.load(scan_file, thresholds=thresholds, seed=seed)
     env = SocialNavEnv(config)
     steps = fallbacks = 0
-    for episode in range(2):
-        observation, _ = env.reset(seed=100 * seed + episode)
-        reference.reset()
-        navigator.reset()
-        done = False
-        while not done:
-            robot, humans = tracked_state(env.world)
-            decision = navigator.act(robot, humans, scan=observation["scan"])
-            for key, value in observation.items():
-                np.testing.assert_array_equal(decision.observation[key][0], value, err_msg=key)
-            expected, _ = reference.predict(observation)
-            assert decision.fallback == bool(reference.last_fallback[0])
-            np.testing.assert_allclose(decision.action, expected, rtol=0, atol=TOLERANCE)
-            for name, value in reference.last_uncertainty.items():
-                assert decision.windowed[name] == pytest.approx(float(value[0]), abs=TOLERANCE), name
-            steps += 1
-            fallbacks += decision.fallback
-            observation, _, terminated, truncated, _ = env.step(decision.action)
-            done = terminated or truncated
+    for observation, _, decision in navigator_steps(env, navigator, [100 * seed, 100 * seed + 1], reference.reset):
+        for key, value in observation.items():
+            np.testing.assert_array_equal(decision.observation[key][0], value, err_msg=key)
+        expected, _ = reference.predict(observation)
+        assert decision.fallback == bool(reference.last_fallback[0])
+        np.testing.assert_allclose(decision.action, expected, rtol=0, atol=TOLERANCE)
+        for name, value in reference.last_uncertainty.items():
+            assert decision.windowed[name] == pytest.approx(float(value[0]), abs=TOLERANCE), name
+        steps += 1
+        fallbacks += decision.fallback
     assert 0 < fallbacks < steps  # both the fallback and the policy were compared
 
 
