@@ -3,10 +3,11 @@ at once (`socnav.envs.mixed.MixedVecEnv`, 4 environments each) with the 72-beam 
 and a collision penalty of 20; first without humans, then with the default crowd, saved every ``--chunk`` steps so
 that a later session continues with ``--start``; evaluated per scenario.
 
-    python docs/analysis/maps_policy.py --humans 0 --steps 200000 --out runs/maps/empty.zip
+    python docs/analysis/maps_policy.py --humans 0 --steps 300000 --out runs/maps/empty.zip
     python docs/analysis/maps_policy.py --start runs/maps/empty.zip --steps 2000000 --out runs/maps/crowd.zip
     python docs/analysis/maps_policy.py --evaluate maps=runs/maps/crowd.zip --episodes 200 --seed 0
     # smooth driving (docs/training.md): --action-change-penalty 0.05 on the crowd stage
+    # the humans in the scan's frame (the robot's heading): --frame heading on the first stage
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def train(args: argparse.Namespace) -> None:
         model = to_sb3(args.start, env=env, seed=args.seed)
         metadata = start
     else:
-        model = make_model("odv-ppo-drop", env, seed=args.seed)
+        model = make_model("odv-ppo-drop", env, seed=args.seed, overrides={"frame": args.frame})
         metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
     metadata["algo_config"] = {**metadata["algo_config"], "action_change_penalty": penalty}
     # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
@@ -109,6 +110,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200_000)
     parser.add_argument("--chunk", type=int, default=250_000, help="steps between saves")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frame", choices=("goal", "heading"), default="goal",
+                        help="the frame the network reads the humans in (a fresh policy only; AlgoConfig.frame)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--action-change-penalty", type=float, default=None,
                         help="smoothing cost per step (docs/training.md); default: the start policy's, else 0")

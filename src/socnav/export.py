@@ -34,6 +34,7 @@ import torch as th
 from pydantic import ValidationError
 from torch import nn
 
+from socnav.rl.extractor import to_heading_frame
 from socnav.runtime.format import (
     CHECKSUM_KEY,
     FORMAT_NAME,
@@ -130,6 +131,7 @@ class NavigatorGraph(nn.Module):
         extractor = policy.features_extractor
         self.lstm_layers = extractor.lstm_layers
         self.scan_encoder = getattr(extractor, "scan_encoder", None)
+        self.heading_frame = getattr(extractor, "frame", "goal") == "heading"
         self.actor = policy.mlp_extractor.policy_net
         self.action_net = policy.action_net
         self.odv = bool(policy.odv)
@@ -149,6 +151,8 @@ class NavigatorGraph(nn.Module):
                 *rest: th.Tensor) -> tuple[th.Tensor, ...]:
         scan, keep = (rest[0], rest[1:]) if self.scan_encoder is not None else (None, rest)
         n_lstm = len(self.lstm_layers)
+        if self.heading_frame:
+            robot, humans = to_heading_frame(robot, humans)
         h = self.encoder.apply(humans, humans_mask, *keep[:n_lstm])
         parts = [h * keep[n_lstm], robot]
         masks = iter(keep[n_lstm + 1:])  # the scan encoder's (if any), then the actor's

@@ -201,7 +201,7 @@ def test_a_narrow_scan_policy_is_rebuilt_with_its_field_of_view(tmp_path):
 
     def build(**extractor: float) -> ODVActorCriticPolicy:
         return ODVActorCriticPolicy(env.observation_space, action_space(), lambda _: 3e-4,
-                                    **policy_kwargs_for(algo_config), features_extractor_kwargs=extractor)
+                                    **{**policy_kwargs_for(algo_config), "features_extractor_kwargs": extractor})
 
     with pytest.raises(ValueError, match=r"built for a 360-degree scan but its env config has scan.fov=240"):
         save_policy(build(), tmp_path / "wrong.zip", metadata)  # loaded, it would pad differently

@@ -8,6 +8,13 @@ With a range scan in the observation (``scan``, a world with walls: `socnav.sim.
 over the beams (:class:`ScanEncoder`) adds ``S`` features after the robot's; the robot's ``pose`` in the map frame
 is never an input (absolute map coordinates would tie the policy to the one map it was trained on).
 
+The observation gives the humans in the goal frame (the paper's) and the scan in the robot's heading frame (as a
+``LaserScan``). With ``frame="heading"`` the extractor first rotates the humans' positions and velocities into the
+heading frame (:func:`to_heading_frame`) and appends the goal's direction in it, so that every input the network
+reads shares one robot-centric frame. It is a fixed rotation by the observation's own relative heading, so the
+environment, its controllers and the safety triggers (all of which read the goal frame) are untouched, and the
+exported graph carries the rotation.
+
 The trimmed-LSTM trick
 ----------------------
 The real humans of a sample are a *prefix* of the ``humans`` rows (``humans_mask`` is ``1`` on rows
@@ -31,7 +38,34 @@ from torch import nn
 
 from socnav.sim.walls import SCAN_KEY
 
-__all__ = ["Dropout", "HumanLSTMExtractor", "ScanEncoder"]
+__all__ = ["FRAMES", "Dropout", "HumanLSTMExtractor", "ScanEncoder", "to_heading_frame"]
+
+#: The frames the extractor can read the humans and the goal in (`AlgoConfig.frame`).
+FRAMES = ("goal", "heading")
+#: Columns of a human row that are 2-D vectors (relative position, relative velocity) and of the robot row the
+#: heading relative to the goal direction (socnav.envs.spaces).
+_HUMAN_VECTORS = ((0, 1), (2, 3))
+_RELATIVE_HEADING = 1
+
+
+def to_heading_frame(robot: th.Tensor, humans: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """The robot row extended by the goal direction, and the human rows, in the robot's heading frame.
+
+    The robot row holds ``theta = heading - goal direction``; a vector ``(x, y)`` of the goal frame is
+    ``(cos(theta) x + sin(theta) y, -sin(theta) x + cos(theta) y)`` in the heading frame, and the goal lies at angle
+    ``-theta``: the robot row gains ``(cos(theta), -sin(theta))``. Zero padding rows stay zero.
+
+    :param robot: (B, R) robot rows; :param humans: (B, M, F) human rows (goal frame).
+    :return: ``(robot (B, R + 2), humans (B, M, F))``.
+    """
+    theta = robot[:, _RELATIVE_HEADING]
+    cos, sin = th.cos(theta).unsqueeze(1), th.sin(theta).unsqueeze(1)  # (B, 1): broadcast over the rows
+    columns = list(humans.unbind(dim=2))
+    for x_col, y_col in _HUMAN_VECTORS:
+        x, y = columns[x_col], columns[y_col]
+        columns[x_col], columns[y_col] = cos * x + sin * y, cos * y - sin * x
+    goal_direction = th.stack((th.cos(theta), -th.sin(theta)), dim=1)
+    return th.cat((robot, goal_direction), dim=1), th.stack(columns, dim=2)
 
 class Dropout(nn.Dropout):
     """`nn.Dropout` with the mask drawn as ``uniform >= p``: the same distribution, ~25 % cheaper on CPU.
@@ -192,6 +226,8 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
     :param scan_fov: the scan's field of view in degrees (the env config's ``scan.fov``): 360 wraps the
         convolutions' padding around. Read only with a scan.
     :param scan_features: ``S``, the scan encoder's output size. Read only with a scan.
+    :param frame: ``"goal"`` reads the observation as it is; ``"heading"`` reads the humans and the goal in the
+        robot's heading frame (:func:`to_heading_frame`; the robot part gains 2 features).
     """
 
     h_min: th.Tensor  # (H,) buffers: the tracked feature range
@@ -205,8 +241,11 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         dropout_p: float = 0.0,
         scan_fov: float = 360.0,
         scan_features: int = 32,
+        frame: str = "goal",
     ) -> None:
-        robot_dim = int(_box(observation_space, "robot").shape[0])
+        if frame not in FRAMES:
+            raise ValueError(f"frame must be one of {list(FRAMES)}, got {frame!r}")
+        robot_dim = int(_box(observation_space, "robot").shape[0]) + (2 if frame == "heading" else 0)
         human_dim = int(_box(observation_space, "humans").shape[-1])
         scan_space = _box(observation_space, SCAN_KEY) if SCAN_KEY in observation_space.spaces else None
         scan_dim = 0 if scan_space is None else scan_features
@@ -215,6 +254,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
             raise ValueError(f"n_lstm_layers must be >= 1, got {n_lstm_layers}")
         self.lstm_hidden_size = lstm_hidden_size
         self.robot_dim = robot_dim
+        self.frame = frame
         # One single-layer nn.LSTM per layer (instead of nn.LSTM(num_layers=2, dropout=p)) so that the
         # between-layer dropout is a visible nn.Dropout module, not a flag hidden inside the LSTM kernel.
         self.lstm_layers = nn.ModuleList(
@@ -258,8 +298,11 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         The dropout layers run in the order of :meth:`dropout_layers` (LSTM inputs, ``h``, then the scan's): an
         external uniform stream (the ONNX runtime's) draws their masks in that order.
         """
-        h = self.encode_humans(observations["humans"], observations["humans_mask"])
-        parts = [self.h_dropout(h), observations["robot"]]
+        robot, humans = observations["robot"], observations["humans"]
+        if self.frame == "heading":
+            robot, humans = to_heading_frame(robot, humans)
+        h = self.encode_humans(humans, observations["humans_mask"])
+        parts = [self.h_dropout(h), robot]
         if self.scan_encoder is not None:
             parts.append(self.scan_encoder(observations[SCAN_KEY]))
         return th.cat(parts, dim=1), h  # (B, H + R [+ S])

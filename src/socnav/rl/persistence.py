@@ -319,9 +319,10 @@ def _policy_for(config: AlgoConfig, env_config: Any, learning_rate: float = 0.0)
 
     walls = bool(world_polygons(env_config, get_scenario(env_config.scenario)))
     space = observation_space(env_config.max_humans, pose=walls, scan=env_config.scan)
-    scan: dict[str, Any] = ({} if env_config.scan is None
-                            else {"features_extractor_kwargs": {"scan_fov": env_config.scan.fov}})
-    return ODVActorCriticPolicy(space, action_space(), lambda _: learning_rate, **policy_kwargs_for(config), **scan)
+    kwargs = policy_kwargs_for(config)
+    if env_config.scan is not None:
+        kwargs["features_extractor_kwargs"] = {**kwargs["features_extractor_kwargs"], "scan_fov": env_config.scan.fov}
+    return ODVActorCriticPolicy(space, action_space(), lambda _: learning_rate, **kwargs)
 
 
 def _check_scan_fov(policy: ODVActorCriticPolicy, env_config: dict[str, Any]) -> None:

@@ -60,6 +60,9 @@ class AlgoConfig(StrictModel):
     net_arch_vf: LayerSizes = Field(default=(128, 128), max_length=16)
     ortho_init: bool = True
     log_std_init: float = Field(default=0.0, ge=-20, le=2, description="initial log sigma (sigma in e^-20 ... e^2)")
+    frame: Literal["goal", "heading"] = Field(
+        default="goal", description="the frame the network reads the humans and the goal in: 'goal' (the paper's, "
+        "the observation as it is) or 'heading' (the robot's heading, the range scan's frame; docs/maps.md)")
     # -- observation-dependent variance (paper IV-A) --
     odv: bool = False
     log_std_min: float = Field(default=-20.0, ge=-50, le=5)
@@ -171,6 +174,7 @@ def policy_kwargs_for(cfg: AlgoConfig) -> dict[str, Any]:
         log_std_max=cfg.log_std_max,
         lstm_hidden_size=cfg.lstm_hidden_size,
         n_lstm_layers=cfg.n_lstm_layers,
+        features_extractor_kwargs={"frame": cfg.frame},
     )
 
 
