@@ -8,6 +8,8 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --evaluate maps=runs/maps/crowd.zip --episodes 200 --seed 0
     # smooth driving (docs/training.md): --action-change-penalty 0.05 on the crowd stage
     # the humans in the scan's frame (the robot's heading): --frame heading on the first stage
+    # a supervised start (DRL-VO's), imitating the ORCA robot's successful episodes, then PPO in the crowd:
+    python docs/analysis/maps_policy.py --clone 50000 --steps 1000000 --out runs/maps/cloned.zip
 """
 
 from __future__ import annotations
@@ -17,13 +19,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from scipy.stats import binomtest
 
 from socnav.config import load_config
 from socnav.controllers import make_controller
 from socnav.envs.mixed import MixedVecEnv
 from socnav.envs.rollout import rollout_episodes
+from socnav.envs.vec_env import SocialNavVecEnv
 from socnav.rl.convert import to_sb3
+from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations
 from socnav.rl.persistence import load_policy, save_policy
 from socnav.rl.presets import make_model
 from socnav.rl.smoothing import SmoothnessPenalty
@@ -37,6 +42,26 @@ ENVS_PER_WORLD = 4
 def worlds(humans: int | None) -> list[dict[str, Any]]:
     """The env config of each scenario; `humans`: humans per episode (None: the scenario's default crowd)."""
     return [{"scenario": name, **WORLD, **({} if humans is None else {"n_humans": humans})} for name in SCENARIOS]
+
+
+def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace) -> None:
+    """Clone the ORCA robot with the planner (`socnav.rl.imitation`): ``--clone`` of its steps in each world (the
+    training seeds), imitating the episodes that ended as ``--imitate`` says, value head fitted to all."""
+    started = time.monotonic()
+    parts = []
+    for index, config in enumerate(configs):
+        world = SocialNavVecEnv(config, n_envs=16)
+        world.seed(args.seed + 1000 * index)
+        parts.append(collect_demonstrations(world, make_controller("orca", world.config), args.clone,
+                                            gamma=model.gamma))
+    demonstrations = Demonstrations.concatenate(parts)
+    names, counts = np.unique(demonstrations.outcomes, return_counts=True)
+    print(f"{len(demonstrations):,} teacher steps ({dict(zip(names.tolist(), counts.tolist(), strict=True))}), "
+          f"{time.monotonic() - started:.0f} s", flush=True)
+    imitate = None if args.imitate == "all" else {args.imitate}
+    for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=args.clone_epochs, seed=args.seed,
+                                         imitate=imitate)):
+        print(f"clone epoch {epoch}: " + ", ".join(f"{key} {value:.3f}" for key, value in losses.items()), flush=True)
 
 
 def train(args: argparse.Namespace) -> None:
@@ -55,9 +80,13 @@ def train(args: argparse.Namespace) -> None:
     else:
         model = make_model("odv-ppo-drop", env, seed=args.seed, overrides={"frame": args.frame})
         metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
+        if args.clone:
+            supervised_start(model, configs, args)
     metadata["algo_config"] = {**metadata["algo_config"], "action_change_penalty": penalty}
     # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
     metadata.update(env_config=load_config(configs[SCENARIOS.index("doorway")]).model_dump(mode="json"))
+    if start is None and args.clone:
+        save_policy(model.policy, args.out.with_name(f"{args.out.stem}_clone.zip"), metadata)
     started, done, base = time.monotonic(), 0, int(metadata.get("timesteps", 0))
     while done < args.steps:
         chunk = min(args.chunk, args.steps - done)
@@ -110,6 +139,11 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200_000)
     parser.add_argument("--chunk", type=int, default=250_000, help="steps between saves")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--clone", type=int, default=0, metavar="STEPS",
+                        help="a fresh policy first imitates the ORCA robot for STEPS of its steps per world")
+    parser.add_argument("--clone-epochs", type=int, default=10)
+    parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
+                        help="which of the teacher's episodes are imitated (by how they ended)")
     parser.add_argument("--frame", choices=("goal", "heading"), default="goal",
                         help="the frame the network reads the humans in (a fresh policy only; AlgoConfig.frame)")
     parser.add_argument("--out", type=Path)

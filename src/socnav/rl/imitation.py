@@ -1,0 +1,165 @@
+"""Behaviour cloning: a policy's starting point taught by a controller (the ORCA robot with the planner) before PPO
+fine-tunes it, as DRL-VO starts from a supervised policy (docs/maps.md, "A supervised start").
+
+`collect_demonstrations` runs the teacher in a VecEnv and keeps every step of its finished episodes with the return
+that followed it; `clone` fits the policy to them by maximum likelihood, and its value head to those returns, so
+that PPO's first advantages are not measured against an untrained critic:
+
+    L = - mean log pi(a_teacher | o) - ent_coef * mean H[pi(. | o)] + vf_coef * mean (V(o) - G)^2,
+    G_t = sum_k gamma^k r_{t+k}   (to the end of the teacher's episode)
+
+Written on SB3's own `evaluate_actions`, so any `ActorCriticPolicy` can be cloned; the `imitation` package (which
+has BC) pins gymnasium 0.29 and stable-baselines3 2.2, older than socnav's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.vec_env import VecEnv
+
+__all__ = ["Demonstrations", "Teacher", "clone", "collect_demonstrations"]
+
+
+class Teacher(Protocol):
+    """A controller with SB3's ``predict`` (the ORCA robot: `socnav.controllers.OrcaController`)."""
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]: ...
+
+
+@dataclass
+class Demonstrations:
+    """Steps of a teacher's finished episodes: ``observations[key]`` (N, ...), ``actions`` (N, 2) in [-1, 1],
+    ``returns`` (N,) the discounted return from each step to the end of its episode, ``outcomes`` (N,) how that
+    episode ended (``goal``, ``collision``, ...)."""
+
+    observations: dict[str, np.ndarray]
+    actions: np.ndarray
+    returns: np.ndarray
+    outcomes: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    @classmethod
+    def concatenate(cls, parts: list[Demonstrations]) -> Demonstrations:
+        """The steps of all `parts`, in order."""
+        keys = parts[0].observations.keys()
+        return cls({key: np.concatenate([part.observations[key] for part in parts]) for key in keys},
+                   np.concatenate([part.actions for part in parts]), np.concatenate([part.returns for part in parts]),
+                   np.concatenate([part.outcomes for part in parts]))
+
+
+def _returns_to_go(rewards: list[float], gamma: float) -> np.ndarray:
+    """``G_t = r_t + gamma G_{t+1}``, ``G`` after the last step 0 (the episode ended)."""
+    returns = np.empty(len(rewards))
+    following = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        following = rewards[t] + gamma * following
+        returns[t] = following
+    return returns
+
+
+def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: float = 0.99) -> Demonstrations:
+    """Run `teacher` in `env` (already seeded) for ``steps`` env-steps in all (rounded up to whole batches) and keep
+    the steps of the episodes that ended, each with its return to go (an unfinished episode has no return yet).
+
+    A teacher with ``on_episode_start(envs)`` (the ORCA robot, which keeps each robot's path) is told which
+    environments began a new episode."""
+    if steps <= 0:
+        raise ValueError(f"steps must be > 0, got {steps}")
+    observation = env.reset()
+    if not isinstance(observation, dict):
+        raise TypeError("collect_demonstrations needs a VecEnv with a Dict observation space (socnav's)")
+    n_envs = env.num_envs
+    stored: dict[str, list[np.ndarray]] = {key: [] for key in observation}
+    actions: list[np.ndarray] = []
+    # per environment: the rows (into the lists above) and rewards of its running episode
+    rows: list[list[int]] = [[] for _ in range(n_envs)]
+    rewards: list[list[float]] = [[] for _ in range(n_envs)]
+    kept: list[int] = []
+    returns: list[np.ndarray] = []
+    outcomes: list[str] = []
+    on_episode_start = getattr(teacher, "on_episode_start", None)
+    if on_episode_start is not None:
+        on_episode_start(np.arange(n_envs))
+    for _ in range(-(-steps // n_envs)):
+        action = np.clip(np.asarray(teacher.predict(observation, deterministic=True)[0], dtype=np.float32), -1, 1)
+        for key, value in observation.items():
+            stored[key].append(np.asarray(value, dtype=np.float32))
+        actions.append(action)
+        base = (len(actions) - 1) * n_envs
+        stepped, reward, done, infos = env.step(action)
+        assert isinstance(stepped, dict)
+        observation = stepped
+        for index in range(n_envs):
+            rows[index].append(base + index)
+            rewards[index].append(float(reward[index]))
+        ended = np.flatnonzero(done)
+        for index in ended.tolist():
+            kept.extend(rows[index])
+            returns.append(_returns_to_go(rewards[index], gamma))
+            outcomes.extend([str(infos[index].get("outcome", ""))] * len(rows[index]))
+            rows[index], rewards[index] = [], []
+        if on_episode_start is not None and len(ended):
+            on_episode_start(ended)
+    order = np.asarray(kept, dtype=np.int64)
+    flat = {key: np.concatenate(values)[order] for key, values in stored.items()}
+    flat_returns = np.concatenate(returns) if returns else np.zeros(0)
+    return Demonstrations(flat, np.concatenate(actions)[order], flat_returns.astype(np.float32),
+                          np.asarray(outcomes, dtype=str))
+
+
+def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int = 10, batch_size: int = 256,
+          learning_rate: float = 1e-3, ent_coef: float = 1e-3, vf_coef: float = 0.5, seed: int = 0,
+          imitate: Collection[str] | None = None) -> list[dict[str, float]]:
+    """Fit `policy` (in place) to the teacher's actions and its value head to the returns (the loss above), with
+    Adam over shuffled minibatches; dropout stays on, as in training.
+
+    :param imitate: the outcomes whose episodes' actions are imitated (e.g. ``{"goal"}``: the teacher's actions in
+        the episodes where it collided are not taught); None imitates every step. The value head learns from all.
+
+    :return: per epoch, the mean ``nll`` (-log pi), ``entropy`` and ``value_loss``.
+    """
+    if len(demonstrations) == 0:
+        raise ValueError("no demonstrations: the teacher finished no episode; collect more steps")
+    generator = np.random.default_rng(seed)
+    optimizer = th.optim.Adam(policy.parameters(), lr=learning_rate)
+    observations = {key: th.as_tensor(value) for key, value in demonstrations.observations.items()}
+    actions = th.as_tensor(demonstrations.actions)
+    returns = th.as_tensor(demonstrations.returns)
+    taught = th.as_tensor(np.ones(len(demonstrations), dtype=bool) if imitate is None
+                          else np.isin(demonstrations.outcomes, list(imitate)))
+    if not bool(taught.any()):
+        raise ValueError(f"imitate={sorted(imitate or [])}: no demonstration ended so; the teacher's outcomes are "
+                         f"{sorted(set(demonstrations.outcomes.tolist()))}")
+    policy.set_training_mode(True)
+    history = []
+    for _ in range(epochs):
+        totals = np.zeros(3)
+        batches = 0
+        for rows in np.array_split(generator.permutation(len(demonstrations)),
+                                   max(1, len(demonstrations) // batch_size)):
+            index = th.as_tensor(rows)
+            values, log_prob, entropy = policy.evaluate_actions({key: value[index] for key, value in
+                                                                 observations.items()}, actions[index])
+            weight = taught[index].to(log_prob.dtype)
+            nll = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
+            entropy_mean = entropy.mean() if entropy is not None else -log_prob.mean()
+            value_loss = th.nn.functional.mse_loss(values.flatten(), returns[index])
+            loss = nll - ent_coef * entropy_mean + vf_coef * value_loss
+            optimizer.zero_grad()
+            loss.backward()
+            th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+            optimizer.step()
+            totals += (nll.item(), entropy_mean.item(), value_loss.item())
+            batches += 1
+        history.append(dict(zip(("nll", "entropy", "value_loss"), totals / batches, strict=True)))
+    policy.set_training_mode(False)
+    return history

@@ -1,0 +1,95 @@
+"""Behaviour cloning (`socnav.rl.imitation`): the teacher's episodes are kept whole with their returns (checked
+against the episode returns the environment reports), and a cloned policy acts like its teacher."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.vec_env import VecEnvWrapper
+
+import socnav
+from socnav.controllers import make_controller
+from socnav.envs.vec_env import SocialNavVecEnv
+from socnav.rl import make_model
+from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations
+
+WORLD = {"scenario": "circle_crossing", "n_humans": 2}
+TINY = {"lstm_hidden_size": 16, "net_arch_pi": (32,), "net_arch_vf": (32,)}
+
+
+class EpisodeLog(VecEnvWrapper):
+    """Records the ``episode`` entry (return ``r``, length ``l``) of every episode that ends."""
+
+    def __init__(self, venv):
+        super().__init__(venv)
+        self.episodes: list[dict] = []
+
+    def reset(self):
+        return self.venv.reset()
+
+    def step_wait(self):
+        observation, reward, done, infos = self.venv.step_wait()
+        self.episodes.extend(infos[index]["episode"] for index in np.flatnonzero(done))
+        return observation, reward, done, infos
+
+
+@pytest.fixture(scope="module")
+def demonstrations_and_log():
+    env = EpisodeLog(SocialNavVecEnv(WORLD, n_envs=4))
+    env.venv.seed(0)
+    teacher = make_controller("orca", socnav.load_config(WORLD))
+    return collect_demonstrations(env, teacher, 600, gamma=1.0), env.episodes
+
+
+def test_each_finished_episode_is_kept_whole_with_its_return(demonstrations_and_log):
+    """With gamma = 1 the return to go of an episode's first step is the episode's return; the steps kept are
+    exactly the finished episodes' steps, in one block per episode."""
+    demonstrations, episodes = demonstrations_and_log
+    assert len(episodes) >= 4
+    lengths = [int(episode["l"]) for episode in episodes]
+    assert len(demonstrations) == sum(lengths)
+    starts = np.cumsum([0, *lengths[:-1]])
+    np.testing.assert_allclose(demonstrations.returns[starts], [episode["r"] for episode in episodes], atol=1e-3)
+    for start, length in zip(starts, lengths, strict=True):  # one outcome per episode block
+        assert len(set(demonstrations.outcomes[start:start + length].tolist())) == 1
+    assert set(demonstrations.observations) == {"robot", "humans", "humans_mask"}
+    assert np.all(np.abs(demonstrations.actions) <= 1.0)
+
+
+def test_discounted_returns_to_go_are_computed_backwards():
+    env = SocialNavVecEnv(WORLD, n_envs=1)
+    env.seed(3)
+    log = EpisodeLog(env)
+    demonstrations = collect_demonstrations(log, make_controller("straight", env.config), 200, gamma=0.9)
+    returns = demonstrations.returns[: int(log.episodes[0]["l"])].astype(np.float64)
+    rewards = returns[:-1] - 0.9 * returns[1:]  # r_t = G_t - gamma G_{t+1}
+    # the undiscounted sum of the recovered rewards (and the last one, G_T = r_T) is the episode's return
+    assert rewards.sum() + returns[-1] == pytest.approx(log.episodes[0]["r"], abs=1e-3)
+
+
+def test_a_cloned_policy_acts_like_its_teacher(demonstrations_and_log):
+    th.set_num_threads(1)
+    demonstrations, _ = demonstrations_and_log
+    model = make_model("odv-ppo-drop", SocialNavVecEnv(WORLD, n_envs=1), seed=0, overrides=TINY)
+
+    def error() -> float:
+        actions, _ = model.policy.predict(demonstrations.observations, deterministic=True)
+        return float(np.abs(actions - demonstrations.actions).mean())
+
+    before = error()
+    history = clone(model.policy, demonstrations, epochs=30, batch_size=64, seed=0)
+    assert history[-1]["nll"] < history[0]["nll"]
+    assert history[-1]["value_loss"] < history[0]["value_loss"]
+    assert error() < 0.5 * before
+
+
+def test_imitating_an_outcome_that_never_happened_is_a_clear_error(demonstrations_and_log):
+    demonstrations, _ = demonstrations_and_log
+    model = make_model("odv-ppo-drop", SocialNavVecEnv(WORLD, n_envs=1), seed=0, overrides=TINY)
+    with pytest.raises(ValueError, match=r"imitate=\['collision_wall'\]: no demonstration ended so"):
+        clone(model.policy, demonstrations, epochs=1, imitate={"collision_wall"})
+    with pytest.raises(ValueError, match="no demonstrations"):
+        empty = Demonstrations({key: value[:0] for key, value in demonstrations.observations.items()},
+                               demonstrations.actions[:0], demonstrations.returns[:0], demonstrations.outcomes[:0])
+        clone(model.policy, empty, epochs=1)
