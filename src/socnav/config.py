@@ -265,7 +265,7 @@ class LayoutConfig(_Strict):
 
 class ScanConfig(_Strict):
     """The robot's range scan (a 2-D lidar's sensor_msgs/LaserScan): beams from -fov/2 to +fov/2 about its heading,
-    each the distance to the first wall, `range` where none is within reach."""
+    each the distance to the first wall (or person, with `people`), `range` where none is within reach."""
 
     beams: StrictInt = Field(default=72, ge=1, le=1024, description="number of beams")
     range: float = Field(
@@ -273,6 +273,10 @@ class ScanConfig(_Strict):
     )
     fov: float = Field(
         default=360.0, gt=0, le=360, description="degrees: field of view, centred on the robot's heading"
+    )
+    people: bool = Field(
+        default=False, description="the beams also stop at the humans' bodies (discs of their radius), as a real "
+        "lidar's do; false: the walls only (the humans are observed apart)",
     )
 
 

@@ -5,8 +5,12 @@ fine-tunes it, as DRL-VO starts from a supervised policy (docs/maps.md, "A super
 that followed it; `clone` fits the policy to them by maximum likelihood, and its value head to those returns, so
 that PPO's first advantages are not measured against an untrained critic:
 
-    L = - mean log pi(a_teacher | o) - ent_coef * mean H[pi(. | o)] + vf_coef * mean (V(o) - G)^2,
-    G_t = sum_k gamma^k r_{t+k}   (to the end of the teacher's episode)
+    L_mean = mean |mu(o) - a_teacher|^2                 (the deterministic action: supervised, as DRL-VO's start)
+    L_std  = - mean log N(a_teacher; sg[mu(o)], sigma(o))  (the spread: what the mean misses, mean held fixed)
+    L_V    = mean (V(o) - G)^2,   G_t = sum_k gamma^k r_{t+k}   (to the end of the teacher's episode)
+
+The mean is fitted by squares, not by the likelihood: with a spread that depends on the observation, the likelihood
+lets the network call the hard steps (the sharp turns) noise instead of learning them (Seitzer et al., ICLR 2022).
 
 Written on SB3's own `evaluate_actions`, so any `ActorCriticPolicy` can be cloned; the `imitation` package (which
 has BC) pins gymnasium 0.29 and stable-baselines3 2.2, older than socnav's.
@@ -116,21 +120,30 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
                           np.asarray(outcomes, dtype=str))
 
 
+def _critic_parameters(policy: ActorCriticPolicy) -> list[th.nn.Parameter]:
+    """The parameters only the value estimate uses (the critic's layers and head)."""
+    return [*policy.mlp_extractor.value_net.parameters(), *policy.value_net.parameters()]
+
+
 def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int = 10, batch_size: int = 256,
-          learning_rate: float = 1e-3, ent_coef: float = 1e-3, vf_coef: float = 0.5, seed: int = 0,
+          learning_rate: float = 1e-3, seed: int = 0,
           imitate: Collection[str] | None = None) -> list[dict[str, float]]:
-    """Fit `policy` (in place) to the teacher's actions and its value head to the returns (the loss above), with
-    Adam over shuffled minibatches; dropout stays on, as in training.
+    """Fit `policy` (in place) to the teacher: the action mean to its actions, the spread to what the mean misses,
+    the critic to the returns (the three losses above), with Adam over shuffled minibatches; dropout stays on, as in
+    training. The critic's loss trains only the critic's own layers: returns are tens of units where actions are
+    within [-1, 1], and through the shared extractor they would drown the actions' gradient.
 
     :param imitate: the outcomes whose episodes' actions are imitated (e.g. ``{"goal"}``: the teacher's actions in
-        the episodes where it collided are not taught); None imitates every step. The value head learns from all.
-
-    :return: per epoch, the mean ``nll`` (-log pi), ``entropy`` and ``value_loss``.
+        the episodes where it collided are not taught); None imitates every step. The critic learns from all.
+    :return: per epoch, the mean ``action_mse``, ``nll`` (-log pi with the mean held) and ``value_loss``.
     """
     if len(demonstrations) == 0:
         raise ValueError("no demonstrations: the teacher finished no episode; collect more steps")
     generator = np.random.default_rng(seed)
-    optimizer = th.optim.Adam(policy.parameters(), lr=learning_rate)
+    critic = _critic_parameters(policy)
+    critic_ids = {id(parameter) for parameter in critic}
+    actor_optimizer = th.optim.Adam([p for p in policy.parameters() if id(p) not in critic_ids], lr=learning_rate)
+    critic_optimizer = th.optim.Adam(critic, lr=learning_rate)
     observations = {key: th.as_tensor(value) for key, value in demonstrations.observations.items()}
     actions = th.as_tensor(demonstrations.actions)
     returns = th.as_tensor(demonstrations.returns)
@@ -147,19 +160,31 @@ def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int
         for rows in np.array_split(generator.permutation(len(demonstrations)),
                                    max(1, len(demonstrations) // batch_size)):
             index = th.as_tensor(rows)
-            values, log_prob, entropy = policy.evaluate_actions({key: value[index] for key, value in
-                                                                 observations.items()}, actions[index])
-            weight = taught[index].to(log_prob.dtype)
-            nll = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
-            entropy_mean = entropy.mean() if entropy is not None else -log_prob.mean()
-            value_loss = th.nn.functional.mse_loss(values.flatten(), returns[index])
-            loss = nll - ent_coef * entropy_mean + vf_coef * value_loss
-            optimizer.zero_grad()
-            loss.backward()
+            batch = {key: value[index] for key, value in observations.items()}
+            weight = taught[index].to(actions.dtype)
+            count = weight.sum().clamp(min=1.0)
+            gaussian = policy.get_distribution(batch).distribution  # torch Normal(mean, std), one per action
+            if not isinstance(gaussian, th.distributions.Normal):
+                raise TypeError(f"clone needs a Gaussian policy, got {type(gaussian).__name__}")
+            mean, std = gaussian.mean, gaussian.stddev
+            action_mse = (((mean - actions[index]) ** 2).sum(dim=1) * weight).sum() / count
+            held = th.distributions.Normal(mean.detach(), std)
+            nll = -(held.log_prob(actions[index]).sum(dim=1) * weight).sum() / count
+            actor_optimizer.zero_grad()
+            (action_mse + nll).backward()
             th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
-            optimizer.step()
-            totals += (nll.item(), entropy_mean.item(), value_loss.item())
+            actor_optimizer.step()
+
+            with th.no_grad():
+                features = policy.extract_features(batch)
+            assert isinstance(features, th.Tensor)  # one extractor shared by actor and critic
+            values = policy.value_net(policy.mlp_extractor.forward_critic(features)).flatten()
+            value_loss = th.nn.functional.mse_loss(values, returns[index])
+            critic_optimizer.zero_grad()
+            value_loss.backward()
+            critic_optimizer.step()
+            totals += (action_mse.item(), nll.item(), value_loss.item())
             batches += 1
-        history.append(dict(zip(("nll", "entropy", "value_loss"), totals / batches, strict=True)))
+        history.append(dict(zip(("action_mse", "nll", "value_loss"), totals / batches, strict=True)))
     policy.set_training_mode(False)
     return history

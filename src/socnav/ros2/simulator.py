@@ -409,12 +409,9 @@ class SimulatorNode(Node):
     def _scan_message(self) -> LaserScan:
         """The robot's range scan now, as the world's observation has it (`CrowdWorld.observe`'s ``scan``: the walls'
         ranges, the full range in the open plane), computed without observing (which would move the robot's path)."""
-        world, scan = self.world, self.config.scan
+        scan = self.config.scan
         assert scan is not None
-        if world.walls is None:
-            ranges = np.full(scan.beams, scan.range)
-        else:
-            ranges = world.walls.scan(world.positions[:1, 0], world.heading[:1], scan.beams, scan.range, scan.fov)[0]
+        ranges = self.world.range_scan(np.zeros(1, dtype=np.int64))[0]
         return ranges_to_scan(ranges, self.now_ns, self.base_frame, scan.fov, scan.range, self.time_step)
 
     def _marker_array(self, humans: np.ndarray) -> MarkerArray:

@@ -85,11 +85,12 @@ class Walls:
         return swept_segment_hit(before, after, radius, *self._segments(len(before)))
 
     def scan(self, origins: np.ndarray, headings: np.ndarray, beams: int, max_range: float,
-             fov_deg: float) -> np.ndarray:
-        """(E, beams) float32 ranges to the walls, as a sensor_msgs/LaserScan from -fov/2 counter-clockwise."""
+             fov_deg: float, circles: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(E, beams) float32 ranges to the walls (and to the discs `circles`, `geometry.range_scan`'s), as a
+        sensor_msgs/LaserScan from -fov/2 counter-clockwise."""
         fov = 2.0 * math.pi if fov_deg >= 360.0 else math.radians(fov_deg)
         ranges = range_scan(np.ascontiguousarray(origins), headings, *self._segments(len(origins)), beams, max_range,
-                            fov, one_sided=self.one_sided[: len(origins)])
+                            fov, circles=circles, one_sided=self.one_sided[: len(origins)])
         return ranges.astype(np.float32)
 
     def misplaced(self, points: np.ndarray, radii: np.ndarray) -> str | None:

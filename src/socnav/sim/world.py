@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from socnav.config import ConfigError, EnvConfig, RewardConfig
+from socnav.sim.geometry import range_scan
 from socnav.sim.humans import Crowd, MixedHumans, ScriptedHumans, make_human_model
 from socnav.sim.metrics import EpisodeMetrics
 from socnav.sim.noise import (
@@ -790,13 +791,29 @@ class CrowdWorld:
         observation = {"robot": robot, "humans": humans, "humans_mask": mask}
         if self.walls is not None:  # where the robot is on the map (a localised robot: x, y, yaw in the map frame)
             observation[POSE_KEY] = np.concatenate([positions[:, 0], heading[:, None]], axis=1).astype(np.float32)
-        scan = self.config.scan
-        if scan is not None:
-            if self.walls is None:
-                observation[SCAN_KEY] = np.full((len(positions), scan.beams), scan.range, dtype=np.float32)
-            else:
-                observation[SCAN_KEY] = self.walls.scan(positions[:, 0], heading, scan.beams, scan.range, scan.fov)
+        if self.config.scan is not None:
+            observation[SCAN_KEY] = self.range_scan(envs)
         return observation
+
+    def range_scan(self, envs: np.ndarray | None = None) -> np.ndarray:
+        """The robot's range scan ((E, beams) float32, or of `envs`): the walls' ranges (the full range in the open
+        plane) and, with ``scan.people``, the humans' bodies in its line of sight, whatever the occlusion of the
+        humans' observation (a lidar sees whom it sees)."""
+        scan = self.config.scan
+        assert scan is not None
+        rows = slice(None) if envs is None else np.asarray(envs, dtype=np.int64)
+        origins, heading = self.positions[rows, 0], self.heading[rows]
+        circles = None
+        if scan.people:
+            circles = (self.positions[rows, 1:], self.radii[rows, 1:], self.active[rows, 1:])
+        if self.walls is not None:
+            return self.walls.scan(origins, heading, scan.beams, scan.range, scan.fov, circles=circles)
+        if circles is None:
+            return np.full((len(origins), scan.beams), scan.range, dtype=np.float32)
+        fov = 2.0 * math.pi if scan.fov >= 360.0 else math.radians(scan.fov)
+        no_walls = np.zeros((len(origins), 0, 2))
+        return range_scan(origins, heading, no_walls, no_walls, np.zeros(len(origins), dtype=np.int64), scan.beams,
+                          scan.range, fov, circles=circles).astype(np.float32)
 
     def route_goals(self, envs: np.ndarray | None = None) -> np.ndarray:
         """The goal the robot observes with ``planner.observe`` ((E, 2), or of `envs`): at the distance of its goal,
