@@ -39,35 +39,60 @@ WORLD = {"scan": {"beams": 72, "range": 8.0, "fov": 360}, "planner": {"observe":
 ENVS_PER_WORLD = 4
 
 
-def worlds(humans: int | None) -> list[dict[str, Any]]:
-    """The env config of each scenario; `humans`: humans per episode (None: the scenario's default crowd)."""
-    return [{"scenario": name, **WORLD, **({} if humans is None else {"n_humans": humans})} for name in SCENARIOS]
+def worlds(humans: int | None, scan: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """The env config of each scenario; `humans`: humans per episode (None: the scenario's default crowd); `scan`:
+    the scan's settings (None: WORLD's)."""
+    return [{"scenario": name, **WORLD, **({} if scan is None else {"scan": scan}),
+             **({} if humans is None else {"n_humans": humans})} for name in SCENARIOS]
+
+
+def _scan_of(policy: Any) -> dict[str, Any]:
+    """The scan settings of the world a saved policy was trained in (its observation)."""
+    return dict(policy.socnav_metadata["env_config"]["scan"])
+
+
+def _collect(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace, seed: int,
+             driver: Any = None) -> Demonstrations:
+    """``--clone`` steps of the ORCA robot's labels in each world, the robot driven by it or by `driver`."""
+    parts = []
+    for index, config in enumerate(configs):
+        world = SocialNavVecEnv(config, n_envs=16)
+        world.seed(seed + 1000 * index)
+        parts.append(collect_demonstrations(world, make_controller("orca", world.config), args.clone,
+                                            gamma=model.gamma, driver=driver))
+    return Demonstrations.concatenate(parts)
 
 
 def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace) -> None:
     """Clone the ORCA robot with the planner (`socnav.rl.imitation`): ``--clone`` of its steps in each world (the
-    training seeds), imitating the episodes that ended as ``--imitate`` says, value head fitted to all."""
-    started = time.monotonic()
-    parts = []
-    for index, config in enumerate(configs):
-        world = SocialNavVecEnv(config, n_envs=16)
-        world.seed(args.seed + 1000 * index)
-        parts.append(collect_demonstrations(world, make_controller("orca", world.config), args.clone,
-                                            gamma=model.gamma))
-    demonstrations = Demonstrations.concatenate(parts)
-    names, counts = np.unique(demonstrations.outcomes, return_counts=True)
-    print(f"{len(demonstrations):,} teacher steps ({dict(zip(names.tolist(), counts.tolist(), strict=True))}), "
-          f"{time.monotonic() - started:.0f} s", flush=True)
+    training seeds), imitating the episodes that ended as ``--imitate`` says, value head fitted to all; then
+    ``--dagger`` rounds in which the policy drives and the ORCA robot labels every state it reaches (all imitated,
+    whatever the episode's end: the label is what the teacher would do there)."""
+    demonstrations = None
     imitate = None if args.imitate == "all" else {args.imitate}
-    for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=args.clone_epochs, seed=args.seed,
-                                         imitate=imitate)):
-        print(f"clone epoch {epoch}: " + ", ".join(f"{key} {value:.3f}" for key, value in losses.items()), flush=True)
+    for round_ in range(1 + args.dagger):
+        started = time.monotonic()
+        driver = None if round_ == 0 else model.policy
+        part = _collect(model, configs, args, args.seed + 100_000 * round_, driver)
+        if driver is not None:  # DAgger's labels are imitated whatever the driver's episode came to
+            part.outcomes = np.char.add("driven_", part.outcomes)
+            imitate = None if imitate is None else imitate | set(np.unique(part.outcomes).tolist())
+        names, counts = np.unique(part.outcomes, return_counts=True)
+        print(f"round {round_}: {len(part):,} labelled steps ({dict(zip(names.tolist(), counts.tolist(), strict=True))}"
+              f"), {time.monotonic() - started:.0f} s", flush=True)
+        demonstrations = part if demonstrations is None else Demonstrations.concatenate([demonstrations, part])
+        for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=args.clone_epochs,
+                                             seed=args.seed + round_, imitate=imitate)):
+            print(f"clone epoch {epoch}: " + ", ".join(f"{key} {value:.3f}" for key, value in losses.items()),
+                  flush=True)
 
 
 def train(args: argparse.Namespace) -> None:
-    configs = worlds(args.humans)
+    start_policy = None if args.start is None else load_policy(args.start)
+    start = None if start_policy is None else dict(start_policy.socnav_metadata)
+    scan = {**WORLD["scan"], "people": args.scan_people} if start_policy is None else _scan_of(start_policy)
+    configs = worlds(args.humans, scan)
     env: Any = MixedVecEnv(configs, ENVS_PER_WORLD)
-    start = None if args.start is None else dict(load_policy(args.start).socnav_metadata)
     # the smoothing cost of docs/training.md ("Smooth driving"); None: the start policy's (0 for a fresh one)
     penalty = args.action_change_penalty
     if penalty is None:
@@ -120,7 +145,10 @@ def evaluate(args: argparse.Namespace) -> None:
         actors = {"ORCA robot": make_controller("orca", world), **policies}
         if not world.obstacles and world.scenario in ("position_swap", "circle_crossing"):
             actors["shipped policy (open plane)"] = load_policy("pretrained")
-        rows = {label: rollout_episodes(actor, world, args.episodes, seed=args.seed, n_envs=50, progress=False)
+        # each policy in the world it observes (with the scan it was trained with: the episodes are the same)
+        rows = {label: rollout_episodes(actor, world if label not in policies else
+                                        load_config({**config, "scan": _scan_of(actor)}),
+                                        args.episodes, seed=args.seed, n_envs=50, progress=False)
                 for label, actor in actors.items()}
         orca = rows["ORCA robot"]
         for label, records in rows.items():
@@ -142,8 +170,12 @@ def main() -> None:
     parser.add_argument("--clone", type=int, default=0, metavar="STEPS",
                         help="a fresh policy first imitates the ORCA robot for STEPS of its steps per world")
     parser.add_argument("--clone-epochs", type=int, default=10)
+    parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
+                        help="after cloning, ROUNDS in which the policy drives and the ORCA robot labels")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
                         help="which of the teacher's episodes are imitated (by how they ended)")
+    parser.add_argument("--scan-people", action="store_true",
+                        help="a fresh policy's scan also sees the people (scan.people)")
     parser.add_argument("--frame", choices=("goal", "heading"), default="goal",
                         help="the frame the network reads the humans in (a fresh policy only; AlgoConfig.frame)")
     parser.add_argument("--out", type=Path)

@@ -93,3 +93,20 @@ def test_imitating_an_outcome_that_never_happened_is_a_clear_error(demonstration
         empty = Demonstrations({key: value[:0] for key, value in demonstrations.observations.items()},
                                demonstrations.actions[:0], demonstrations.returns[:0], demonstrations.outcomes[:0])
         clone(model.policy, empty, epochs=1)
+
+
+def test_with_a_driver_the_driver_moves_and_the_teacher_labels():
+    """DAgger's collection: the episodes are the driver's (their returns are those the environment reports for
+    the driver's episodes) and each kept action is what the teacher does at that state."""
+    config = socnav.load_config(WORLD)
+    teacher, driver = make_controller("orca", config), make_controller("straight", config)
+    driven, alone = EpisodeLog(SocialNavVecEnv(WORLD, n_envs=4)), EpisodeLog(SocialNavVecEnv(WORLD, n_envs=4))
+    driven.venv.seed(1)
+    alone.venv.seed(1)
+    demonstrations = collect_demonstrations(driven, teacher, 400, gamma=1.0, driver=driver)
+    collect_demonstrations(alone, driver, 400, gamma=1.0)
+    assert [episode["r"] for episode in driven.episodes] == [episode["r"] for episode in alone.episodes]
+    relabelled, _ = teacher.predict(demonstrations.observations)
+    np.testing.assert_allclose(demonstrations.actions, np.clip(relabelled, -1, 1), atol=1e-6)
+    straight, _ = driver.predict(demonstrations.observations)
+    assert np.abs(straight - demonstrations.actions).max() > 0.1  # the two controllers do differ here

@@ -70,9 +70,14 @@ def _returns_to_go(rewards: list[float], gamma: float) -> np.ndarray:
     return returns
 
 
-def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: float = 0.99) -> Demonstrations:
+def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: float = 0.99,
+                           driver: Teacher | None = None) -> Demonstrations:
     """Run `teacher` in `env` (already seeded) for ``steps`` env-steps in all (rounded up to whole batches) and keep
     the steps of the episodes that ended, each with its return to go (an unfinished episode has no return yet).
+
+    With a `driver` (DAgger, Ross et al. 2011: the policy being taught) the driver's actions move the robot and the
+    teacher's actions at the states the driver reaches are kept: the states a cloned policy drifts into, labelled
+    with what the teacher would do there; the returns and outcomes are the driver's episodes'.
 
     A teacher with ``on_episode_start(envs)`` (the ORCA robot, which keeps each robot's path) is told which
     environments began a new episode."""
@@ -98,6 +103,8 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
         for key, value in observation.items():
             stored[key].append(np.asarray(value, dtype=np.float32))
         actions.append(action)
+        if driver is not None:
+            action = np.clip(np.asarray(driver.predict(observation, deterministic=True)[0], dtype=np.float32), -1, 1)
         base = (len(actions) - 1) * n_envs
         stepped, reward, done, infos = env.step(action)
         assert isinstance(stepped, dict)
@@ -163,7 +170,10 @@ def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int
             batch = {key: value[index] for key, value in observations.items()}
             weight = taught[index].to(actions.dtype)
             count = weight.sum().clamp(min=1.0)
-            gaussian = policy.get_distribution(batch).distribution  # torch Normal(mean, std), one per action
+            features = policy.extract_features(batch)
+            assert isinstance(features, th.Tensor)  # one extractor shared by actor and critic
+            latent = policy.mlp_extractor.forward_actor(features)
+            gaussian = policy._get_action_dist_from_latent(latent).distribution  # Normal(mean, std) per action
             if not isinstance(gaussian, th.distributions.Normal):
                 raise TypeError(f"clone needs a Gaussian policy, got {type(gaussian).__name__}")
             mean, std = gaussian.mean, gaussian.stddev
@@ -175,10 +185,7 @@ def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int
             th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
             actor_optimizer.step()
 
-            with th.no_grad():
-                features = policy.extract_features(batch)
-            assert isinstance(features, th.Tensor)  # one extractor shared by actor and critic
-            values = policy.value_net(policy.mlp_extractor.forward_critic(features)).flatten()
+            values = policy.value_net(policy.mlp_extractor.forward_critic(features.detach())).flatten()
             value_loss = th.nn.functional.mse_loss(values, returns[index])
             critic_optimizer.zero_grad()
             value_loss.backward()
