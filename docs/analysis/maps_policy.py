@@ -8,8 +8,11 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --evaluate maps=runs/maps/crowd.zip --episodes 200 --seed 0
     # smooth driving (docs/training.md): --action-change-penalty 0.05 on the crowd stage
     # the humans in the scan's frame (the robot's heading): --frame heading on the first stage
-    # a supervised start (DRL-VO's), imitating the ORCA robot's successful episodes, then PPO in the crowd:
+    # a supervised start (DRL-VO's), imitating the ORCA robot's successful episodes (50,000 of its steps per
+    # world; the clone alone is saved as runs/maps/cloned_clone.zip), then PPO in the crowd, then more PPO:
     python docs/analysis/maps_policy.py --clone 50000 --steps 1000000 --out runs/maps/cloned.zip
+    python docs/analysis/maps_policy.py --start runs/maps/cloned.zip --steps 1500000 --out runs/maps/cloned_2500k.zip
+    # ablations of the clone: --scan-people (the scan sees the people), --frame heading, --dagger 3 (with --steps 0)
 """
 
 from __future__ import annotations
@@ -81,7 +84,8 @@ def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.N
         print(f"round {round_}: {len(part):,} labelled steps ({dict(zip(names.tolist(), counts.tolist(), strict=True))}"
               f"), {time.monotonic() - started:.0f} s", flush=True)
         demonstrations = part if demonstrations is None else Demonstrations.concatenate([demonstrations, part])
-        for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=args.clone_epochs,
+        epochs = args.clone_epochs if round_ == 0 else args.dagger_epochs
+        for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=epochs,
                                              seed=args.seed + round_, imitate=imitate)):
             print(f"clone epoch {epoch}: " + ", ".join(f"{key} {value:.3f}" for key, value in losses.items()),
                   flush=True)
@@ -92,6 +96,8 @@ def train(args: argparse.Namespace) -> None:
     start = None if start_policy is None else dict(start_policy.socnav_metadata)
     scan = {**WORLD["scan"], "people": args.scan_people} if start_policy is None else _scan_of(start_policy)
     configs = worlds(args.humans, scan)
+    if args.collision_penalty is not None:  # the reward is not observed: a policy may continue under another
+        configs = [{**config, "reward": {"collision": args.collision_penalty}} for config in configs]
     env: Any = MixedVecEnv(configs, ENVS_PER_WORLD)
     # the smoothing cost of docs/training.md ("Smooth driving"); None: the start policy's (0 for a fresh one)
     penalty = args.action_change_penalty
@@ -172,8 +178,11 @@ def main() -> None:
     parser.add_argument("--clone-epochs", type=int, default=10)
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="after cloning, ROUNDS in which the policy drives and the ORCA robot labels")
+    parser.add_argument("--dagger-epochs", type=int, default=3, help="epochs over all labels after each round")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
                         help="which of the teacher's episodes are imitated (by how they ended)")
+    parser.add_argument("--collision-penalty", type=float, default=None,
+                        help="the reward's collision penalty (default: WORLD's, 20)")
     parser.add_argument("--scan-people", action="store_true",
                         help="a fresh policy's scan also sees the people (scan.people)")
     parser.add_argument("--frame", choices=("goal", "heading"), default="goal",

@@ -1,5 +1,5 @@
 """Behaviour cloning: a policy's starting point taught by a controller (the ORCA robot with the planner) before PPO
-fine-tunes it, as DRL-VO starts from a supervised policy (docs/maps.md, "A supervised start").
+fine-tunes it, as DRL-VO starts from a supervised policy (docs/maps.md, "Learning among walls").
 
 `collect_demonstrations` runs the teacher in a VecEnv and keeps every step of its finished episodes with the return
 that followed it; `clone` fits the policy to them by maximum likelihood, and its value head to those returns, so
