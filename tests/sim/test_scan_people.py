@@ -1,5 +1,5 @@
-"""``scan.people``: the range scan also stops at the humans' bodies, as a real lidar's beams do. Checked against ray-disc
-intersections computed here by hand, beside the walls-only scan of the same world."""
+"""``scan.people``: the range scan also stops at the humans' bodies, as a real lidar's beams do. Checked against
+ray-disc intersections computed here by hand, beside the walls-only scan of the same world."""
 
 from __future__ import annotations
 

@@ -1,0 +1,36 @@
+"""docs/analysis/maps_policy.py, the script behind docs/maps.md's tables of learned map policies: a tiny supervised
+start with one DAgger round, then PPO continued from it under another collision penalty, end to end."""
+
+from __future__ import annotations
+
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+import socnav
+
+SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "analysis" / "maps_policy.py"
+
+
+def _run(monkeypatch, *args: str) -> None:
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *args])
+    runpy.run_path(str(SCRIPT), run_name="__main__")
+
+
+def test_clone_dagger_then_continue(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cloned.zip"
+    _run(monkeypatch, "--clone", "3000", "--dagger", "1", "--clone-epochs", "1", "--dagger-epochs", "1",
+         "--frame", "heading", "--scan-people", "--steps", "0", "--out", str(out))
+    printed = capsys.readouterr().out
+    assert "round 0:" in printed and "round 1:" in printed and "driven_" in printed
+    clone = socnav.load_policy(tmp_path / "cloned_clone.zip")
+    assert clone.features_extractor.frame == "heading"
+    assert clone.socnav_metadata["env_config"]["scan"]["people"] is True
+    _run(monkeypatch, "--start", str(tmp_path / "cloned_clone.zip"), "--collision-penalty", "50", "--steps", "2048",
+         "--chunk", "2048", "--out", str(tmp_path / "continued.zip"))
+    continued = socnav.load_policy(tmp_path / "continued.zip")
+    assert continued.socnav_metadata["timesteps"] == 2048
+    assert continued.socnav_metadata["env_config"]["reward"]["collision"] == pytest.approx(50.0)
+    assert continued.socnav_metadata["env_config"]["scan"]["people"] is True  # the start's world, kept
