@@ -3,8 +3,8 @@ ORCA robot in position swap with one human, then DAgger rounds (`socnav.rl.imita
 robot and the shipped policy on the same held-out episodes, with jerk and path irregularity as multiples of the ORCA
 robot's.
 
-    python docs/analysis/open_plane_dagger.py --steps 50000 --rounds 5 --out runs/open_plane_dagger.zip \
-        --episodes 200 --seed 5000
+    python docs/analysis/open_plane_dagger.py --steps 50000 --rounds 5 --out runs/open_plane_dagger.zip --episodes 200
+    python docs/analysis/open_plane_dagger.py --steps 100000 --rounds 10 --out runs/open_plane_dagger10.zip
 """
 
 from __future__ import annotations
