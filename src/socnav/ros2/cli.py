@@ -155,7 +155,10 @@ def navigator(
                       highlight=False)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        # Polled, not `executor.spin()`: on simulated time with no /clock coming (the simulator gone) nothing wakes
+        # a blocked wait, and a signal's shutdown was seen to leave `spin()` waiting for ever (1 run in ~50 in CI).
+        while node.context.ok():
+            executor.spin_once(timeout_sec=0.1)
 
     _spin(rclpy, ctx.args, lambda: NavigatorNode(parameter_overrides=overrides), run)
 
