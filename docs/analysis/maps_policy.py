@@ -109,7 +109,8 @@ def train(args: argparse.Namespace) -> None:
         model = to_sb3(args.start, env=env, seed=args.seed)
         metadata = start
     else:
-        model = make_model("odv-ppo-drop", env, seed=args.seed, overrides={"frame": args.frame})
+        model = make_model("odv-ppo-drop", env, seed=args.seed,
+                           overrides={"frame": args.frame, "scan_encoding": args.scan_encoding})
         metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
         if args.clone:
             supervised_start(model, configs, args)
@@ -187,6 +188,8 @@ def main() -> None:
                         help="a fresh policy's scan also sees the people (scan.people)")
     parser.add_argument("--frame", choices=("goal", "heading"), default="goal",
                         help="the frame the network reads the humans in (a fresh policy only; AlgoConfig.frame)")
+    parser.add_argument("--scan-encoding", choices=("range", "nearness"), default="range",
+                        help="what the scan encoder reads of each beam (a fresh policy only; AlgoConfig.scan_encoding)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--action-change-penalty", type=float, default=None,
                         help="smoothing cost per step (docs/training.md); default: the start policy's, else 0")

@@ -157,7 +157,7 @@ class NavigatorGraph(nn.Module):
         parts = [h * keep[n_lstm], robot]
         masks = iter(keep[n_lstm + 1:])  # the scan encoder's (if any), then the actor's
         if self.scan_encoder is not None:
-            parts.append(_masked(self.scan_encoder.layers, scan / self.scan_encoder.max_range, masks))
+            parts.append(_masked(self.scan_encoder.layers, self.scan_encoder.normalise(scan), masks))
         features = th.cat(parts, dim=1)
         latent = _masked(self.actor, features, masks)
         mean = self.action_net(latent)

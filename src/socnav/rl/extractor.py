@@ -38,8 +38,10 @@ from torch import nn
 
 from socnav.sim.walls import SCAN_KEY
 
-__all__ = ["FRAMES", "Dropout", "HumanLSTMExtractor", "ScanEncoder", "to_heading_frame"]
+__all__ = ["FRAMES", "SCAN_ENCODINGS", "Dropout", "HumanLSTMExtractor", "ScanEncoder", "to_heading_frame"]
 
+#: What the scan encoder reads of each beam (`AlgoConfig.scan_encoding`, :meth:`ScanEncoder.normalise`).
+SCAN_ENCODINGS = ("range", "nearness")
 #: The frames the extractor can read the humans and the goal in (`AlgoConfig.frame`).
 FRAMES = ("goal", "heading")
 #: Columns of a human row that are 2-D vectors (relative position, relative velocity) and of the robot row the
@@ -144,7 +146,8 @@ class BeamPadding(nn.Module):
 class ScanEncoder(nn.Module):
     """The range scan as ``S`` features: two strided 1-D convolutions over the beams and a linear layer.
 
-    ``x = scan / max_range`` (in [0, 1]); then, with ``Dropout`` in front of every layer that has weights and on the
+    ``x = scan / max_range`` (``encoding="range"``) or ``x = exp(-scan / NEARNESS_SCALE)`` (``"nearness"``), both
+    in [0, 1] (:meth:`normalise`); then, with ``Dropout`` in front of every layer that has weights and on the
     output (the places the LSTM path has them, so that MC-dropout samples this branch too)::
 
         c1 = relu(conv(dropout(x)))        1 -> 8 channels, kernel 5, stride 2:   N -> ceil(N / 2) beams
@@ -161,16 +164,22 @@ class ScanEncoder(nn.Module):
     :param beams: N, the scan's beams. :param max_range: the range a beam reads when it hits nothing (m).
     :param fov: field of view in degrees (360: circular padding). :param dropout_p: the dropout probability.
     :param features: S. :param channels: channels of the two convolutions.
+    :param encoding: ``"range"`` or ``"nearness"`` (:data:`SCAN_ENCODINGS`).
     """
 
     KERNEL, STRIDE = 5, 2
+    #: The length (m) over which a beam's nearness falls by e: 1 at contact, 0.37 at 1 m, 0.0003 at 8 m.
+    NEARNESS_SCALE = 1.0
 
     def __init__(self, beams: int, max_range: float, fov: float, dropout_p: float, features: int = 32,
-                 channels: tuple[int, int] = (8, 16)) -> None:
+                 channels: tuple[int, int] = (8, 16), encoding: str = "range") -> None:
         super().__init__()
         if not (beams >= 1 and np.isfinite(max_range) and max_range > 0.0):
             raise ValueError(f"a scan needs beams >= 1 and a finite max_range > 0, got {beams} and {max_range}")
+        if encoding not in SCAN_ENCODINGS:
+            raise ValueError(f"scan_encoding must be one of {list(SCAN_ENCODINGS)}, got {encoding!r}")
         self.beams, self.max_range, self.fov, self.features = int(beams), float(max_range), float(fov), int(features)
+        self.encoding = encoding
         circular = self.fov >= 360.0
         pad = self.KERNEL // 2
         layers: list[nn.Module] = [Dropout(dropout_p)]
@@ -183,9 +192,19 @@ class ScanEncoder(nn.Module):
         layers += [nn.Linear(width * length, self.features), nn.Tanh(), Dropout(dropout_p)]
         self.layers = nn.Sequential(*layers)
 
+    def normalise(self, scan: th.Tensor) -> th.Tensor:
+        """The network's input (B, N) in [0, 1] of the ranges ``scan`` (B, N).
+
+        ``"range"`` reads a wall at 0.3 m and one at 0.5 m as 0.04 and 0.06 (of an 8 m range), and a beam that
+        dropout zeroes as a wall touching the robot. ``"nearness"`` reads them as 0.74 and 0.61, and a dropped beam
+        as nothing near: the resolution is where a collision is decided."""
+        if self.encoding == "nearness":
+            return th.exp(-scan / self.NEARNESS_SCALE)
+        return scan / self.max_range
+
     def forward(self, scan: th.Tensor) -> th.Tensor:
         """(B, S) features of the ranges ``scan`` (B, N)."""
-        return self.layers(scan / self.max_range)
+        return self.layers(self.normalise(scan))
 
     def dropout_layers(self) -> list[nn.Dropout]:
         """The dropout modules, in forward order."""
@@ -228,6 +247,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
     :param scan_features: ``S``, the scan encoder's output size. Read only with a scan.
     :param frame: ``"goal"`` reads the observation as it is; ``"heading"`` reads the humans and the goal in the
         robot's heading frame (:func:`to_heading_frame`; the robot part gains 2 features).
+    :param scan_encoding: what the scan encoder reads of each beam (:meth:`ScanEncoder.normalise`).
     """
 
     h_min: th.Tensor  # (H,) buffers: the tracked feature range
@@ -242,6 +262,7 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         scan_fov: float = 360.0,
         scan_features: int = 32,
         frame: str = "goal",
+        scan_encoding: str = "range",
     ) -> None:
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {list(FRAMES)}, got {frame!r}")
@@ -269,7 +290,8 @@ class HumanLSTMExtractor(BaseFeaturesExtractor):
         self.register_buffer("h_max", th.full((lstm_hidden_size,), float("-inf")))
         # Created last, and only with a scan: the modules above draw the same initial weights with or without one.
         self.scan_encoder = None if scan_space is None else ScanEncoder(
-            int(scan_space.shape[0]), float(np.max(scan_space.high)), scan_fov, dropout_p, features=scan_features)
+            int(scan_space.shape[0]), float(np.max(scan_space.high)), scan_fov, dropout_p, features=scan_features,
+            encoding=scan_encoding)
 
     # ------------------------------------------------------------------------------------------------------
     def encode_humans(self, humans: th.Tensor, mask: th.Tensor) -> th.Tensor:

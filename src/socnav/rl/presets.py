@@ -63,6 +63,10 @@ class AlgoConfig(StrictModel):
     frame: Literal["goal", "heading"] = Field(
         default="goal", description="the frame the network reads the humans and the goal in: 'goal' (the paper's, "
         "the observation as it is) or 'heading' (the robot's heading, the range scan's frame; docs/maps.md)")
+    scan_encoding: Literal["range", "nearness"] = Field(
+        default="range", description="what the scan encoder reads of each beam: 'range' (range / max range) or "
+        "'nearness' (exp(-range / 1 m): resolution near the robot, a dropped beam reads 'nothing near'; "
+        "docs/maps.md)")
     # -- observation-dependent variance (paper IV-A) --
     odv: bool = False
     log_std_min: float = Field(default=-20.0, ge=-50, le=5)
@@ -174,7 +178,7 @@ def policy_kwargs_for(cfg: AlgoConfig) -> dict[str, Any]:
         log_std_max=cfg.log_std_max,
         lstm_hidden_size=cfg.lstm_hidden_size,
         n_lstm_layers=cfg.n_lstm_layers,
-        features_extractor_kwargs={"frame": cfg.frame},
+        features_extractor_kwargs={"frame": cfg.frame, "scan_encoding": cfg.scan_encoding},
     )
 
 
