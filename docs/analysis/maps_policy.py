@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import binomtest
 
 from socnav.config import load_config
-from socnav.controllers import make_controller
+from socnav.controllers import OrcaController, make_controller
 from socnav.envs.mixed import MixedVecEnv
 from socnav.envs.rollout import rollout_episodes
 from socnav.envs.vec_env import SocialNavVecEnv
@@ -61,8 +61,8 @@ def _collect(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace
     for index, config in enumerate(configs):
         world = SocialNavVecEnv(config, n_envs=16)
         world.seed(seed + 1000 * index)
-        parts.append(collect_demonstrations(world, make_controller("orca", world.config), args.clone,
-                                            gamma=model.gamma, driver=driver))
+        teacher = OrcaController(world.config, stopped_turn=args.teacher_turn)
+        parts.append(collect_demonstrations(world, teacher, args.clone, gamma=model.gamma, driver=driver))
     return Demonstrations.concatenate(parts)
 
 
@@ -180,6 +180,8 @@ def main() -> None:
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="after cloning, ROUNDS in which the policy drives and the ORCA robot labels")
     parser.add_argument("--dagger-epochs", type=int, default=3, help="epochs over all labels after each round")
+    parser.add_argument("--teacher-turn", choices=("velocity", "goal"), default="velocity",
+                        help="how the ORCA teacher turns while a velocity behind it stops it (its stopped_turn)")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
                         help="which of the teacher's episodes are imitated (by how they ended)")
     parser.add_argument("--collision-penalty", type=float, default=None,

@@ -26,14 +26,23 @@ def _batched(observation: Observation) -> tuple[Observation, bool]:
     return observation, single
 
 
+#: How a robot that a velocity behind it has stopped turns (`holonomic_to_unicycle`'s ``stopped_turn``).
+STOPPED_TURNS = ("velocity", "goal")
+
+
 def holonomic_to_unicycle(
-    desired: np.ndarray, observation: Observation, max_heading_change: float
+    desired: np.ndarray, observation: Observation, max_heading_change: float, stopped_turn: str = "velocity"
 ) -> np.ndarray:
     """Turn desired velocities (goal frame, (E, 2)) into actions in [-1, 1]^2 within the robot's limits.
 
     Turn towards the desired direction by at most `max_heading_change`; drive at |u| cos(remaining heading error)
-    so the robot never moves sideways of where ORCA allows, and stops while it is still facing away.
+    so the robot never moves sideways of where ORCA allows, and stops while it is still facing away. Stopped so,
+    it turns towards the desired velocity (``stopped_turn="velocity"``) or to face the goal (``"goal"``, the path's
+    subgoal when the observation follows the planner): near a wall ORCA's answer is a slow velocity away from it,
+    whose side flips from step to step, and a policy imitating those labels averages them to driving on (docs/maps.md).
     """
+    if stopped_turn not in STOPPED_TURNS:
+        raise ValueError(f"stopped_turn must be one of {list(STOPPED_TURNS)}, got {stopped_turn!r}")
     robot = observation["robot"].astype(np.float64)
     heading, preferred_speed = robot[:, 1], np.maximum(robot[:, 3], 1e-6)
     speed = np.linalg.norm(desired, axis=1)
@@ -41,6 +50,9 @@ def holonomic_to_unicycle(
     error = np.remainder(target - heading + np.pi, 2 * np.pi) - np.pi
     turn = np.clip(error, -max_heading_change, max_heading_change)
     forward = np.minimum(speed, preferred_speed) * np.maximum(np.cos(error - turn), 0.0)
+    if stopped_turn == "goal":
+        to_goal = np.clip(np.remainder(-heading + np.pi, 2 * np.pi) - np.pi, -max_heading_change, max_heading_change)
+        turn = np.where(np.cos(error - turn) <= 0.0, to_goal, turn)
     actions = np.stack([2.0 * forward / preferred_speed - 1.0, turn / max_heading_change], axis=1)
     return np.clip(actions, -1.0, 1.0).astype(np.float32)
 
@@ -82,6 +94,7 @@ class OrcaController:
     the robot's share of the avoidance effort and `safety_margin` metres are added to every human's radius
     (defaults: the config's `robot_orca_share` and `robot_orca_safety_margin`). `walls`: the polygons to keep off
     (RVO2's convention, validated by the caller); None: the config's (its scenario's map, ``obstacles``, ``map``).
+    `stopped_turn`: how the robot turns while ORCA's velocity, behind it, stops it (`holonomic_to_unicycle`).
 
     Among walls, with the config's ``planner`` on (the default), ORCA's preferred velocity points at the subgoal of
     the robot's shortest path to its goal (`socnav.sim.planning`), planned from the observation's ``pose`` and goal;
@@ -90,9 +103,13 @@ class OrcaController:
     """
 
     def __init__(self, config: EnvConfig, radius_scale: float = 1.0, share: float | None = None,
-                 safety_margin: float | None = None, walls: Sequence[np.ndarray] | None = None):
+                 safety_margin: float | None = None, walls: Sequence[np.ndarray] | None = None,
+                 stopped_turn: str = "velocity"):
         if radius_scale <= 0:
             raise ValueError(f"radius_scale must be > 0, got {radius_scale}")
+        if stopped_turn not in STOPPED_TURNS:
+            raise ValueError(f"stopped_turn must be one of {list(STOPPED_TURNS)}, got {stopped_turn!r}")
+        self.stopped_turn = stopped_turn
         self.config = config
         self.radius_scale = radius_scale
         self.share = config.robot_orca_share if share is None else share
@@ -212,7 +229,7 @@ class OrcaController:
         """SB3's `predict`: the actions of a (batch of) observation(s), no recurrent state."""
         observation, single = _batched(observation)
         actions = holonomic_to_unicycle(self.desired_velocity(observation), observation,
-                                        self.config.max_heading_change)
+                                        self.config.max_heading_change, self.stopped_turn)
         return (actions[0] if single else actions), None
 
 
