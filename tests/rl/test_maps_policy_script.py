@@ -22,11 +22,13 @@ def _run(monkeypatch, *args: str) -> None:
 def test_clone_dagger_then_continue(tmp_path, monkeypatch, capsys):
     out = tmp_path / "cloned.zip"
     _run(monkeypatch, "--clone", "3000", "--dagger", "1", "--clone-epochs", "1", "--dagger-epochs", "1",
-         "--frame", "heading", "--scan-people", "--steps", "0", "--out", str(out))
+         "--frame", "heading", "--scan-people", "--scan-encoding", "nearness", "--teacher-turn", "goal",
+         "--steps", "0", "--out", str(out))
     printed = capsys.readouterr().out
     assert "round 0:" in printed and "round 1:" in printed and "driven_" in printed
     clone = socnav.load_policy(tmp_path / "cloned_clone.zip")
     assert clone.features_extractor.frame == "heading"
+    assert clone.features_extractor.scan_encoder.encoding == "nearness"
     assert clone.socnav_metadata["env_config"]["scan"]["people"] is True
     _run(monkeypatch, "--start", str(tmp_path / "cloned_clone.zip"), "--collision-penalty", "50", "--steps", "2048",
          "--chunk", "2048", "--out", str(tmp_path / "continued.zip"))
@@ -34,3 +36,4 @@ def test_clone_dagger_then_continue(tmp_path, monkeypatch, capsys):
     assert continued.socnav_metadata["timesteps"] == 2048
     assert continued.socnav_metadata["env_config"]["reward"]["collision"] == pytest.approx(50.0)
     assert continued.socnav_metadata["env_config"]["scan"]["people"] is True  # the start's world, kept
+    assert continued.features_extractor.scan_encoder.encoding == "nearness"
