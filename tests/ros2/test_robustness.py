@@ -191,7 +191,7 @@ def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
     which ends the spin by itself); the exit is the clean "interrupted" one, and the handlers are restored."""
     from socnav.ros2.cli import _spin
 
-    class FakeRclpy:  # init / ok / shutdown on a flag
+    class FakeRclpy:  # init / ok / shutdown / try_shutdown on a flag
         alive = False
 
         def init(self, args):
@@ -201,6 +201,9 @@ def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
             return self.alive
 
         def shutdown(self):
+            self.alive = False
+
+        def try_shutdown(self):
             self.alive = False
 
     class FakeNode:
@@ -213,7 +216,9 @@ def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
 
         def run(_node, number=number, rclpy=rclpy):
             signal.raise_signal(number)  # delivered to the Python handler here: no KeyboardInterrupt
-            rclpy.alive = False  # what rclpy's own handler does; the executor's spin then returns
+            # rclpy's own handler shuts the context down too, from its thread; should its wake-up be lost, the
+            # navigator's polling spin still ends, because the Python handler shut ROS 2 down as well:
+            assert not rclpy.ok()
 
         _spin(rclpy, [], FakeNode, run)
         assert capsys.readouterr().out.strip() == "interrupted: shutting down"

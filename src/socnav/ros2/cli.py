@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import signal
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -44,11 +44,16 @@ class _Signals:
     def __init__(self) -> None:
         self.received: list[int] = []
         self.ros_up = False
+        #: shuts ROS 2 down (``rclpy.try_shutdown``), set with ``ros_up``
+        self.shutdown: Callable[[], None] | None = None
 
     def handle(self, number: int, _frame: FrameType | None) -> None:
         self.received.append(number)
         if not self.ros_up or len(self.received) > 1:
             raise KeyboardInterrupt
+        if self.shutdown is not None:  # rclpy's handler has done it already, unless its wake-up was lost
+            with suppress(Exception):  # shutting down already, from rclpy's own handler thread
+                self.shutdown()
 
 
 @contextmanager
@@ -89,7 +94,7 @@ def _spin_ros(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: C
     from socnav.safety import ThresholdsError
 
     rclpy.init(args=["socnav", *arguments])
-    signals.ros_up = True
+    signals.ros_up, signals.shutdown = True, rclpy.try_shutdown
     node = None
     try:
         try:
@@ -120,7 +125,7 @@ def _spin_ros(rclpy: Any, arguments: list[str], build: Callable[[], Any], run: C
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
-        signals.ros_up = False
+        signals.ros_up, signals.shutdown = False, None
 
 
 @app.command(context_settings=_ROS_ARGUMENTS)
