@@ -43,6 +43,20 @@ def test_a_velocity_behind_stops_the_robot_and_each_rule_turns_its_way(side):
     assert by_velocity[0] == pytest.approx(-1.0) and by_goal[0] == pytest.approx(-1.0)  # stopped either way
     assert by_velocity[1] == pytest.approx(side)  # left-behind (side 1): full left; right-behind: full right
     assert by_goal[1] == pytest.approx(-heading / MAX_TURN, abs=1e-6)
+    by_goal_if_behind = holonomic_to_unicycle(desired, _observation(heading), MAX_TURN, "goal-if-behind")[0]
+    np.testing.assert_array_equal(by_goal_if_behind, by_goal)  # 0.01 rad off straight behind: no clear side
+
+
+def test_goal_if_behind_turns_towards_a_velocity_with_a_clear_side():
+    """Stopped by a velocity 120 degrees to the robot's left (a person coming at it from the front right, say):
+    "goal" faces the goal, "goal-if-behind" turns left, towards the velocity, as "velocity" does."""
+    desired = 0.3 * np.array([[math.cos(2.1), math.sin(2.1)]])
+    observation = _observation(0.0)
+    by_velocity, by_goal, by_goal_if_behind = (holonomic_to_unicycle(desired, observation, MAX_TURN, rule)[0]
+                                               for rule in ("velocity", "goal", "goal-if-behind"))
+    assert by_velocity[0] == pytest.approx(-1.0)  # stopped: cos(2.1 - 0.52) < 0
+    assert by_velocity[1] == pytest.approx(1.0) and by_goal[1] == pytest.approx(0.0)
+    np.testing.assert_array_equal(by_goal_if_behind, by_velocity)
 
 
 def test_the_rules_agree_whenever_the_robot_moves():
@@ -57,11 +71,14 @@ def test_the_rules_agree_whenever_the_robot_moves():
     moving = by_velocity[:, 0] > -1.0
     assert 100 < moving.sum() < 500
     np.testing.assert_array_equal(by_velocity[moving], by_goal[moving])
+    by_goal_if_behind = holonomic_to_unicycle(desired, observation, MAX_TURN, stopped_turn="goal-if-behind")
+    np.testing.assert_array_equal(by_velocity[moving], by_goal_if_behind[moving])
     np.testing.assert_array_equal(by_velocity[:, 0], by_goal[:, 0])
 
 
 def test_an_unknown_rule_is_a_clear_error():
-    with pytest.raises(ValueError, match=r"stopped_turn must be one of \['velocity', 'goal'\], got 'left'"):
+    with pytest.raises(ValueError, match=r"stopped_turn must be one of \['velocity', 'goal', 'goal-if-behind'\], "
+                                         r"got 'left'"):
         holonomic_to_unicycle(np.zeros((1, 2)), _observation(0.0), MAX_TURN, stopped_turn="left")
     with pytest.raises(ValueError, match="stopped_turn must be one of"):
         OrcaController(load_config({"scenario": "doorway"}), stopped_turn="left")

@@ -180,7 +180,7 @@ def main() -> None:
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="after cloning, ROUNDS in which the policy drives and the ORCA robot labels")
     parser.add_argument("--dagger-epochs", type=int, default=3, help="epochs over all labels after each round")
-    parser.add_argument("--teacher-turn", choices=("velocity", "goal"), default="velocity",
+    parser.add_argument("--teacher-turn", choices=("velocity", "goal", "goal-if-behind"), default="velocity",
                         help="how the ORCA teacher turns while a velocity behind it stops it (its stopped_turn)")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
                         help="which of the teacher's episodes are imitated (by how they ended)")

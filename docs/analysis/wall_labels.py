@@ -60,7 +60,7 @@ def main() -> None:
     parser.add_argument("policy")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--teacher-turn", choices=("velocity", "goal"), default="velocity")
+    parser.add_argument("--teacher-turn", choices=("velocity", "goal", "goal-if-behind"), default="velocity")
     args = parser.parse_args()
     policy = load_policy(args.policy)
     world = policy.socnav_metadata["env_config"]

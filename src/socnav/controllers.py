@@ -27,7 +27,9 @@ def _batched(observation: Observation) -> tuple[Observation, bool]:
 
 
 #: How a robot that a velocity behind it has stopped turns (`holonomic_to_unicycle`'s ``stopped_turn``).
-STOPPED_TURNS = ("velocity", "goal")
+STOPPED_TURNS = ("velocity", "goal", "goal-if-behind")
+#: ``"goal-if-behind"``: the velocities this close to straight behind the robot (rad) have no clear side.
+NO_CLEAR_SIDE = np.pi / 4
 
 
 def holonomic_to_unicycle(
@@ -40,6 +42,8 @@ def holonomic_to_unicycle(
     it turns towards the desired velocity (``stopped_turn="velocity"``) or to face the goal (``"goal"``, the path's
     subgoal when the observation follows the planner): near a wall ORCA's answer is a slow velocity away from it,
     whose side flips from step to step, and a policy imitating those labels averages them to driving on (docs/maps.md).
+    ``"goal-if-behind"`` faces the goal only while the velocity is within :data:`NO_CLEAR_SIDE` of straight behind,
+    and turns towards a velocity with a clear side (away from a person walking at the robot, say).
     """
     if stopped_turn not in STOPPED_TURNS:
         raise ValueError(f"stopped_turn must be one of {list(STOPPED_TURNS)}, got {stopped_turn!r}")
@@ -50,9 +54,12 @@ def holonomic_to_unicycle(
     error = np.remainder(target - heading + np.pi, 2 * np.pi) - np.pi
     turn = np.clip(error, -max_heading_change, max_heading_change)
     forward = np.minimum(speed, preferred_speed) * np.maximum(np.cos(error - turn), 0.0)
-    if stopped_turn == "goal":
+    if stopped_turn != "velocity":
         to_goal = np.clip(np.remainder(-heading + np.pi, 2 * np.pi) - np.pi, -max_heading_change, max_heading_change)
-        turn = np.where(np.cos(error - turn) <= 0.0, to_goal, turn)
+        stopped = np.cos(error - turn) <= 0.0
+        if stopped_turn == "goal-if-behind":
+            stopped &= np.abs(error) > np.pi - NO_CLEAR_SIDE
+        turn = np.where(stopped, to_goal, turn)
     actions = np.stack([2.0 * forward / preferred_speed - 1.0, turn / max_heading_change], axis=1)
     return np.clip(actions, -1.0, 1.0).astype(np.float32)
 
