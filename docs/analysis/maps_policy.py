@@ -13,6 +13,10 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --clone 50000 --steps 1000000 --out runs/maps/cloned.zip
     python docs/analysis/maps_policy.py --start runs/maps/cloned.zip --steps 1500000 --out runs/maps/cloned_2500k.zip
     # ablations of the clone: --scan-people (the scan sees the people), --frame heading, --dagger 3 (with --steps 0)
+    # DAgger taught by the ORCA robot that turns to its subgoal when stopped (the best map policy so far):
+    python docs/analysis/maps_policy.py --clone 50000 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
+        --out runs/maps/dagger12_turn.zip      # the policy: runs/maps/dagger12_turn_clone.zip
+    # its ablations: --scan-encoding nearness, --teacher-turn velocity (the ORCA robot as it drives itself)
 """
 
 from __future__ import annotations
