@@ -340,7 +340,7 @@ def test_no_message_crashes_the_node_and_every_command_is_safe(ros_context, navi
 
 
 class _FakeRclpy:
-    """rclpy's init / ok / shutdown, as `socnav.ros2.cli._spin` uses them, on a flag."""
+    """rclpy's init / ok / shutdown / try_shutdown, as `socnav.ros2.cli._spin` uses them, on a flag."""
 
     def __init__(self) -> None:
         self.alive = False
@@ -352,6 +352,9 @@ class _FakeRclpy:
         return self.alive
 
     def shutdown(self) -> None:
+        self.alive = False
+
+    def try_shutdown(self) -> None:
         self.alive = False
 
 
