@@ -17,6 +17,9 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --clone 50000 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
         --out runs/maps/dagger12_turn.zip      # the policy: runs/maps/dagger12_turn_clone.zip
     # its ablations: --scan-encoding nearness, --teacher-turn velocity (the ORCA robot as it drives itself)
+    # a long DAgger run across sessions: --rounds-dir DIR saves each round; the same command continues after the last
+    python docs/analysis/maps_policy.py --clone 50000 --dagger 40 --dagger-epochs 1 --steps 0 --teacher-turn goal \
+        --rounds-dir runs/maps/dagger_turn_rounds --out runs/maps/dagger40_turn.zip
 """
 
 from __future__ import annotations
@@ -70,16 +73,32 @@ def _collect(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace
     return Demonstrations.concatenate(parts)
 
 
-def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace) -> None:
+def _round_file(directory: Path, round_: int) -> Path:
+    return directory / f"round_{round_:03d}.zip"
+
+
+def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace,
+                     metadata: dict[str, Any]) -> None:
     """Clone the ORCA robot with the planner (`socnav.rl.imitation`): ``--clone`` of its steps in each world (the
     training seeds), imitating the episodes that ended as ``--imitate`` says, value head fitted to all; then
     ``--dagger`` rounds in which the policy drives and the ORCA robot labels every state it reaches (all imitated,
-    whatever the episode's end: the label is what the teacher would do there)."""
+    whatever the episode's end: the label is what the teacher would do there).
+
+    With ``--rounds-dir`` the policy after each round is saved there, and a run that finds rounds saved continues
+    after the last one: the labels of the rounds before are collected again (each round's driver is the policy
+    saved after the round before it, acting deterministically on the same seeds: the same states), not re-fitted."""
     demonstrations = None
     imitate = None if args.imitate == "all" else {args.imitate}
+    saved = -1
+    if args.rounds_dir is not None:
+        args.rounds_dir.mkdir(parents=True, exist_ok=True)
+        while saved < args.dagger and _round_file(args.rounds_dir, saved + 1).exists():
+            saved += 1
     for round_ in range(1 + args.dagger):
         started = time.monotonic()
         driver = None if round_ == 0 else model.policy
+        if 0 < round_ <= saved + 1:  # collected again with the policy that drove this round the first time
+            driver = load_policy(_round_file(args.rounds_dir, round_ - 1))
         part = _collect(model, configs, args, args.seed + 100_000 * round_, driver)
         if driver is not None:  # DAgger's labels are imitated whatever the driver's episode came to
             part.outcomes = np.char.add("driven_", part.outcomes)
@@ -88,11 +107,18 @@ def supervised_start(model: Any, configs: list[dict[str, Any]], args: argparse.N
         print(f"round {round_}: {len(part):,} labelled steps ({dict(zip(names.tolist(), counts.tolist(), strict=True))}"
               f"), {time.monotonic() - started:.0f} s", flush=True)
         demonstrations = part if demonstrations is None else Demonstrations.concatenate([demonstrations, part])
+        if round_ <= saved:
+            continue
+        if round_ == saved + 1 and saved >= 0:
+            model.policy.load_state_dict(load_policy(_round_file(args.rounds_dir, saved)).state_dict())
+            print(f"continuing after round {saved} ({_round_file(args.rounds_dir, saved)})", flush=True)
         epochs = args.clone_epochs if round_ == 0 else args.dagger_epochs
         for epoch, losses in enumerate(clone(model.policy, demonstrations, epochs=epochs,
                                              seed=args.seed + round_, imitate=imitate)):
             print(f"clone epoch {epoch}: " + ", ".join(f"{key} {value:.3f}" for key, value in losses.items()),
                   flush=True)
+        if args.rounds_dir is not None:
+            save_policy(model.policy, _round_file(args.rounds_dir, round_), metadata)
 
 
 def train(args: argparse.Namespace) -> None:
@@ -116,11 +142,11 @@ def train(args: argparse.Namespace) -> None:
         model = make_model("odv-ppo-drop", env, seed=args.seed,
                            overrides={"frame": args.frame, "scan_encoding": args.scan_encoding})
         metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0}
-        if args.clone:
-            supervised_start(model, configs, args)
     metadata["algo_config"] = {**metadata["algo_config"], "action_change_penalty": penalty}
     # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
     metadata.update(env_config=load_config(configs[SCENARIOS.index("doorway")]).model_dump(mode="json"))
+    if start is None and args.clone:
+        supervised_start(model, configs, args, metadata)
     if start is None and args.clone:
         save_policy(model.policy, args.out.with_name(f"{args.out.stem}_clone.zip"), metadata)
     started, done, base = time.monotonic(), 0, int(metadata.get("timesteps", 0))
@@ -184,6 +210,8 @@ def main() -> None:
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="after cloning, ROUNDS in which the policy drives and the ORCA robot labels")
     parser.add_argument("--dagger-epochs", type=int, default=3, help="epochs over all labels after each round")
+    parser.add_argument("--rounds-dir", type=Path, default=None,
+                        help="save the policy after each DAgger round here; continue after the last round saved")
     parser.add_argument("--teacher-turn", choices=("velocity", "goal", "goal-if-behind"), default="velocity",
                         help="how the ORCA teacher turns while a velocity behind it stops it (its stopped_turn)")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",

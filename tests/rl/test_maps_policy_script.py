@@ -7,6 +7,7 @@ import runpy
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import socnav
@@ -37,3 +38,25 @@ def test_clone_dagger_then_continue(tmp_path, monkeypatch, capsys):
     assert continued.socnav_metadata["env_config"]["reward"]["collision"] == pytest.approx(50.0)
     assert continued.socnav_metadata["env_config"]["scan"]["people"] is True  # the start's world, kept
     assert continued.features_extractor.scan_encoder.encoding == "nearness"
+
+
+def test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last(tmp_path, monkeypatch, capsys):
+    """``--rounds-dir``: the policy after each round is saved; a run with more rounds re-collects the saved rounds'
+    labels with the policies that drove them (the same labelled steps) and fits only the new round."""
+    rounds = tmp_path / "rounds"
+    common = ["--clone", "2000", "--clone-epochs", "1", "--dagger-epochs", "1", "--steps", "0",
+              "--rounds-dir", str(rounds)]
+    _run(monkeypatch, *common, "--dagger", "1", "--out", str(tmp_path / "first.zip"))
+    first = capsys.readouterr().out
+    assert sorted(path.name for path in rounds.iterdir()) == ["round_000.zip", "round_001.zip"]
+    _run(monkeypatch, *common, "--dagger", "2", "--out", str(tmp_path / "second.zip"))
+    second = capsys.readouterr().out
+    assert "continuing after round 1" in second and (rounds / "round_002.zip").exists()
+    assert second.count("clone epoch") == 1  # rounds 0 and 1 were not fitted again
+    for round_ in (0, 1):  # the same labelled steps, episode ends and all
+        line = next(line for line in first.splitlines() if line.startswith(f"round {round_}:"))
+        again = next(line for line in second.splitlines() if line.startswith(f"round {round_}:"))
+        assert line.rsplit(",", 1)[0] == again.rsplit(",", 1)[0]
+    np.testing.assert_allclose(
+        [p.detach().numpy().sum() for p in socnav.load_policy(tmp_path / "second_clone.zip").parameters()],
+        [p.detach().numpy().sum() for p in socnav.load_policy(rounds / "round_002.zip").parameters()])
