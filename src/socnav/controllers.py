@@ -41,7 +41,8 @@ def holonomic_to_unicycle(
     so the robot never moves sideways of where ORCA allows, and stops while it is still facing away. Stopped so,
     it turns towards the desired velocity (``stopped_turn="velocity"``) or to face the goal (``"goal"``, the path's
     subgoal when the observation follows the planner): near a wall ORCA's answer is a slow velocity away from it,
-    whose side flips from step to step, and a policy imitating those labels averages them to driving on (docs/maps.md).
+    whose side changes between similar states, and a policy imitating those labels averages them to driving on
+    (docs/maps.md, "Why DAgger hits walls").
     ``"goal-if-behind"`` faces the goal only while the velocity is within :data:`NO_CLEAR_SIDE` of straight behind,
     and turns towards a velocity with a clear side (away from a person walking at the robot, say).
     """
