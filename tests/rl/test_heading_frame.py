@@ -22,7 +22,7 @@ from socnav.sim.observation import observe_robot
 
 DOORWAY = {"scenario": "doorway", "n_humans": 3, "scan": {"beams": 36}, "planner": {"observe": True}}
 TINY = {"lstm_hidden_size": 16, "net_arch_pi": (32,), "net_arch_vf": (32,), "n_steps": 32, "batch_size": 32,
-        "n_epochs": 1, "frame": "heading"}
+        "n_epochs": 1}
 
 
 def _rotate(vector: np.ndarray, angle: float) -> np.ndarray:
@@ -83,23 +83,30 @@ def test_an_unknown_frame_is_a_clear_error():
         HumanLSTMExtractor(space, frame="map")
 
 
-def test_a_heading_frame_policy_trains_saves_loads_and_exports(tmp_path):
-    """The option travels with the policy's config: the loaded policy and the exported navigator (the rotation is
-    in the graph) act as the trained one."""
+def _option(policy, name: str) -> str:
+    extractor = policy.features_extractor
+    return extractor.frame if name == "frame" else extractor.scan_encoder.encoding
+
+
+# the network options read in the network itself: `frame: heading` here, `scan_encoding` (test_scan_encoding.py)
+@pytest.mark.parametrize(("name", "value"), [("frame", "heading"), ("scan_encoding", "nearness")])
+def test_a_heading_frame_policy_trains_saves_loads_and_exports(tmp_path, name, value):
+    """The option travels with the policy's config: the loaded policy and the exported navigator (the rotation or
+    the encoding is in the graph) act as the trained one."""
     th.set_num_threads(1)
     env = socnav.make_vec_env(DOORWAY, n_envs=2)
     env.seed(0)
-    model = make_model("odv-ppo-drop", env, seed=0, overrides=TINY)
+    model = make_model("odv-ppo-drop", env, seed=0, overrides={**TINY, name: value})
     model.learn(64)
-    assert model.policy.features_extractor.frame == "heading"
+    assert _option(model.policy, name) == value
     observations = env.reset()
     for _ in range(5):
         observations = env.step(model.predict(observations, deterministic=True)[0])[0]
     expected, _ = model.policy.predict(observations, deterministic=True)
     metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config,
                 "env_config": socnav.load_config(DOORWAY).model_dump(mode="json")}
-    loaded = load_policy(save_policy(model.policy, tmp_path / "heading.zip", metadata))
-    assert loaded.features_extractor.frame == "heading"
+    loaded = load_policy(save_policy(model.policy, tmp_path / "option.zip", metadata))
+    assert _option(loaded, name) == value
     np.testing.assert_allclose(loaded.predict(observations, deterministic=True)[0], expected, atol=1e-6)
-    network = ExportedPolicy.load(export_onnx(loaded, tmp_path / "heading.onnx", k=2, env_config=DOORWAY))
+    network = ExportedPolicy.load(export_onnx(loaded, tmp_path / "option.onnx", k=2, env_config=DOORWAY))
     np.testing.assert_allclose(network.predict(observations)[0], expected, atol=1e-4)
