@@ -42,6 +42,8 @@ from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations
 from socnav.rl.persistence import load_policy, save_policy
 from socnav.rl.presets import make_model
 from socnav.rl.smoothing import SmoothnessPenalty
+from socnav.safety.assembly import assemble_safe_policy
+from socnav.safety.safe_policy import FallbackCounter, fallback_percent
 
 SCENARIOS = ("corridor", "doorway", "intersection", "room")
 #: What every world of the mixture shares besides its scenario (configs/env/doorway_route_collision20.yaml's).
@@ -63,13 +65,17 @@ def _scan_of(policy: Any) -> dict[str, Any]:
 
 def _collect(model: Any, configs: list[dict[str, Any]], args: argparse.Namespace, seed: int,
              driver: Any = None) -> Demonstrations:
-    """``--clone`` steps of the ORCA robot's labels in each world, the robot driven by it or by `driver`."""
+    """``--clone`` steps of the ORCA robot's labels in each world, the robot driven by it or by `driver` (inside the
+    safety layer with ``--driver-safety``: the states the deployed navigator reaches)."""
     parts = []
     for index, config in enumerate(configs):
         world = SocialNavVecEnv(config, n_envs=16)
-        world.seed(seed + 1000 * index)
+        world.seed(args.train_seeds + seed + 1000 * index)
         teacher = OrcaController(world.config, stopped_turn=args.teacher_turn)
-        parts.append(collect_demonstrations(world, teacher, args.clone, gamma=model.gamma, driver=driver))
+        actor = driver
+        if driver is not None and args.driver_safety is not None:
+            actor = assemble_safe_policy(driver, str(args.driver_safety), world.config)
+        parts.append(collect_demonstrations(world, teacher, args.clone, gamma=model.gamma, driver=actor))
     return Demonstrations.concatenate(parts)
 
 
@@ -145,9 +151,8 @@ def train(args: argparse.Namespace) -> None:
     metadata["algo_config"] = {**metadata["algo_config"], "action_change_penalty": penalty}
     # the policy acts in any of the worlds; its file names the doorway (the export's walls, `training_world`)
     metadata.update(env_config=load_config(configs[SCENARIOS.index("doorway")]).model_dump(mode="json"))
-    if start is None and args.clone:
+    if args.clone:
         supervised_start(model, configs, args, metadata)
-    if start is None and args.clone:
         save_policy(model.policy, args.out.with_name(f"{args.out.stem}_clone.zip"), metadata)
     started, done, base = time.monotonic(), 0, int(metadata.get("timesteps", 0))
     while done < args.steps:
@@ -167,7 +172,9 @@ def _rate(hits: int, n: int) -> str:
 
 def evaluate(args: argparse.Namespace) -> None:
     """Per map scenario (the default crowd) and in the open plane's position swap and circle crossing: the ORCA
-    robot (with the planner) and each policy on the same episodes; in the open plane also the shipped policy."""
+    robot (with the planner) and each policy on the same episodes; in the open plane also the shipped policy. With
+    ``--safety TRIGGER`` each policy also drives inside the safety layer with that trigger (its row adds the share
+    of steps the cautious fallback drove)."""
     policies = {}
     for item in args.evaluate:
         label, _, path = item.rpartition("=")
@@ -187,10 +194,20 @@ def evaluate(args: argparse.Namespace) -> None:
                                         load_config({**config, "scan": _scan_of(actor)}),
                                         args.episodes, seed=args.seed, n_envs=50, progress=False)
                 for label, actor in actors.items()}
+        fallback = {}
+        for label, policy in policies.items() if args.safety is not None else ():
+            seen = load_config({**config, "scan": _scan_of(policy)})
+            safe = assemble_safe_policy(policy, str(args.safety), seen)
+            counter = FallbackCounter(safe)
+            records = rollout_episodes(safe, seen, args.episodes, seed=args.seed, n_envs=50, progress=False,
+                                       observer=counter)
+            rows[f"{label} + safety"] = records.assign(**counter.columns(records["episode"]))
+            fallback[f"{label} + safety"] = f" (fallback {fallback_percent(rows[f'{label} + safety']):.0f} % of steps)"
         orca = rows["ORCA robot"]
         for label, records in rows.items():
             n, outcome = len(records), records["outcome"]
-            print(f"| {world.scenario} | {label} | {_rate(int((outcome == 'goal').sum()), n)} | "
+            print(f"| {world.scenario} | {label}{fallback.get(label, '')} | "
+                  f"{_rate(int((outcome == 'goal').sum()), n)} | "
                   f"{_rate(int((outcome == 'collision').sum()), n)} | "
                   f"{_rate(int((outcome == 'collision_wall').sum()), n)} | {100 * (outcome == 'timeout').mean():.1f} | "
                   f"{records['jerk_mean'].mean() / orca['jerk_mean'].mean():.1f} | "
@@ -212,6 +229,12 @@ def main() -> None:
     parser.add_argument("--dagger-epochs", type=int, default=3, help="epochs over all labels after each round")
     parser.add_argument("--rounds-dir", type=Path, default=None,
                         help="save the policy after each DAgger round here; continue after the last round saved")
+    parser.add_argument("--driver-safety", type=Path, default=None, metavar="TRIGGER",
+                        help="in the DAgger rounds the policy drives inside the safety layer with this trigger file "
+                             "(e.g. src/socnav/data/pretrained_time-to-collision.yaml)")
+    parser.add_argument("--train-seeds", type=int, default=10_000_000, metavar="BASE",
+                        help="the collections' seeds start here, far from the evaluation's (0-199) and the "
+                             "validation's (100,000-100,199); runs before this option used 0")
     parser.add_argument("--teacher-turn", choices=("velocity", "goal", "goal-if-behind"), default="velocity",
                         help="how the ORCA teacher turns while a velocity behind it stops it (its stopped_turn)")
     parser.add_argument("--imitate", choices=("all", "goal"), default="goal",
@@ -230,6 +253,8 @@ def main() -> None:
     parser.add_argument("--evaluate", nargs="+", metavar="[LABEL=]POLICY",
                         help="evaluate these policies in each scenario (and the open plane) instead")
     parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--safety", type=Path, default=None, metavar="TRIGGER",
+                        help="with --evaluate: also each policy inside the safety layer with this trigger file")
     args = parser.parse_args()
     if args.evaluate is not None:
         evaluate(args)

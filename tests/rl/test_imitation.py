@@ -110,3 +110,30 @@ def test_with_a_driver_the_driver_moves_and_the_teacher_labels():
     np.testing.assert_allclose(demonstrations.actions, np.clip(relabelled, -1, 1), atol=1e-6)
     straight, _ = driver.predict(demonstrations.observations)
     assert np.abs(straight - demonstrations.actions).max() > 0.1  # the two controllers do differ here
+
+
+class AnnouncedStraight:
+    """The straight controller, recording which environments it is told begin an episode."""
+
+    def __init__(self, config):
+        self.inner = make_controller("straight", config)
+        self.started: list[list[int]] = []
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        return self.inner.predict(observation, state, episode_start, deterministic)
+
+    def on_episode_start(self, envs):
+        self.started.append(sorted(int(env) for env in envs))
+
+
+def test_a_driver_is_told_when_episodes_start():
+    """A driver that keeps per-environment state (the safety layer's) hears of every new episode, as the teacher
+    does: all environments first, then each environment whose episode ended, in the step it ended."""
+    config = socnav.load_config(WORLD)
+    driver = AnnouncedStraight(config)
+    env = EpisodeLog(SocialNavVecEnv(WORLD, n_envs=4))
+    env.venv.seed(2)
+    collect_demonstrations(env, make_controller("orca", config), 400, gamma=1.0, driver=driver)
+    assert driver.started[0] == [0, 1, 2, 3]
+    announced = sum(len(envs) for envs in driver.started[1:])
+    assert announced == len(env.episodes) > 0

@@ -60,3 +60,30 @@ def test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last(tmp_pa
     np.testing.assert_allclose(
         [p.detach().numpy().sum() for p in socnav.load_policy(tmp_path / "second_clone.zip").parameters()],
         [p.detach().numpy().sum() for p in socnav.load_policy(rounds / "round_002.zip").parameters()])
+
+
+def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch, capsys):
+    """``--start`` with ``--clone`` continues imitation from a saved policy; ``--driver-safety`` makes the DAgger
+    rounds' driver the policy inside the safety layer, so other states are labelled than with the policy alone;
+    ``--evaluate ... --safety`` adds each policy inside the layer with the share of steps its fallback drove."""
+    trigger = Path(socnav.__file__).parent / "data" / "pretrained_time-to-collision.yaml"
+    _run(monkeypatch, "--clone", "2000", "--clone-epochs", "1", "--steps", "0", "--out", str(tmp_path / "a.zip"))
+    capsys.readouterr()
+    common = ["--start", str(tmp_path / "a_clone.zip"), "--clone", "1500", "--clone-epochs", "1", "--dagger", "1",
+              "--dagger-epochs", "1", "--steps", "0"]
+    _run(monkeypatch, *common, "--out", str(tmp_path / "plain.zip"))
+    plain = capsys.readouterr().out
+    _run(monkeypatch, *common, "--driver-safety", str(trigger), "--out", str(tmp_path / "safe.zip"))
+    safe = capsys.readouterr().out
+
+    def round_line(printed: str, round_: int) -> str:
+        return next(line for line in printed.splitlines() if line.startswith(f"round {round_}:")).rsplit(",", 1)[0]
+
+    assert round_line(plain, 0) == round_line(safe, 0)  # the teacher drives round 0 in both
+    assert round_line(plain, 1) != round_line(safe, 1)  # the layer drove round 1 elsewhere
+    started = socnav.load_policy(tmp_path / "safe_clone.zip")
+    assert started.socnav_metadata["env_config"]["scenario"] == "doorway"
+    _run(monkeypatch, "--evaluate", f"safe={tmp_path / 'safe_clone.zip'}", "--safety", str(trigger),
+         "--episodes", "2")
+    table = capsys.readouterr().out
+    assert table.count("| safe + safety (fallback ") == 6  # four map scenarios and two open-plane ones

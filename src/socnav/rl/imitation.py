@@ -79,8 +79,8 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
     teacher's actions at the states the driver reaches are kept: the states a cloned policy drifts into, labelled
     with what the teacher would do there; the returns and outcomes are the driver's episodes'.
 
-    A teacher with ``on_episode_start(envs)`` (the ORCA robot, which keeps each robot's path) is told which
-    environments began a new episode."""
+    A teacher or driver with ``on_episode_start(envs)`` (the ORCA robot, which keeps each robot's path; the safety
+    layer, which keeps per-environment state) is told which environments began a new episode."""
     if steps <= 0:
         raise ValueError(f"steps must be > 0, got {steps}")
     observation = env.reset()
@@ -95,9 +95,9 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
     kept: list[int] = []
     returns: list[np.ndarray] = []
     outcomes: list[str] = []
-    on_episode_start = getattr(teacher, "on_episode_start", None)
-    if on_episode_start is not None:
-        on_episode_start(np.arange(n_envs))
+    listeners = [actor.on_episode_start for actor in (teacher, driver) if hasattr(actor, "on_episode_start")]
+    for listener in listeners:
+        listener(np.arange(n_envs))
     for _ in range(-(-steps // n_envs)):
         action = np.clip(np.asarray(teacher.predict(observation, deterministic=True)[0], dtype=np.float32), -1, 1)
         for key, value in observation.items():
@@ -118,8 +118,9 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
             returns.append(_returns_to_go(rewards[index], gamma))
             outcomes.extend([str(infos[index].get("outcome", ""))] * len(rows[index]))
             rows[index], rewards[index] = [], []
-        if on_episode_start is not None and len(ended):
-            on_episode_start(ended)
+        if len(ended):
+            for listener in listeners:
+                listener(ended)
     order = np.asarray(kept, dtype=np.int64)
     flat = {key: np.concatenate(values)[order] for key, values in stored.items()}
     flat_returns = np.concatenate(returns) if returns else np.zeros(0)
