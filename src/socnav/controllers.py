@@ -123,6 +123,8 @@ class OrcaController:
         self.share = config.robot_orca_share if share is None else share
         self.safety_margin = config.robot_orca_safety_margin if safety_margin is None else safety_margin
         polygons = world_polygons(config, get_scenario(config.scenario)) if walls is None else list(walls)
+        #: the walls' polygons (map frame; empty in the open plane) and the form ORCA reads them in (None: none)
+        self.wall_polygons = polygons
         self.walls = ObstacleMap.from_polygons(polygons) if polygons else None
         self._wall_batches: dict[int, ObstacleBatch] = {}
         #: the robot's global planner (None in the open plane or with ``planner.enabled: false``)

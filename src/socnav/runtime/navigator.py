@@ -23,7 +23,8 @@ thresholds file's ``sensing`` field therefore changes nothing here).
 
 Walls (a navigator exported from a world with walls, or given a map at load): the cautious fallback keeps off the
 map's walls, planning in the map frame from the robot's ``pose`` (x, y, yaw), which :meth:`SafeNavigator.act` takes
-(default: the robot's own position and heading, its world frame then being the map frame). A policy trained with a
+(default: the robot's own position and heading, its world frame then being the map frame), and no command steps onto
+a wall: it stands still instead (`Decision.wall_stop`, `socnav.safety.wall_stop`). A policy trained with a
 range scan reads the robot's ``scan`` (its ranges, as a sensor_msgs/LaserScan gives them), which ``act`` then needs.
 
 A route (a policy trained with ``planner.observe``, file format 5): the navigator plans the robot's shortest path on
@@ -56,6 +57,7 @@ from socnav.safety.rule import (
     rule_conditions,
 )
 from socnav.safety.triggers import RuleTrigger, TriggerInputs, TriggerSpec, load_safety, make_trigger
+from socnav.safety.wall_stop import WallStop
 from socnav.sim.maps import validate_polygons
 from socnav.sim.observation import observe_robot, robot_command
 from socnav.sim.planning import PathFollower, planner_for
@@ -253,6 +255,8 @@ class Decision:
     :param observation: the observation the network saw (batch of one).
     :param subgoal: for a policy that observes its route, the subgoal its observed goal points at (map frame, (2,));
         None otherwise.
+    :param wall_stop: the step would have brought the robot onto a wall of the navigator's map, so it stands still
+        (speed 0, the turn kept; `socnav.safety.wall_stop`), as the simulator's `socnav.safety.SafePolicy` does.
     :param fault: None when the network's output was usable. Otherwise why it was not (:data:`NON_FINITE_OUTPUT`:
         the network gave NaN / inf): the policy's action is then never used; the cautious controller acts
         (``fallback`` True) if its command is finite, else the robot stops (command ``(0, 0)``, ``fallback`` False,
@@ -271,6 +275,7 @@ class Decision:
     observation: dict[str, np.ndarray]
     fault: str | None = None
     subgoal: np.ndarray | None = None
+    wall_stop: bool = False
 
     @property
     def command(self) -> tuple[float, float]:
@@ -338,6 +343,9 @@ class SafeNavigator:
         self.walls = polygons or None
         self.cautious = CautiousController(self.config, radius_scale=self.network.record.safety.radius_scale,
                                            walls=polygons or [])
+        #: stands the robot still rather than step onto a wall (`socnav.safety.wall_stop`), None without walls
+        self.wall_stop = (WallStop(polygons, self.config.time_step, self.config.max_heading_change) if polygons
+                          else None)
         planner = self.config.planner
         #: the robot's own path on the map (a route-observing policy among walls), else None
         self.route = None
@@ -571,17 +579,23 @@ class SafeNavigator:
         held, self._hold_left = held_fallback(fire, self._hold_left, self.thresholds.hold_steps)
         fallback = bool(held[0])
         speed = turn = math.nan
+        wall_stop = False
         if observed:
             if fallback:
                 action = self.cautious.predict(dict(observation if fallback_observation is None
                                                     else fallback_observation))[0][0]
             preferred = float(observation["robot"][0, 3]) if v_pref is None else float(v_pref)
+            if self.wall_stop is not None:
+                action = np.array(action, dtype=np.float32).reshape(1, 2)
+                wall_stop = bool(self.wall_stop.apply(action, observation, preferred)[0])
+                action = action[0]
             speed, turn = robot_command(action, preferred, self.config.max_heading_change)
         if not (math.isfinite(speed) and math.isfinite(turn)):  # the last guard: never a NaN command
             speed, turn, action, fallback = 0.0, 0.0, _STOP_ACTION.copy(), False
             fault = f"{fault}; {STOPPED}" if fault else STOPPED
         return Decision(speed=speed, turn=turn, action=action, fallback=fallback, uncertainty=estimate,
-                        windowed=values, conditions=conditions, observation=dict(observation), fault=fault)
+                        windowed=values, conditions=conditions, observation=dict(observation), fault=fault,
+                        wall_stop=wall_stop)
 
     def _policy_and_uncertainty(self, observation: Mapping[str, np.ndarray]) -> tuple[np.ndarray, Uncertainty, bool]:
         """ONE graph call on ``1 + K`` rows: row 0 without dropout (the action, clipped to [-1, 1]), rows 1..K with

@@ -18,7 +18,10 @@ At every step, for every environment of the batch:
    ``thresholds.conditions``: ``c_prox and c_ap`` or ``(c_ep or c_feat) and c_ap``); where it fires -- or, with
    ``thresholds.hold_steps = k > 0``, fired at one of the last ``k`` steps of the episode
    (:func:`~socnav.safety.rule.held_fallback`) -- the action is replaced by the
-   :class:`~socnav.safety.cautious.CautiousController`'s, computed from the sensed observation.
+   :class:`~socnav.safety.cautious.CautiousController`'s, computed from the sensed observation;
+5. in a world with walls, the wall stop (:class:`~socnav.safety.wall_stop.WallStop`, ``wall_stop=True``): an action
+   whose step would bring the robot's disc onto a wall -- the policy's or the fallback's -- stands still instead
+   (speed action -1, its turn kept), from the sensed observation's ``pose``.
 
 Episode boundaries: call :meth:`SafePolicy.reset` with the environments whose episode ended (before the next
 ``predict`` sees their new first observation), or pass SB3's ``episode_start`` to ``predict``. Without either,
@@ -44,6 +47,8 @@ from socnav.safety.rule import (
     nearest_human,
 )
 from socnav.safety.triggers import RuleTrigger, TriggerInputs, TriggerSpec, load_safety, make_trigger
+from socnav.safety.wall_stop import WallStop
+from socnav.sim.walls import POSE_KEY
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -78,8 +83,11 @@ class SafePolicy:
     :param n_envs: batch size; None: taken from the first ``predict``. The batch size must stay fixed.
     :param radius_scale: human radius inflation of the cautious controller (paper: 1.5).
     :param fallback: ``cautious`` (the paper's ORCA controller) or ``brake`` (:data:`BRAKE_ACTION`).
+    :param wall_stop: in a world with walls, stand still rather than take a step onto a wall (module docstring, 5);
+        False: the paper's layer, which acts for people only.
 
     After each ``predict``: ``last_fallback`` (B,) bool (the fallback drove: the rule fired or a hold was on),
+    ``last_wall_stop`` (B,) bool (the wall stop stood the robot still),
     ``last_conditions`` (:class:`RuleConditions`), ``last_uncertainty`` (dict of windowed (B,) arrays
     ``u_ep_heading``, ``u_ep_speed``, ``u_al_heading``, ``u_al_speed``, ``u_feat``), ``last_nearest``
     (:class:`NearestHuman`), ``last_previous_gap`` (B,), and ``episode_fallbacks`` (n_envs,) -- fallback steps in
@@ -96,6 +104,7 @@ class SafePolicy:
         n_envs: int | None = None,
         radius_scale: float = CAUTIOUS_RADIUS_SCALE,
         fallback: str = "cautious",
+        wall_stop: bool = True,
     ):
         if int(window) < 1:
             raise ValueError(f"window must be >= 1, got {window}")
@@ -118,6 +127,10 @@ class SafePolicy:
         self.fallback = fallback
         self.cautious = CautiousController(self.config, radius_scale=radius_scale)
         self.cautious.keep_paths = False  # it is handed only the rows where it drives, a different set each step
+        polygons = self.cautious.wall_polygons
+        self.wall_stop = (WallStop(polygons, self.config.time_step, self.config.max_heading_change)
+                          if wall_stop and polygons else None)
+        self.last_wall_stop = np.zeros(0, dtype=bool)
         self.n_envs: int | None = None
         self.last_fallback = np.zeros(0, dtype=bool)
         self.last_conditions: RuleConditions | None = None
@@ -261,6 +274,8 @@ class SafePolicy:
             else:
                 cautious, _ = self.cautious.predict({key: value[chosen] for key, value in sensed.items()})
                 actions[chosen] = cautious
+        self.last_wall_stop = (self.wall_stop.apply(actions, sensed) if self.wall_stop is not None
+                               and POSE_KEY in sensed else np.zeros(batch, dtype=bool))
         self.episode_fallbacks += fallback
         self.last_fallback, self.last_conditions, self.last_nearest = fallback, conditions, nearest
         self.last_previous_gap = previous_gap
