@@ -95,7 +95,8 @@ def collect_demonstrations(env: VecEnv, teacher: Teacher, steps: int, gamma: flo
     kept: list[int] = []
     returns: list[np.ndarray] = []
     outcomes: list[str] = []
-    listeners = [actor.on_episode_start for actor in (teacher, driver) if hasattr(actor, "on_episode_start")]
+    actors: list[Any] = [teacher] if driver is None else [teacher, driver]
+    listeners = [actor.on_episode_start for actor in actors if hasattr(actor, "on_episode_start")]
     for listener in listeners:
         listener(np.arange(n_envs))
     for _ in range(-(-steps // n_envs)):
