@@ -63,7 +63,7 @@ def test_the_stop_predicts_the_worlds_wall_collisions():
     for _ in range(60):
         actions = rng.uniform(-1.0, 1.0, size=(32, 2)).astype(np.float32)
         predicted = stop.touches(actions, observation)
-        observation, _, done, infos = env.step(actions)
+        observation, _, _, infos = env.step(actions)
         hit = np.array([info.get("outcome") == "collision_wall" for info in infos])
         np.testing.assert_array_equal(predicted, hit)
         hits += int(hit.sum())
