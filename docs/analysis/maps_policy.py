@@ -174,7 +174,8 @@ def evaluate(args: argparse.Namespace) -> None:
     """Per map scenario (the default crowd) and in the open plane's position swap and circle crossing: the ORCA
     robot (with the planner) and each policy on the same episodes; in the open plane also the shipped policy. With
     ``--safety TRIGGER`` each policy also drives inside the safety layer with that trigger (its row adds the share
-    of steps the cautious fallback drove)."""
+    of steps the cautious fallback drove), and so do the ORCA robot and `straight` (drive at the goal, or along the
+    route): the ablation that says what the layer does without a learned policy."""
     policies = {}
     for item in args.evaluate:
         label, _, path = item.rpartition("=")
@@ -195,8 +196,10 @@ def evaluate(args: argparse.Namespace) -> None:
                                         args.episodes, seed=args.seed, n_envs=50, progress=False)
                 for label, actor in actors.items()}
         fallback = {}
-        for label, policy in policies.items() if args.safety is not None else ():
-            seen = load_config({**config, "scan": _scan_of(policy)})
+        drivers = {"ORCA robot": (actors["ORCA robot"], world), "straight": (make_controller("straight", world), world),
+                   **{label: (policy, load_config({**config, "scan": _scan_of(policy)}))
+                      for label, policy in policies.items()}}
+        for label, (policy, seen) in drivers.items() if args.safety is not None else ():
             safe = assemble_safe_policy(policy, str(args.safety), seen)
             counter = FallbackCounter(safe)
             records = rollout_episodes(safe, seen, args.episodes, seed=args.seed, n_envs=50, progress=False,

@@ -65,7 +65,8 @@ def test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last(tmp_pa
 def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch, capsys):
     """``--start`` with ``--clone`` continues imitation from a saved policy; ``--driver-safety`` makes the DAgger
     rounds' driver the policy inside the safety layer, so other states are labelled than with the policy alone;
-    ``--evaluate ... --safety`` adds each policy inside the layer with the share of steps its fallback drove."""
+    ``--evaluate ... --safety`` adds each policy, the ORCA robot and `straight` inside the layer with the share of
+    steps its fallback drove."""
     trigger = Path(socnav.__file__).parent / "data" / "pretrained_time-to-collision.yaml"
     _run(monkeypatch, "--clone", "2000", "--clone-epochs", "1", "--steps", "0", "--out", str(tmp_path / "a.zip"))
     capsys.readouterr()
@@ -86,4 +87,5 @@ def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch
     _run(monkeypatch, "--evaluate", f"safe={tmp_path / 'safe_clone.zip'}", "--safety", str(trigger),
          "--episodes", "2")
     table = capsys.readouterr().out
-    assert table.count("| safe + safety (fallback ") == 6  # four map scenarios and two open-plane ones
+    for driver in ("safe", "ORCA robot", "straight"):  # four map scenarios and two open-plane ones each
+        assert table.count(f"| {driver} + safety (fallback ") == 6
