@@ -149,6 +149,28 @@ def test_a_map_file_gives_the_walls_at_start(ros_context, route_file, tmp_path):
         node.destroy_node()
 
 
+def test_a_step_onto_a_wall_of_the_map_stands_still_and_says_so(ros_context, route_file, tmp_path):
+    """The wall stop (socnav.safety.wall_stop) in the node: a robot 2 cm from a wall of its map_file, facing it,
+    does not drive on whatever the policy says: zero speed, a WARN that names the wall stop, ``wall_stop`` True;
+    the same robot 2 m from the wall drives."""
+    map_file = tmp_path / "wall.yaml"
+    map_file.write_text("obstacles:\n  - [[0.32, -2], [1, -2], [1, 2], [0.32, 2]]\n")
+    node = _navigator(ros_context, route_file, map_file=str(map_file))
+    try:
+        for position, stopped in (((0.0, 0.0), True), ((-2.0, 0.0), False)):
+            _feed(node, node.get_clock().now().nanoseconds, position=position, goal=(-6.0, 0.0))
+            twist, status = _decide(node)
+            values = {value.key: value.value for value in status.values}
+            assert values["wall_stop"] == str(stopped), status.message
+            assert ("wall stop: the step would meet a wall, standing still" in status.message) is stopped
+            if stopped:
+                assert twist.linear.x == 0.0 and status.level == status.WARN
+            else:
+                assert twist.linear.x > 0.0
+    finally:
+        node.destroy_node()
+
+
 # ------------------------------------------------------------------------------------------------- map
 
 

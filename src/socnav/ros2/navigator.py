@@ -136,6 +136,8 @@ class Outcome:
     cause: str | None = None
     #: A route-observing policy's subgoal (map frame, (2,)), None otherwise.
     subgoal: np.ndarray | None = None
+    #: The command's step would have met a wall of the map: the robot stands still (`Decision.wall_stop`).
+    wall_stop: bool = False
 
 
 def _descriptor(description: str, read_only: bool = True) -> ParameterDescriptor:
@@ -499,13 +501,15 @@ class NavigatorNode(Node):
             return Outcome(0.0, 0.0, True, stop, f"stopped: {exc}", humans=len(humans.radii),
                            goal_distance=goal_distance)
         stopped = decision.fault is not None and not decision.fallback
-        level = stop if stopped else DiagnosticStatus.WARN if decision.fallback or decision.fault else \
-            DiagnosticStatus.OK
+        level = stop if stopped else DiagnosticStatus.WARN if (decision.fallback or decision.fault
+                                                               or decision.wall_stop) else DiagnosticStatus.OK
         message = (f"stopped: {decision.fault}" if stopped else
                    "fallback: the cautious controller drives" if decision.fallback else "policy drives")
+        if decision.wall_stop and not stopped:
+            message += "; wall stop: the step would meet a wall, standing still"
         return Outcome(decision.speed, decision.turn, stopped, level, message, decision.fallback,
                        dict(decision.windowed), decision.fault, len(humans.radii), goal_distance,
-                       subgoal=decision.subgoal)
+                       subgoal=decision.subgoal, wall_stop=decision.wall_stop)
 
     def _inputs_problem(self, now_ns: int) -> tuple[str, str] | None:
         """Why the inputs cannot be decided on now (the first problem, and its cause without numbers for the log);
@@ -582,7 +586,8 @@ class NavigatorNode(Node):
         stamp = self.get_clock().now().to_msg()
         self._log_stop(outcome)
         subgoal = "" if outcome.subgoal is None else f"{outcome.subgoal[0]:.3f}, {outcome.subgoal[1]:.3f}"
-        values = {"stopped": outcome.stopped, "fallback": outcome.fallback, "speed": outcome.speed,
+        values = {"stopped": outcome.stopped, "fallback": outcome.fallback, "wall_stop": outcome.wall_stop,
+                  "speed": outcome.speed,
                   "turn_rate": outcome.turn / self.time_step, "latency_s": latency, "humans": outcome.humans,
                   "goal_distance": outcome.goal_distance, "fault": outcome.fault or "", **outcome.windowed,
                   "walls": len(self.navigator.walls or ()), "walls_from": self.walls_source, "subgoal": subgoal}
