@@ -18,8 +18,23 @@ that a later session continues with ``--start``; evaluated per scenario.
         --out runs/maps/dagger12_turn.zip      # the policy: runs/maps/dagger12_turn_clone.zip
     # its ablations: --scan-encoding nearness, --teacher-turn velocity (the ORCA robot as it drives itself)
     # a long DAgger run across sessions: --rounds-dir DIR saves each round; the same command continues after the last
+    # (runs started before --train-seeds existed continue with --train-seeds 0)
     python docs/analysis/maps_policy.py --clone 50000 --dagger 40 --dagger-epochs 1 --steps 0 --teacher-turn goal \
         --rounds-dir runs/maps/dagger_turn_rounds --out runs/maps/dagger40_turn.zip
+    # DAgger 20 (both options, 20 rounds), then 12 more rounds from it, driven by the policy alone or inside the
+    # safety layer (--driver-safety), and all of them evaluated inside the layer beside the ORCA robot and straight:
+    python docs/analysis/maps_policy.py --clone 50000 --dagger 20 --dagger-epochs 1 --steps 0 --teacher-turn goal \
+        --scan-encoding nearness --train-seeds 0 --out runs/maps_dagger20_near_turn/cloned.zip
+    python docs/analysis/maps_policy.py --start runs/maps_dagger20_near_turn/cloned_clone.zip --clone 50000 \
+        --clone-epochs 1 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
+        --rounds-dir runs/maps_safe/rounds_plain --out runs/maps_safe/plain.zip
+    python docs/analysis/maps_policy.py --start runs/maps_dagger20_near_turn/cloned_clone.zip --clone 50000 \
+        --clone-epochs 1 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
+        --driver-safety src/socnav/data/pretrained_time-to-collision.yaml \
+        --rounds-dir runs/maps_safe/rounds_ttc --out runs/maps_safe/ttc.zip
+    python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
+        "DAgger 20 + 12=runs/maps_safe/plain_clone.zip" "DAgger 20 + 12, layer driving=runs/maps_safe/ttc_clone.zip" \
+        --safety src/socnav/data/pretrained_time-to-collision.yaml --episodes 200 --seed 0
 """
 
 from __future__ import annotations
