@@ -172,8 +172,11 @@ def evaluate_layers(policy: Any, estimator: Any, layers: Sequence[Layer], setup:
                     restart()
                 # a layer the calibration switched off (no collision to learn from) never fires: no estimate needed
                 reads = layer.decision.uses_uncertainty and not never_fires(layer.decision)
+                # The benchmark compares what decides the hand-over for people; the wall stop (the same for every
+                # trigger) would turn the plain policy's wall collisions in the corridor shift into episodes that go
+                # on, and the people collisions it then meets into every trigger's column alike.
                 safe = SafePolicy(policy, estimator if reads else no_uncertainty, layer.decision, config,
-                                  window=setup.window, fallback=layer.fallback)
+                                  window=setup.window, fallback=layer.fallback, wall_stop=False)
                 counter = FallbackCounter(safe)
                 records = rollout_episodes(safe, config, setup.eval_episodes, seed=setup.eval_seed,
                                            n_envs=setup.n_envs, observer=counter, metrics=False)
