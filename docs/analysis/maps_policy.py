@@ -35,6 +35,9 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
         "DAgger 20 + 12=runs/maps_safe/plain_clone.zip" "DAgger 20 + 12, layer driving=runs/maps_safe/ttc_clone.zip" \
         --safety src/socnav/data/pretrained_time-to-collision.yaml --episodes 200 --seed 0
+    # the same inside a layer that acts only in the last two seconds before contact
+    python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
+        --safety configs/safety/time_to_collision_2s.yaml --episodes 200 --seed 0
 """
 
 from __future__ import annotations

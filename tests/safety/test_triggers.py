@@ -282,3 +282,19 @@ def test_collision_labels_mark_the_last_steps_of_collisions():
     records = pd.DataFrame({"step": [0, 1, 2, 3, 0, 1], "length": [4, 4, 4, 4, 2, 2],
                             "collided": [True] * 4 + [False] * 2})
     np.testing.assert_array_equal(collision_labels(records, 2), [0, 0, 1, 1, 0, 0])
+
+
+def test_the_repositorys_trigger_files_load_and_fire_when_they_say():
+    """configs/safety/time_to_collision_2s.yaml (docs/maps.md): a time-to-collision trigger that fires where contact
+    is less than 2 s away. A robot standing still, a human walking at it at 1 m/s, 0.5 m of radii: from 3 m contact
+    is 2.5 s away (no), from 2 m 1.5 s (yes)."""
+    from pathlib import Path
+
+    spec = load_safety(Path(__file__).resolve().parents[2] / "configs" / "safety" / "time_to_collision_2s.yaml")
+    assert isinstance(spec, TriggerSpec) and spec.trigger == "time-to-collision" and spec.threshold == -2.0
+    trigger = make_trigger(spec)
+    trigger.allocate(1)
+    for distance, seconds, fires in ((3.0, 2.5, False), (2.0, 1.5, True)):
+        inputs = inputs_for(observation([(distance, 0.0, -1.0, 0.0)]))
+        np.testing.assert_allclose(trigger.score(inputs), [-seconds], atol=1e-5)
+        assert bool(trigger.fires(inputs)[0]) is fires
