@@ -282,6 +282,37 @@ def test_an_interrupted_rollout_carries_its_finished_records():
     pd.testing.assert_frame_equal(finished, full.set_index("episode").loc[finished.index])
 
 
+def test_a_ctrl_c_that_numba_wraps_is_still_an_interruption():
+    """A Ctrl-C that arrives while numba loads a compiled function from its cache surfaces as a SystemError caused by
+    the KeyboardInterrupt (seen once in CI on `kill` of `socnav evaluate`): the rollout stops as for a Ctrl-C, with
+    its finished records; a SystemError that no Ctrl-C caused is not swallowed."""
+    import socnav
+    from socnav.controllers import make_controller
+    from socnav.envs.rollout import RolloutInterrupted, rollout_episodes
+
+    config = socnav.load_config({"scenario": "circle_crossing", "n_humans": 3})
+    calls = []
+
+    def wrapped(interrupt: bool):
+        def progress(n):
+            calls.append(n)
+            if sum(calls) >= 3:
+                if not interrupt:
+                    raise SystemError("a compiled function failed")
+                try:
+                    raise KeyboardInterrupt
+                except KeyboardInterrupt as cause:
+                    raise SystemError("returned a result with an exception set") from cause
+        return progress
+
+    with pytest.raises(RolloutInterrupted) as caught:
+        rollout_episodes(make_controller("orca", config), config, 50, n_envs=4, progress=wrapped(True))
+    assert len(caught.value.records) >= 3 and caught.value.asked == 50
+    calls.clear()
+    with pytest.raises(SystemError, match="a compiled function failed"):
+        rollout_episodes(make_controller("orca", config), config, 50, n_envs=4, progress=wrapped(False))
+
+
 # ------------------------------------------------------------------------------------------ --humans
 
 def test_humans_option_sets_the_human_model(tmp_path, monkeypatch):

@@ -111,9 +111,23 @@ def rollout_episodes(
         try:
             _rollout(policy, config, n_episodes, seed, n_envs, deterministic, progress if callable(progress) else bar,
                      observer, metrics, records)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as exc:
+            if not is_interrupt(exc):
+                raise
             raise RolloutInterrupted(_records_frame(records, metrics), n_episodes) from None
     return _records_frame(records, metrics)
+
+
+def is_interrupt(exc: BaseException) -> bool:
+    """Whether `exc` is a Ctrl-C: a KeyboardInterrupt, or what numba raises when one arrives while it loads a compiled
+    function from its cache (a SystemError, "returned a result with an exception set", caused by the
+    KeyboardInterrupt)."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def _records_frame(records: list[dict[str, Any]], metrics: bool) -> pd.DataFrame:
