@@ -160,10 +160,20 @@ def navigator(
                       highlight=False)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        # Polled, not `executor.spin()`: on simulated time with no /clock coming (the simulator gone) nothing wakes
-        # a blocked wait, and a signal's shutdown was seen to leave `spin()` waiting for ever (1 run in ~50 in CI).
-        while node.context.ok():
-            executor.spin_once(timeout_sec=0.1)
+        try:
+            # Polled, not `executor.spin()`: on simulated time with no /clock coming (the simulator gone) nothing
+            # wakes a blocked wait, and a signal's shutdown was seen to leave `spin()` waiting for ever (1 run in
+            # ~50 in CI).
+            while node.context.ok():
+                executor.spin_once(timeout_sec=0.1)
+        finally:
+            # The node leaves its executor, and the executor's own guard conditions are destroyed, before the node
+            # is: left to garbage collection after the context's shutdown, the process was seen to end in a
+            # segmentation fault (1 run in many in CI).
+            with suppress(Exception):
+                executor.remove_node(node)
+            with suppress(Exception):
+                executor.shutdown(timeout_sec=1.0)
 
     _spin(rclpy, ctx.args, lambda: NavigatorNode(parameter_overrides=overrides), run)
 
