@@ -31,7 +31,7 @@ that a later session continues with ``--start``; evaluated per scenario.
     python docs/analysis/maps_policy.py --start runs/maps_dagger20_near_turn/cloned_clone.zip --clone 50000 \
         --clone-epochs 1 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
         --driver-safety src/socnav/data/pretrained_time-to-collision.yaml \
-        --rounds-dir runs/maps_safe/rounds_ttc --out runs/maps_safe/ttc.zip
+        --rounds-dir runs/maps_safe/rounds_ttc --out runs/maps_safe/ttc.zip  # (run before the layer's wall stop)
     python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
         "DAgger 20 + 12=runs/maps_safe/plain_clone.zip" "DAgger 20 + 12, layer driving=runs/maps_safe/ttc_clone.zip" \
         --safety src/socnav/data/pretrained_time-to-collision.yaml --episodes 200 --seed 0
