@@ -263,6 +263,19 @@ def test_animate_mentions_the_fallback_only_with_a_safety_layer(tmp_path):
     assert re.search(r"safety fallback on \d+ steps", output)
 
 
+def test_animate_plays_a_trigger_file_as_its_safety_layer(tmp_path):
+    """`--safety` takes a trigger file (socnav calibrate --trigger) as `evaluate` does, not only the rule's
+    thresholds: a time-to-collision trigger that fires whenever the policy's intended velocity leads into the human
+    takes over in episode 6 of position swap (19 steps of it in `socnav evaluate --episodes 10`)."""
+    trigger = tmp_path / "ttc.yaml"
+    trigger.write_text("trigger: time-to-collision\nthreshold: -1000000.0\n")
+    code, output = run("animate", "--model", "pretrained", "--safety", trigger, "--seed", "6",
+                       "--out", tmp_path / "a.gif")
+    assert code == 0, output
+    steps = re.search(r"safety fallback on (\d+) steps", output)
+    assert steps is not None and int(steps.group(1)) > 0, output
+
+
 # ------------------------------------------------------------------------------------------ SB3 interoperability
 
 def test_socnav_policy_file_becomes_a_full_sb3_model(tmp_path):

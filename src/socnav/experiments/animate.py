@@ -49,7 +49,10 @@ def _ticks() -> dict[str, tuple[tuple[float, str], ...]]:
 
 
 def _marks(thresholds: Any) -> dict[str, float]:
-    if thresholds is None:
+    """Where the paper's rule's thresholds sit on the uncertainty bars (a trigger has none there)."""
+    from socnav.safety import Thresholds
+
+    if not isinstance(thresholds, Thresholds):
         return {}
     values = thresholds.model_dump()
     return {label: _bar_position(values[field], scale) for label, (_, scale, field) in BARS.items()
@@ -100,8 +103,8 @@ def animate_episode(
     """Play episode `seed` with `policy` and write a self-explaining GIF/MP4; returns (path, summary).
 
     `estimator` (None: no uncertainty bars) draws the windowed uncertainty live. With `thresholds` (a
-    `socnav.safety.Thresholds`, preset name or file) the policy is wrapped in `SafePolicy`, the thresholds are
-    marked on the bars and the robot is drawn in `FALLBACK_COLOR` on the steps where the cautious controller acts.
+    `socnav.safety.Thresholds`, a trigger's `TriggerSpec`, a preset name or a file) the policy is wrapped in
+    `SafePolicy`, the rule's thresholds are marked on the bars and the robot is drawn in `FALLBACK_COLOR` on the steps where the cautious controller acts.
     `policy_label` and `safety_label` (default: "calibrated" for thresholds) name them in the title. The summary
     holds the episode metrics plus ``fallback_steps`` (None without a safety layer).
     """
@@ -110,10 +113,12 @@ def animate_episode(
     extent = scene_extent(config)
     safe = None
     if thresholds is not None:
-        from socnav.safety import SafePolicy, load_thresholds
+        from socnav.safety import SafePolicy
+        from socnav.safety.triggers import load_safety
 
-        thresholds = load_thresholds(thresholds)
-        safe = SafePolicy(policy, estimator, thresholds, config, window=window, n_envs=1)
+        thresholds = load_safety(thresholds)  # the paper's rule's thresholds, or a trigger (time to collision, ...)
+        safe = SafePolicy(policy, estimator if thresholds.uses_uncertainty else None, thresholds, config,
+                          window=window, n_envs=1)
         safety_label = safety_label or "on"
     renderer = SceneRenderer(width=720, height=480, extent=extent, annotate=True,
                              fallback_color=FALLBACK_COLOR if safe is not None else None)
