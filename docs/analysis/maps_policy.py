@@ -37,7 +37,7 @@ that a later session continues with ``--start``; evaluated per scenario.
         --safety src/socnav/data/pretrained_time-to-collision.yaml --episodes 200 --seed 0
     # the same inside a layer that acts only in the last two seconds before contact
     python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
-        --safety configs/safety/time_to_collision_2s.yaml --episodes 200 --seed 0
+        --safety src/socnav/data/pretrained-maps_time-to-collision.yaml --episodes 200 --seed 0
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ from socnav.envs.mixed import MixedVecEnv
 from socnav.envs.rollout import rollout_episodes
 from socnav.envs.vec_env import SocialNavVecEnv
 from socnav.rl.convert import to_sb3
-from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations
+from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations, track_feature_range
 from socnav.rl.persistence import load_policy, save_policy
 from socnav.rl.presets import make_model
 from socnav.rl.smoothing import SmoothnessPenalty
@@ -67,6 +67,7 @@ SCENARIOS = ("corridor", "doorway", "intersection", "room")
 #: What every world of the mixture shares besides its scenario (configs/env/doorway_route_collision20.yaml's).
 WORLD = {"scan": {"beams": 72, "range": 8.0, "fov": 360}, "planner": {"observe": True}, "reward": {"collision": 20.0}}
 ENVS_PER_WORLD = 4
+FEATURE_RANGE_SEEDS = 9_000_000  # --feature-range's episodes: beyond the DAgger rounds' (100,000 seeds apart)
 
 
 def worlds(humans: int | None, scan: dict[str, Any] | None = None) -> list[dict[str, Any]]:
@@ -180,6 +181,11 @@ def train(args: argparse.Namespace) -> None:
         metadata["timesteps"] = base + done
         save_policy(model.policy, args.out, metadata)
         print(f"{base + done:,} steps, {time.monotonic() - started:.0f} s -> {args.out}", flush=True)
+    if args.feature_range:  # a policy trained by imitation has no feature range; PPO's rollouts track one
+        env.seed(args.train_seeds + FEATURE_RANGE_SEEDS)
+        track_feature_range(model.policy, env, args.feature_range)
+        save_policy(model.policy, args.out, metadata)
+        print(f"feature range over {args.feature_range:,} steps it drove -> {args.out}", flush=True)
 
 
 def _rate(hits: int, n: int) -> str:
@@ -269,6 +275,9 @@ def main() -> None:
     parser.add_argument("--scan-encoding", choices=("range", "nearness"), default="range",
                         help="what the scan encoder reads of each beam (a fresh policy only; AlgoConfig.scan_encoding)")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--feature-range", type=int, default=0, metavar="STEPS",
+                        help="last, set the policy's feature range (feature uncertainty) over STEPS steps it drives "
+                             "in the mixture and save it as --out (for a policy trained by imitation only)")
     parser.add_argument("--action-change-penalty", type=float, default=None,
                         help="smoothing cost per step (docs/training.md); default: the start policy's, else 0")
     parser.add_argument("--evaluate", nargs="+", metavar="[LABEL=]POLICY",

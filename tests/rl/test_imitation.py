@@ -137,3 +137,43 @@ def test_a_driver_is_told_when_episodes_start():
     assert driver.started[0] == [0, 1, 2, 3]
     announced = sum(len(envs) for envs in driver.started[1:])
     assert announced == len(env.episodes) > 0
+
+
+class ObservationLog(VecEnvWrapper):
+    """Records every observation the wrapped VecEnv returns (reset's, then each step's)."""
+
+    def __init__(self, venv):
+        super().__init__(venv)
+        self.observations: list[dict] = []
+
+    def reset(self):
+        observation = self.venv.reset()
+        self.observations.append(observation)
+        return observation
+
+    def step_wait(self):
+        observation, reward, done, infos = self.venv.step_wait()
+        self.observations.append(observation)
+        return observation, reward, done, infos
+
+
+def test_a_cloned_policys_feature_range_is_that_of_the_states_it_drives_into():
+    """`track_feature_range` gives a policy trained without rollouts what ODV-PPO's rollouts give: h_min / h_max
+    are the element-wise extremes of the hidden states at exactly the states it reached, recomputed here from the
+    recorded observations; before it the range is untracked (u_feat 0)."""
+    from socnav.rl.imitation import track_feature_range
+
+    model = make_model("odv-ppo-drop", SocialNavVecEnv(WORLD, n_envs=1), seed=0, overrides=TINY)
+    policy = model.policy
+    assert not th.isfinite(policy.feature_range[0]).any()
+    env = ObservationLog(SocialNavVecEnv(WORLD, n_envs=4))
+    env.venv.seed(3)
+    track_feature_range(policy, env, 50)  # 13 steps of 4 environments
+    reached = env.observations[:13]
+    assert len(env.observations) == 14
+    with th.no_grad():
+        hidden = th.cat([policy._features(policy.obs_to_tensor(obs)[0])[1] for obs in reached])
+    h_min, h_max = policy.feature_range
+    th.testing.assert_close(h_min, hidden.min(dim=0).values)
+    th.testing.assert_close(h_max, hidden.max(dim=0).values)
+    assert bool((h_max > h_min).any())

@@ -38,6 +38,16 @@ def test_clone_dagger_then_continue(tmp_path, monkeypatch, capsys):
     assert continued.socnav_metadata["env_config"]["reward"]["collision"] == pytest.approx(50.0)
     assert continued.socnav_metadata["env_config"]["scan"]["people"] is True  # the start's world, kept
     assert continued.features_extractor.scan_encoder.encoding == "nearness"
+    # imitation leaves the feature range untracked; --feature-range sets it over the states the policy drives into
+    assert not np.isfinite(clone.feature_range[0].numpy()).any()
+    _run(monkeypatch, "--start", str(tmp_path / "cloned_clone.zip"), "--steps", "0", "--feature-range", "64",
+         "--out", str(tmp_path / "ranged.zip"))
+    ranged = socnav.load_policy(tmp_path / "ranged.zip")
+    h_min, h_max = (bound.numpy() for bound in ranged.feature_range)
+    assert np.isfinite(h_min).all() and np.isfinite(h_max).all() and (h_max > h_min).any()
+    for name, tensor in clone.state_dict().items():  # the weights are the clone's
+        if not name.endswith(("h_min", "h_max")):
+            np.testing.assert_array_equal(tensor.numpy(), ranged.state_dict()[name].numpy(), err_msg=name)
 
 
 def test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last(tmp_path, monkeypatch, capsys):

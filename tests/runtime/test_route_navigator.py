@@ -159,21 +159,27 @@ def test_a_path_is_refused_by_a_policy_that_does_not_observe_a_route(tmp_path):
         navigator.act(robot, None, path=[[0.0, 0.0], [3.0, 0.0]])
 
 
-def test_the_fallback_heads_for_the_goal_itself(route_file):
-    """The policy sees the goal along the route; the cautious fallback is handed the goal itself (it plans its own
-    path around the walls): its action is the controller's on the observation of the real goal."""
+def test_the_fallback_acts_on_the_policys_observation_of_its_route(route_file):
+    """As in the simulator's safety layer (`SafePolicy` hands its fallback the env's observation): the cautious
+    fallback sees the goal along the route, as the policy does, so a robot it holds at rest faces the subgoal and
+    not the goal behind the wall (the simulator's layer and this navigator decided apart there)."""
     navigator = SafeNavigator.load(route_file, thresholds=ALWAYS, seed=0)
     config = socnav.load_config(DOORWAY)
     robot = {"position": [-3.0, 3.0], "velocity": [0.0, 0.0], "heading": 0.0, "goal": [4.0, 3.0], "v_pref": 1.0,
              "radius": 0.3}
     humans = {"positions": [[-4.5, 1.0]], "velocities": [[0.0, 0.0]], "radii": [0.3]}
+    handed = []
+    predict = navigator.cautious.predict
+    navigator.cautious.predict = lambda observation: handed.append(observation) or predict(observation)
     decision = navigator.act(robot, humans, scan=np.full(36, 8.0))
-    assert decision.fallback
+    assert decision.fallback and len(handed) == 1
+    for key, value in decision.observation.items():
+        np.testing.assert_array_equal(handed[-1][key], value, err_msg=key)
     plain = SafeNavigator.load(route_file, thresholds=ALWAYS, seed=0)
     plain.route = None  # the same navigator without the route: it observes the goal itself
     real_goal = plain.act(robot, humans, scan=np.full(36, 8.0)).observation
     assert abs(real_goal["robot"][0, GOAL_HEADING] - decision.observation["robot"][0, GOAL_HEADING]) > 0.1
-    expected = CautiousController(config).predict(real_goal)[0][0]
+    expected = CautiousController(config).predict(decision.observation)[0][0]
     np.testing.assert_allclose(decision.action, expected, atol=1e-6)
 
 

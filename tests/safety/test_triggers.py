@@ -284,13 +284,14 @@ def test_collision_labels_mark_the_last_steps_of_collisions():
     np.testing.assert_array_equal(collision_labels(records, 2), [0, 0, 1, 1, 0, 0])
 
 
-def test_the_repositorys_trigger_files_load_and_fire_when_they_say():
-    """configs/safety/time_to_collision_2s.yaml (docs/maps.md): a time-to-collision trigger that fires where contact
+def test_the_map_policys_trigger_file_loads_and_fires_when_it_says():
+    """socnav/data/pretrained-maps_time-to-collision.yaml (the layer shipped with the map policy, docs/maps.md): a
+    time-to-collision trigger that fires where contact
     is less than 2 s away. A robot standing still, a human walking at it at 1 m/s, 0.5 m of radii: from 3 m contact
     is 2.5 s away (no), from 2 m 1.5 s (yes)."""
-    from pathlib import Path
+    from socnav.experiments.demo import MAP_POLICY_LAYER, comparison_file
 
-    spec = load_safety(Path(__file__).resolve().parents[2] / "configs" / "safety" / "time_to_collision_2s.yaml")
+    spec = load_safety(comparison_file(MAP_POLICY_LAYER))
     assert isinstance(spec, TriggerSpec) and spec.trigger == "time-to-collision" and spec.threshold == -2.0
     trigger = make_trigger(spec)
     trigger.allocate(1)

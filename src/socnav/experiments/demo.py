@@ -1,6 +1,7 @@
 """The steps of `socnav demo` (the command prints what they return): the baseline controllers in every scenario
-(`baseline_rows`), a learned policy in the world it was trained in (`train_policy`, `learned_policy_row`), each
-with an animation, and the safety part: the learned policy under a perturbation, with and without the safety layer,
+(`baseline_rows`), a learned policy in the world it was trained in (`train_policy`, `learned_policy_row`), the
+shipped map policy in the doorway inside its safety layer (`map_policy_rows`), each with an animation, and the
+safety part: the learned policy under a perturbation, with and without the safety layer,
 on the same episodes; the collisions it prevents, how often its fallback drives, and an episode it saves.
 
 Where a step takes ``progress``, it is a `ProgressBar`: ``progress(label, total)`` returns a context manager that
@@ -30,10 +31,11 @@ from socnav.config import EnvConfig, load_config
 if TYPE_CHECKING:
     from socnav.rl.training import TrainResult
 
-__all__ = ["BASELINES", "COMPARISONS", "MAP_SCENARIO", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar",
-           "SafetyDemo", "animate_baseline", "animate_learned_policy", "animate_map_baseline", "animate_saved_episode",
-           "baseline_rows", "choose_strength", "comparison_file", "describe", "find_saved_episode",
-           "learned_policy_row", "safety_demo", "summary_rows", "train_policy", "write_safety_records"]
+__all__ = ["BASELINES", "COMPARISONS", "MAP_POLICY", "MAP_POLICY_LAYER", "MAP_SCENARIO", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar",
+           "SafetyDemo", "animate_baseline", "animate_learned_policy", "animate_map_baseline", "animate_map_policy",
+           "animate_saved_episode", "baseline_rows", "choose_strength", "comparison_file", "describe",
+           "find_saved_episode", "learned_policy_row", "map_policy_rows", "safety_demo", "summary_rows",
+           "train_policy", "write_safety_records"]
 
 #: ``progress(label, total)``: a context manager showing one progress bar, yielding its ``advance(n)`` callback.
 ProgressBar = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
@@ -44,6 +46,8 @@ BASELINES = ("orca", "straight")  # the non-learned controllers run in every sce
 N_ENVS = 32  # environments stepped together in the demo's evaluations
 TRAINING_WORLD = {"scenario": "position_swap", "n_humans": 1}  # where `socnav demo --train-steps` trains a policy
 MAP_SCENARIO = "doorway"  # the map scenario the demo animates, the planned path drawn
+MAP_POLICY = "pretrained-maps"  # the shipped map policy, played in MAP_SCENARIO inside MAP_POLICY_LAYER
+MAP_POLICY_LAYER = "pretrained-maps_time-to-collision.yaml"  # its safety layer (socnav/data; the wall stop is on)
 
 PERTURBATION = "heading_noise"
 STRENGTHS = (0.2, 0.4, 0.8)  # rad; above ~1 the robot rarely reaches its goal at all, with or without the layer
@@ -172,6 +176,52 @@ def animate_learned_policy(policy: Any, world: EnvConfig, out: Path, seed: int, 
 
     return animate_episode(policy, None, world, Path(out) / f"odv_ppo_drop_{world.scenario}.gif", seed=seed,
                            policy_label=label)
+
+
+def map_policy_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
+                    progress: ProgressBar | None = None) -> tuple[EnvConfig, list[Row]]:
+    """The shipped map policy (`MAP_POLICY`) in `MAP_SCENARIO`, alone and inside its safety layer
+    (`MAP_POLICY_LAYER`: time to collision at 2 s, the wall stop) on the same `episodes` episodes from seed `seed`;
+    writes OUT/pretrained-maps_<scenario>.csv and OUT/pretrained-maps_<scenario>_safety.csv (`fallback_steps`
+    included) and returns (the world, the two metrics-table rows)."""
+    from socnav.envs.rollout import summarize
+    from socnav.io import write_table_atomic
+    from socnav.rl.persistence import load_policy
+    from socnav.safety import SafePolicy
+    from socnav.sim.metrics import DEFAULT_METRICS
+
+    policy = load_policy(MAP_POLICY)
+    world = load_config(policy.socnav_metadata["env_config"], scenario=MAP_SCENARIO)
+    label = f"{MAP_POLICY} / {world.scenario}"
+    alone = _rollout(policy, world, episodes, seed, n_envs, label, progress)
+    layer = SafePolicy(policy, None, str(comparison_file(MAP_POLICY_LAYER)), world)  # reads no uncertainty
+    with (progress(f"{label} + layer", episodes) if progress is not None else nullcontext(None)) as advance:
+        safe = _with_layer(layer, world, episodes, seed, n_envs, advance)
+    base = Path(out) / f"{MAP_POLICY}_{world.scenario}"
+    write_table_atomic(alone, base.with_name(base.name + ".csv"))
+    write_table_atomic(safe, base.with_name(base.name + "_safety.csv"))
+    metrics = DEFAULT_METRICS + ("collision_obstacle_pct",)
+    from socnav.safety import fallback_percent
+
+    return world, [(label, summarize(alone, metrics=metrics)),
+                   (f"{label} + safety layer", {**summarize(safe, metrics=metrics),
+                                                "fallback_pct": fallback_percent(safe)})]
+
+
+def animate_map_policy(world: EnvConfig, out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
+    """One episode (seed `seed`) of the shipped map policy inside its safety layer in `world` (`map_policy_rows`'s)
+    as OUT/pretrained-maps_<scenario>.gif, its planned path and subgoal drawn; returns `animate_episode`'s (path,
+    summary)."""
+    from socnav.experiments.animate import animate_episode
+    from socnav.rl.persistence import load_policy
+    from socnav.uncertainty import MC_SEED, MCDropoutEstimator
+
+    policy = load_policy(MAP_POLICY)
+    # the layer reads no uncertainty; the bars show the policy's own (MC dropout), as the other animations do
+    estimator = MCDropoutEstimator(policy, k=MC_SAMPLES, seed=MC_SEED)
+    return animate_episode(policy, estimator, world, Path(out) / f"{MAP_POLICY}_{world.scenario}.gif",
+                           seed=seed, thresholds=comparison_file(MAP_POLICY_LAYER), policy_label=MAP_POLICY,
+                           safety_label="time to collision 2 s, wall stop")
 
 
 def comparison_file(name: str) -> Path:

@@ -27,7 +27,7 @@ import torch as th
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecEnv
 
-__all__ = ["Demonstrations", "Teacher", "clone", "collect_demonstrations"]
+__all__ = ["Demonstrations", "Teacher", "clone", "collect_demonstrations", "track_feature_range"]
 
 
 class Teacher(Protocol):
@@ -197,3 +197,19 @@ def clone(policy: ActorCriticPolicy, demonstrations: Demonstrations, epochs: int
         history.append(dict(zip(("action_mse", "nll", "value_loss"), totals / batches, strict=True)))
     policy.set_training_mode(False)
     return history
+
+
+def track_feature_range(policy: Any, env: VecEnv, steps: int) -> None:
+    """Set the feature range of a policy trained without PPO's rollouts (cloning, DAgger): the bounds h_min / h_max
+    of its feature uncertainty (u_feat, the paper's eq. 7), which ODV-PPO tracks over the states its rollouts reach.
+    Reset, then folded over the hidden states of at least `steps` states that `policy` reaches driving `env`
+    deterministically (dropout off), from the env's current seeds."""
+    policy.features_extractor.reset_feature_range()
+    policy.set_training_mode(False)
+    observation = env.reset()
+    for _ in range(max(1, -(-int(steps) // env.num_envs))):
+        with th.no_grad(), policy.feature_range_tracking():
+            tensor, _ = policy.obs_to_tensor(observation)
+            policy.forward(tensor, deterministic=True)  # the rollout pass, which folds h into the range
+        action, _ = policy.predict(observation, deterministic=True)
+        observation, _, _, _ = env.step(action)

@@ -30,8 +30,10 @@ range scan reads the robot's ``scan`` (its ranges, as a sensor_msgs/LaserScan gi
 A route (a policy trained with ``planner.observe``, file format 5): the navigator plans the robot's shortest path on
 the map from its pose to its goal, as the simulator does (`socnav.sim.planning`), and the policy observes the goal
 along that path (`socnav.sim.route.observed_goals`); or it follows a path it is given (``act(..., path=...)``, e.g.
-a nav_msgs/Path from nav2's planner): its pure-pursuit subgoal instead of its own. The cautious fallback heads for
-the goal itself (on its own path around the walls). `Decision.subgoal` says where the policy was pointed.
+a nav_msgs/Path from nav2's planner): its pure-pursuit subgoal instead of its own. The cautious fallback acts on
+the same observation, as the simulator's safety layer does (`socnav.safety.SafePolicy`): it heads for the subgoal,
+and a fallback at rest faces it rather than a goal behind a wall. `Decision.subgoal` says where the policy was
+pointed.
 """
 
 from __future__ import annotations
@@ -503,7 +505,7 @@ class SafeNavigator:
             return self.act_observation(observation, v_pref=robot.v_pref)
         assert map_pose is not None
         route_goal, subgoal = self._route_goal(robot, map_pose, pose is None, given_path)
-        decision = self.act_observation(observe(route_goal), v_pref=robot.v_pref, fallback_observation=observation)
+        decision = self.act_observation(observe(route_goal), v_pref=robot.v_pref)
         return dataclasses.replace(decision, subgoal=subgoal)
 
     def _route_goal(self, robot: RobotState, pose: np.ndarray, same_frame: bool,
@@ -523,16 +525,13 @@ class SafeNavigator:
         seen = observed_goals(position[None], subgoal[None], goal[None])[0]
         return (seen if same_frame else rotation.T @ (seen - position) + robot.position), subgoal
 
-    def act_observation(self, observation: Mapping[str, np.ndarray], v_pref: float | None = None, *,
-                        fallback_observation: Mapping[str, np.ndarray] | None = None) -> Decision:
+    def act_observation(self, observation: Mapping[str, np.ndarray], v_pref: float | None = None) -> Decision:
         """One decision from an observation already in the environment's layout (batch of one, float32), e.g.
         one from :func:`socnav.sim.observation.observe_robot`; unlike :meth:`act` its input is not checked, but
         its command is finite all the same (:attr:`Decision.fault`: a non-finite observation stops the robot).
 
         `v_pref`: the robot's preferred speed at full precision, to turn the action into a speed as the simulator
         does (None: the observation's float32 copy; :meth:`act` passes the robot state's).
-        `fallback_observation`: what the cautious fallback acts on (None: `observation`); :meth:`act` passes the
-        one with the goal itself when the policy observes its route.
 
         :raises InputError: the observation lacks the ``scan`` the policy reads or the ``pose`` the fallback needs
             with walls."""
@@ -582,8 +581,7 @@ class SafeNavigator:
         wall_stop = False
         if observed:
             if fallback:
-                action = self.cautious.predict(dict(observation if fallback_observation is None
-                                                    else fallback_observation))[0][0]
+                action = self.cautious.predict(dict(observation))[0][0]
             preferred = float(observation["robot"][0, 3]) if v_pref is None else float(v_pref)
             if self.wall_stop is not None:
                 action = np.array(action, dtype=np.float32).reshape(1, 2)
