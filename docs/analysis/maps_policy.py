@@ -206,6 +206,7 @@ def evaluate(args: argparse.Namespace) -> None:
         policies[label or path] = load_policy(path)
     open_plane = [{"scenario": name, **WORLD} for name in ("position_swap", "circle_crossing")]
     open_plane[0]["n_humans"] = 1  # the shipped policy's world
+    summary: dict[str, dict[str, str]] = {}  # controller -> scenario -> "goal / people / walls (fallback %)"
     print("| scenario | controller | Goal % [95 % CI] | people % [95 % CI] | wall % [95 % CI] | time-out % "
           "| jerk x ORCA | path irregularity x ORCA |")
     print("|:--|:--|--:|--:|--:|--:|--:|--:|")
@@ -233,12 +234,22 @@ def evaluate(args: argparse.Namespace) -> None:
         orca = rows["ORCA robot"]
         for label, records in rows.items():
             n, outcome = len(records), records["outcome"]
+            summary.setdefault(label, {})[world.scenario] = (
+                "{:g} / {:g} / {:g}".format(*(round(100 * float((outcome == name).mean()), 1)
+                                              for name in ("goal", "collision", "collision_wall")))
+                + (f" ({fallback_percent(records):.0f} %)" if label in fallback else ""))
             print(f"| {world.scenario} | {label}{fallback.get(label, '')} | "
                   f"{_rate(int((outcome == 'goal').sum()), n)} | "
                   f"{_rate(int((outcome == 'collision').sum()), n)} | "
                   f"{_rate(int((outcome == 'collision_wall').sum()), n)} | {100 * (outcome == 'timeout').mean():.1f} | "
                   f"{records['jerk_mean'].mean() / orca['jerk_mean'].mean():.1f} | "
                   f"{records['path_irregularity'].mean() / orca['path_irregularity'].mean():.1f} |", flush=True)
+    # docs/maps.md's form: one row per controller, goal / people / walls in % per scenario, the fallback's share
+    scenarios = list(dict.fromkeys(scenario for cells in summary.values() for scenario in cells))
+    print("\n| controller | " + " | ".join(name.replace("_", " ") for name in scenarios) + " |")
+    print("|:--|" + ":-:|" * len(scenarios))
+    for label, cells in summary.items():
+        print(f"| {label} | " + " | ".join(cells.get(name, "–") for name in scenarios) + " |")
 
 
 def main() -> None:

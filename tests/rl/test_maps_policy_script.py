@@ -99,3 +99,11 @@ def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch
     table = capsys.readouterr().out
     for driver in ("safe", "ORCA robot", "straight"):  # four map scenarios and two open-plane ones each
         assert table.count(f"| {driver} + safety (fallback ") == 6
+    # the docs' form: a row per controller, a goal / people / walls cell per scenario, as the long table's rates
+    summary = table[table.index("\n| controller | corridor | doorway | intersection | room | position swap | "
+                                "circle crossing |"):]
+    long_rows = [line for line in table.splitlines() if line.startswith("| corridor | safe + safety")]
+    goal = float(long_rows[0].split("|")[3].split()[0])
+    safe_row = next(line for line in summary.splitlines() if line.startswith("| safe + safety |"))
+    cells = [cell.strip() for cell in safe_row.split("|")[2:-1]]
+    assert len(cells) == 6 and cells[0].startswith(f"{goal:g} / ") and cells[0].endswith(" %)")
