@@ -30,6 +30,7 @@ settings.load_profile("socnav")
 #: a module fixture that takes long to build are listed together (test_runner.py's `local_run`: 23 s).
 SLOW_THRESHOLD_S = 1.0
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
+    "tests/rl/test_open_plane_dagger_script.py": ("test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range",),
     "tests/rl/test_maps_policy_script.py": ("test_clone_dagger_then_continue",  # 18.8 s
                                             "test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last",
                                             "test_dagger_from_a_start_with_the_safety_layer_driving"),  # 28.7 s

@@ -3,6 +3,7 @@ ORCA robot in position swap with one human, then DAgger rounds (`socnav.rl.imita
 it beside the ORCA robot and the shipped policy on the same held-out episodes.
 
     python docs/analysis/open_plane_dagger.py --steps 100000 --rounds 10 --out runs/open_plane_dagger10.zip
+    # the runs in docs/training.md predate --train-seeds and --feature-range: --train-seeds 0 --feature-range 0
     python docs/analysis/smoothness_table.py "shipped policy=pretrained" "DAgger=runs/open_plane_dagger10.zip" \
         --episodes 200 --seed 5000
 """
@@ -15,11 +16,12 @@ from pathlib import Path
 from socnav.config import load_config
 from socnav.controllers import make_controller
 from socnav.envs.vec_env import SocialNavVecEnv
-from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations
+from socnav.rl.imitation import Demonstrations, clone, collect_demonstrations, track_feature_range
 from socnav.rl.persistence import save_policy
 from socnav.rl.presets import make_model
 
 WORLD = {"scenario": "position_swap", "n_humans": 1}
+FEATURE_RANGE_SEEDS = 9_000_000  # --feature-range's episodes: beyond the DAgger rounds' (100,000 seeds apart)
 
 
 def teach(args: argparse.Namespace) -> None:
@@ -28,12 +30,15 @@ def teach(args: argparse.Namespace) -> None:
     teacher = make_controller("orca", env.config)
     demonstrations: Demonstrations | None = None
     for round_ in range(1 + args.rounds):
-        env.seed(args.seed + 100_000 * round_)
+        env.seed(args.train_seeds + args.seed + 100_000 * round_)
         part = collect_demonstrations(env, teacher, args.steps, gamma=model.gamma,
                                       driver=None if round_ == 0 else model.policy)
         demonstrations = part if demonstrations is None else Demonstrations.concatenate([demonstrations, part])
         losses = clone(model.policy, demonstrations, epochs=10 if round_ == 0 else 2, seed=args.seed + round_)
         print(f"round {round_}: {len(part):,} labels, action_mse {losses[-1]['action_mse']:.3f}", flush=True)
+    if args.feature_range:  # imitation tracks no feature range (feature uncertainty); PPO's rollouts do
+        env.seed(args.train_seeds + FEATURE_RANGE_SEEDS)
+        track_feature_range(model.policy, env, args.feature_range)
     metadata = {"algo": "odv-ppo-drop", "algo_config": model.algo_config, "seed": args.seed, "timesteps": 0,
                 "env_config": load_config(WORLD).model_dump(mode="json")}
     save_policy(model.policy, args.out, metadata)
@@ -44,6 +49,11 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50_000, help="labelled steps per round")
     parser.add_argument("--rounds", type=int, default=5, help="DAgger rounds after the first clone")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--train-seeds", type=int, default=10_000_000, metavar="BASE",
+                        help="the collections' episodes start at this seed, far from the evaluations' (0-199, "
+                             "5000-5199); the runs in docs/training.md used 0")
+    parser.add_argument("--feature-range", type=int, default=20_000, metavar="STEPS",
+                        help="set the feature range over STEPS steps the final policy drives (0: leave it unset)")
     parser.add_argument("--out", type=Path, required=True)
     teach(parser.parse_args())
 
