@@ -41,11 +41,17 @@ def test_demo_writes_tables_and_animation(tmp_path):
     assert (tmp_path / "orca_circle_crossing.gif").stat().st_size > 10_000
     assert (tmp_path / "orca_doorway.gif").stat().st_size > 10_000  # the global planner's path drawn
     assert (tmp_path / "odv_ppo_drop_position_swap.gif").stat().st_size > 10_000
+    assert (tmp_path / "pretrained-maps_doorway.gif").stat().st_size > 10_000  # the map policy inside its layer
     from socnav.sim.scenarios import scenario_names
 
     baselines = 2 * len(scenario_names(self_contained=True))  # straight and ORCA in every scenario (maps included)
-    # the policy, and it perturbed without the layer, with the paper's rule and with the two comparison layers
-    assert len(list(tmp_path.glob("*.csv"))) == baselines + 5
+    # the map policy alone and in its layer; the policy, and it perturbed without the layer, with the paper's rule
+    # and with the two comparison layers
+    assert len(list(tmp_path.glob("*.csv"))) == baselines + 2 + 5
+    maps_alone = pd.read_csv(tmp_path / "pretrained-maps_doorway.csv")
+    maps_layer = pd.read_csv(tmp_path / "pretrained-maps_doorway_safety.csv")
+    assert list(maps_alone["seed"]) == list(maps_layer["seed"]) and "fallback_steps" in maps_layer
+    assert "pretrained-maps / doorway + safety layer" in result.output
     assert "odv-ppo-drop (pretrained)" in result.output
     # The safety layer's part: the same perturbed episodes without and with each layer.
     plain = pd.read_csv(tmp_path / "perturbed_position_swap.csv")

@@ -598,8 +598,10 @@ def _load_learned_policy(model: str) -> Any:
 
 def _model_label(model: str) -> str:
     """How a model file is named in tables and default output names: its path as given (`runs/swap/model.zip`),
-    so that two runs' `model.zip` files stay apart; 'pretrained' for the shipped policy."""
-    return "pretrained" if model == "pretrained" else str(Path(model))
+    so that two runs' `model.zip` files stay apart; the name of a shipped policy ('pretrained', 'pretrained-maps')."""
+    from socnav.rl.persistence import PRETRAINED_FILES
+
+    return model if model in PRETRAINED_FILES else str(Path(model))
 
 
 def _default_records_path(label: str, config: EnvConfig, seed: int, episodes: int, extra: dict[str, Any]) -> Path:
@@ -622,7 +624,7 @@ def evaluate(
     policy: str | None = typer.Option(None, "--policy", hidden=True,
                                          callback=_deprecated_alias("--policy", "--controller"),
                                          help="deprecated name of --controller"),
-    model: str | None = model_option("trained policy file, or 'pretrained' for the shipped one"),
+    model: str | None = model_option("trained policy file, or 'pretrained' / 'pretrained-maps' for a shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: str | None = scenario_option(None, help=f"one of: {SCENARIOS} (default: the model's training world "
                                                        "with --model, else circle_crossing)"),
@@ -1205,7 +1207,8 @@ def _calibrate_score_trigger(trigger: str, policy: Any, uncertainty: Any, env_co
 
 @app.command()
 def convert(
-    model: str = typer.Argument(..., help="socnav policy file (from socnav train), or 'pretrained'"),
+    model: str = typer.Argument(..., help="socnav policy file (from socnav train), or 'pretrained' / "
+                                          "'pretrained-maps'"),
     to_sb3: Path = typer.Option(..., "--to-sb3", help="write a Stable-Baselines3 model zip here "
                                                        "(ODVPPO.load reads it)"),
     force: bool = force_option("the --to-sb3 file"),
@@ -1250,6 +1253,14 @@ def demo(
     gif, summary = steps.animate_map_baseline(out, seed)
     console.print(f"animation of one ORCA episode among walls, its planned path and subgoal drawn "
                   f"({summary.get('outcome')}): {escape(str(gif))}", highlight=False)
+
+    world, rows = steps.map_policy_rows(out, episodes, seed, progress=_progress_bar)
+    console.print(metrics_table(rows, f"{describe_world(world)}, the shipped map policy alone and inside its safety "
+                                      f"layer, {episodes} episodes (seeds {seed}..)"))
+    gif, summary = steps.animate_map_policy(world, out, seed)
+    console.print(f"animation of one {steps.MAP_POLICY} episode inside its safety layer, its planned path and "
+                  f"subgoal drawn ({summary.get('outcome')}, fallback on {summary.get('fallback_steps')} steps): "
+                  f"{escape(str(gif))}", highlight=False)
 
     if train_steps:
         from socnav.rl.training import TrainingInterrupted
@@ -1297,7 +1308,7 @@ def demo(
 
 @app.command()
 def export(
-    model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained'"),
+    model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained' / 'pretrained-maps'"),
     out: Path = typer.Option(Path("navigator.onnx"), help="the ONNX navigator file to write"),
     thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE (a "
                                               "trigger file too: the navigator then decides with that trigger)"),

@@ -104,7 +104,8 @@ def animate_episode(
 
     `estimator` (None: no uncertainty bars) draws the windowed uncertainty live. With `thresholds` (a
     `socnav.safety.Thresholds`, a trigger's `TriggerSpec`, a preset name or a file) the policy is wrapped in
-    `SafePolicy`, the rule's thresholds are marked on the bars and the robot is drawn in `FALLBACK_COLOR` on the steps where the cautious controller acts.
+    `SafePolicy`, the rule's thresholds are marked on the bars and the robot is drawn in `FALLBACK_COLOR` on the
+    steps where the cautious controller acts; a trigger that reads no uncertainty leaves the bars to `estimator`.
     `policy_label` and `safety_label` (default: "calibrated" for thresholds) name them in the title. The summary
     holds the episode metrics plus ``fallback_steps`` (None without a safety layer).
     """
@@ -140,14 +141,15 @@ def animate_episode(
             # with sensing 'true' the safety layer reads the world's noise-free state; the policy gets `batch`
             truth = env.world.observe(noisy=False) if safe.needs_true_observation else None
             actions, _ = safe.predict(batch, deterministic=True, true_observation=truth)
-            values = {key: float(value[0]) for key, value in safe.last_uncertainty.items()}
+            values = {} if safe.estimator is None else {key: float(value[0])  # zeros there without one
+                                                         for key, value in safe.last_uncertainty.items()}
             fallback = bool(safe.last_fallback[0])
         else:
             actions, _ = policy.predict(batch, deterministic=True)
             values = {}
-            if estimator is not None:
-                smooth = windowed.update(estimator(batch)).as_dict()
-                values = {key: float(np.asarray(smooth[key])[0]) for key, _, _ in BARS.values()}
+        if not values and estimator is not None:  # no layer, or a trigger that reads no uncertainty
+            smooth = windowed.update(estimator(batch)).as_dict()
+            values = {key: float(np.asarray(smooth[key])[0]) for key, _, _ in BARS.values()}
         if values:
             bars = {label: _bar_position(values[key], scale) for label, (key, scale, _) in BARS.items()}
         fallback_steps += fallback

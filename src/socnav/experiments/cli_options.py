@@ -62,7 +62,7 @@ SCENARIOS = ", ".join(scenario_names())
 SINGLE_AGENT_SCENARIO_HELP = f"one of: {SCENARIOS} (default: position_swap, or the --config file's)"
 SINGLE_AGENT_N_HUMANS_HELP = "humans per episode (default: 1, or the --config file's)"
 SINGLE_AGENT_MAX_HUMANS_HELP = "observation rows (default 10; the model's value)"
-ACTING_MODEL_HELP = "policy file or 'pretrained' (acts; MC-dropout estimates on it)"
+ACTING_MODEL_HELP = "policy file, 'pretrained' or 'pretrained-maps' (acts; MC-dropout estimates on it)"
 #: --sensing of the commands that wrap a policy in the safety layer (`calibrate` chooses it for its thresholds).
 LAYER_SENSING_HELP = ("what the safety layer's proximity terms and fallback read: perceived (the noisy observation) | "
                       "true (the simulator's state); default: the thresholds' own (perceived for mc, ensemble)")
@@ -147,7 +147,7 @@ def force_option(what: str = "the output file") -> Any:
 
 # ---- policies, uncertainty and the safety layer -----------------------------------------------------------------
 def model_option(help: str) -> Any:
-    """--model: a trained policy file or 'pretrained' (None: the command runs without one)."""
+    """--model: a trained policy file or a shipped one's name (None: the command runs without one)."""
     return typer.Option(None, help=help)
 
 

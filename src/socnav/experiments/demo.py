@@ -31,7 +31,8 @@ from socnav.config import EnvConfig, load_config
 if TYPE_CHECKING:
     from socnav.rl.training import TrainResult
 
-__all__ = ["BASELINES", "COMPARISONS", "MAP_POLICY", "MAP_POLICY_LAYER", "MAP_SCENARIO", "PERTURBATION", "STRENGTHS", "TRAINING_WORLD", "ProgressBar",
+__all__ = ["BASELINES", "COMPARISONS", "MAP_POLICY", "MAP_POLICY_LAYER", "MAP_SCENARIO", "PERTURBATION", "STRENGTHS",
+           "TRAINING_WORLD", "ProgressBar",
            "SafetyDemo", "animate_baseline", "animate_learned_policy", "animate_map_baseline", "animate_map_policy",
            "animate_saved_episode", "baseline_rows", "choose_strength", "comparison_file", "describe",
            "find_saved_episode", "learned_policy_row", "map_policy_rows", "safety_demo", "summary_rows",
@@ -200,7 +201,7 @@ def map_policy_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
     base = Path(out) / f"{MAP_POLICY}_{world.scenario}"
     write_table_atomic(alone, base.with_name(base.name + ".csv"))
     write_table_atomic(safe, base.with_name(base.name + "_safety.csv"))
-    metrics = DEFAULT_METRICS + ("collision_obstacle_pct",)
+    metrics = (*DEFAULT_METRICS, "collision_obstacle_pct")
     from socnav.safety import fallback_percent
 
     return world, [(label, summarize(alone, metrics=metrics)),

@@ -20,6 +20,7 @@ which allocates nothing) before the real network is built; NaN/Inf weights are r
 
 from __future__ import annotations
 
+import difflib
 import io
 import json
 import math
@@ -50,6 +51,10 @@ FORMAT_VERSION = 1
 METADATA_FILE = "socnav.json"
 WEIGHTS_FILE = "policy.pt"
 PRETRAINED = "pretrained"
+PRETRAINED_MAPS = "pretrained-maps"
+#: name -> file in socnav/data of each shipped policy (socnav/data/README.md says how each was made and measured)
+PRETRAINED_FILES = {PRETRAINED: "pretrained_odv_ppo_drop_position_swap.zip",
+                    PRETRAINED_MAPS: "pretrained_odv_ppo_drop_maps.zip"}
 CHECKPOINT_FORMAT = "socnav-checkpoint"
 CHECKPOINT_VERSION = 1
 CHECKPOINT_HEADER = "checkpoint.json"
@@ -83,9 +88,12 @@ class CheckpointError(RuntimeError):
     state names); the message says which file and why."""
 
 
-def pretrained_path() -> Path:
-    """Path of the ODV-PPO-Drop position-swap policy shipped inside the package (see socnav/data/README.md)."""
-    return Path(str(resources.files("socnav") / "data" / "pretrained_odv_ppo_drop_position_swap.zip"))
+def pretrained_path(name: str = PRETRAINED) -> Path:
+    """Path of a policy shipped inside the package (socnav/data/README.md): ``"pretrained"``, ODV-PPO-Drop trained on
+    position swap (the paper's), or ``"pretrained-maps"``, the map policy (DAgger on the four map scenarios)."""
+    if name not in PRETRAINED_FILES:
+        raise PolicyLoadError(f"no shipped policy named {name!r}; the shipped ones are {', '.join(PRETRAINED_FILES)}")
+    return Path(str(resources.files("socnav") / "data" / PRETRAINED_FILES[name]))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -234,7 +242,9 @@ def _read_members(path: Path, limits: dict[str, int], error: type[Exception], wh
     if path.is_dir():
         raise error(f"{path} is a directory, not a {what} file")
     if not path.is_file():
-        raise error(f"no {what} file at {path}")
+        near = difflib.get_close_matches(str(path), PRETRAINED_FILES, n=1) if what == "policy" else []
+        hint = f"; did you mean the shipped policy {near[0]!r}?" if near else ""
+        raise error(f"no {what} file at {path}{hint}")
     if path.stat().st_size > MAX_FILE_BYTES:
         raise error(f"{path} is {path.stat().st_size} bytes, more than a {what} file can be ({MAX_FILE_BYTES})")
     contents: dict[str, bytes] = {}
@@ -440,7 +450,8 @@ def _read_archive(path: Path) -> tuple[dict[str, Any], PolicyHeader, bytes]:
 
 
 def load_policy(path: str | Path) -> ODVActorCriticPolicy:
-    """Load a policy written by `save_policy` / `socnav train`, or ``"pretrained"`` for the shipped one.
+    """Load a policy written by `save_policy` / `socnav train`, or a shipped one by name: ``"pretrained"`` (the open
+    plane, the paper's) or ``"pretrained-maps"`` (walls and the open plane; socnav/data/README.md).
 
     The returned SB3 policy is in eval mode (dropout off); ``policy.predict(obs, deterministic=True)`` gives the
     mean action. Its metadata is on ``policy.socnav_metadata`` (algo, algo_config, env_config, timesteps, ...).
@@ -450,7 +461,7 @@ def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     """
     from socnav.config import ConfigError, load_config
 
-    path = pretrained_path() if str(path) == PRETRAINED else Path(path)
+    path = pretrained_path(str(path)) if str(path) in PRETRAINED_FILES else Path(path)
     raw_header, header, weights = _read_archive(path)
     try:
         env_config = load_config(header.env_config)
