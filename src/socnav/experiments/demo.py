@@ -1,8 +1,8 @@
 """The steps of `socnav demo` (the command prints what they return): the baseline controllers in every scenario
 (`baseline_rows`), a learned policy in the world it was trained in (`train_policy`, `learned_policy_row`), the
 shipped map policy in the doorway inside its safety layer (`map_policy_rows`), each with an animation, and the
-safety part: the learned policy under a perturbation, with and without the safety layer,
-on the same episodes; the collisions it prevents, how often its fallback drives, and an episode it saves.
+safety part: the learned policy under a perturbation, with and without the safety layer, on the same episodes; the
+collisions it prevents, how often its fallback drives, and an episode it saves.
 
 Where a step takes ``progress``, it is a `ProgressBar`: ``progress(label, total)`` returns a context manager that
 shows one bar while its evaluation runs and yields the callback advanced by finished episodes.
@@ -188,7 +188,7 @@ def map_policy_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
     from socnav.envs.rollout import summarize
     from socnav.io import write_table_atomic
     from socnav.rl.persistence import load_policy
-    from socnav.safety import SafePolicy
+    from socnav.safety import SafePolicy, fallback_percent
     from socnav.sim.metrics import DEFAULT_METRICS
 
     policy = load_policy(MAP_POLICY)
@@ -202,8 +202,6 @@ def map_policy_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
     write_table_atomic(alone, base.with_name(base.name + ".csv"))
     write_table_atomic(safe, base.with_name(base.name + "_safety.csv"))
     metrics = (*DEFAULT_METRICS, "collision_obstacle_pct")
-    from socnav.safety import fallback_percent
-
     return world, [(label, summarize(alone, metrics=metrics)),
                    (f"{label} + safety layer", {**summarize(safe, metrics=metrics),
                                                 "fallback_pct": fallback_percent(safe)})]
@@ -226,7 +224,7 @@ def animate_map_policy(world: EnvConfig, out: Path, seed: int) -> tuple[Path, di
 
 
 def comparison_file(name: str) -> Path:
-    """The shipped trigger file ``name`` (socnav/data): a layer calibrated for the pretrained policy."""
+    """The shipped trigger file ``name`` (socnav/data): a layer shipped beside a pretrained policy."""
     from importlib.resources import files
 
     return Path(str(files("socnav") / "data" / name))
