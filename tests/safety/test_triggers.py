@@ -299,3 +299,20 @@ def test_the_map_policys_trigger_file_loads_and_fires_when_it_says():
         inputs = inputs_for(observation([(distance, 0.0, -1.0, 0.0)]))
         np.testing.assert_allclose(trigger.score(inputs), [-seconds], atol=1e-5)
         assert bool(trigger.fires(inputs)[0]) is fires
+
+
+def test_a_shipped_layer_loads_by_its_name_and_an_unknown_name_lists_them():
+    """``--safety pretrained-maps_time-to-collision``: a layer shipped beside a pretrained policy is found by its
+    file's stem (an installed package's socnav/data is nowhere a user would look); an unknown name is a clear error
+    that lists the presets and the shipped layers."""
+    from socnav.safety import ThresholdsError, shipped_layers
+
+    names = shipped_layers()
+    shipped = {"pretrained_proximity-only", "pretrained_time-to-collision", "pretrained-maps_time-to-collision"}
+    assert shipped <= set(names)
+    for name, path in names.items():
+        assert load_safety(name) == load_safety(path)
+    assert load_safety("pretrained-maps_time-to-collision").threshold == -2.0
+    with pytest.raises(ThresholdsError, match=r"thresholds file not found: pretrained-map .*mc, ensemble.*"
+                                              r"pretrained-maps_time-to-collision"):
+        load_safety("pretrained-map")

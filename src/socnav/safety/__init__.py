@@ -45,6 +45,7 @@ from socnav.safety.rule import (
     proximity_score,
     rule_conditions,
     save_thresholds,
+    shipped_layers,
 )
 from socnav.safety.safe_policy import FallbackCounter, SafePolicy, fallback_percent, no_uncertainty
 
@@ -84,4 +85,5 @@ __all__ = [
     "save_thresholds",
     "select_by_proxy",
     "select_by_rollouts",
+    "shipped_layers",
 ]

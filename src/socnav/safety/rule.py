@@ -86,6 +86,7 @@ __all__ = [
     "proximity_score",
     "rule_conditions",
     "save_thresholds",
+    "shipped_layers",
 ]
 
 SPEED, HEADING = 0, 1  # action dimensions of `Uncertainty.u_ep`
@@ -195,6 +196,15 @@ class Thresholds(StrictModel):
 
 # ------------------------------------------------------------------------------------------------ files
 
+def shipped_layers() -> dict[str, Path]:
+    """The safety layers shipped beside the pretrained policies (socnav/data/*.yaml, socnav/data/README.md), by the
+    name ``--safety`` and ``--thresholds`` take them by: the file's stem (``pretrained-maps_time-to-collision``)."""
+    from importlib.resources import files
+
+    data = Path(str(files("socnav") / "data"))
+    return {path.stem: path for path in sorted(data.glob("*.yaml"))}
+
+
 def load_thresholds(path_or_name: str | Path | Mapping[str, Any] | Thresholds) -> Thresholds:
     """Thresholds from a preset name (``mc``, ``ensemble``), a YAML/JSON file, a mapping or a Thresholds.
 
@@ -213,7 +223,8 @@ def load_thresholds(path_or_name: str | Path | Mapping[str, Any] | Thresholds) -
             raise ThresholdsError(f"{path} is a directory, not a thresholds file (a YAML or JSON file, or a preset "
                                   f"name: {', '.join(THRESHOLD_PRESETS)})")
         raise ThresholdsError(
-            f"thresholds file not found: {path} (or use a preset name: {', '.join(THRESHOLD_PRESETS)})"
+            f"thresholds file not found: {path} (or use a preset name: {', '.join(THRESHOLD_PRESETS)}; or a layer "
+            f"shipped with a pretrained policy: {', '.join(shipped_layers())})"
         )
     data = read_mapping_file(path, "thresholds", ThresholdsError, allow_json=True)
     if isinstance(data.get("thresholds"), dict):

@@ -395,8 +395,9 @@ def load_safety(path_or_name: str | Path | Mapping[str, Any] | Thresholds | Trig
                 ) -> Thresholds | TriggerSpec:
     """What a safety layer decides with: rule thresholds (a preset name, a file or mapping without a ``trigger``
     field, or naming ``trigger: paper`` / an ablation) or a score trigger's spec (a file or mapping with a
-    registered ``trigger``). A spec read from a file keeps its ``model`` path relative to the file."""
-    from socnav.safety.rule import load_thresholds
+    registered ``trigger``), or a layer shipped beside a pretrained policy by name (`shipped_layers`, e.g.
+    ``pretrained-maps_time-to-collision``). A spec read from a file keeps its ``model`` path relative to the file."""
+    from socnav.safety.rule import load_thresholds, shipped_layers
 
     if isinstance(path_or_name, (Thresholds, TriggerSpec)):
         return path_or_name
@@ -404,7 +405,10 @@ def load_safety(path_or_name: str | Path | Mapping[str, Any] | Thresholds | Trig
         return _from_mapping(dict(path_or_name), None)
     path = Path(path_or_name)
     if not path.is_file():
-        return load_thresholds(path_or_name)  # a preset name, or its clear error
+        shipped = shipped_layers().get(str(path_or_name)) if not path.suffix else None
+        if shipped is None:
+            return load_thresholds(path_or_name)  # a preset name, or its clear error
+        path = shipped
     data = read_mapping_file(path, "trigger", TriggerError, allow_json=True)
     try:
         return _from_mapping(data, path)
