@@ -31,6 +31,8 @@ settings.load_profile("socnav")
 SLOW_THRESHOLD_S = 1.0
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
     "tests/rl/test_open_plane_dagger_script.py": ("test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range",),
+    "tests/experiments/test_safety_benchmark_page.py": (
+        "test_the_section_across_training_seeds_is_kept_to_the_end_of_the_page",),  # 1.7 s: the script's imports
     "tests/rl/test_maps_policy_script.py": ("test_clone_dagger_then_continue",  # 18.8 s
                                             "test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last",
                                             "test_dagger_from_a_start_with_the_safety_layer_driving"),  # 28.7 s

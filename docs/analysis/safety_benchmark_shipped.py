@@ -60,7 +60,12 @@ def main() -> None:
     parser.add_argument("--seeds-only", action="store_true",
                         help="with --seeds-run: regenerate only the page's section across training seeds, keeping "
                              "the shipped policy's table as it was generated")
+    parser.add_argument("--keep-seeds", action="store_true",
+                        help="with --docs: regenerate the shipped policy's table and keep the page's section across "
+                             "training seeds as it is (it does not depend on the shipped policy)")
     args = parser.parse_args()
+    if args.keep_seeds and args.seeds_run is not None:
+        parser.error("--keep-seeds keeps the page's section across training seeds; --seeds-run regenerates it")
     if args.seeds_only:
         page = (DOCS / "safety-benchmark.md").read_text()
         kept = page.split("\n" + SEEDS_HEADING)[0].rstrip("\n") + "\n"
@@ -90,6 +95,8 @@ def main() -> None:
             given += " --replay-files " + " ".join(path.name for path in args.replay_files)
         if args.seeds_run is not None:
             given += " --seeds-run RUN_DIR"
+        elif args.keep_seeds:
+            given += " --keep-seeds"
         minutes = args.minutes if args.minutes is not None else (time.monotonic() - start) / 60
         intro = INTRO.format(args=f"{given} --docs", minutes=minutes, k=args.k, calibration=args.calibration_episodes,
                              episodes=args.episodes, budgets=", ".join(f"{b:.0%}" for b in args.budgets))
@@ -97,10 +104,21 @@ def main() -> None:
         page = intro + "\n" + text.replace("(safety_benchmark_tradeoff.png)", "(images/safety_benchmark_tradeoff.png)")
         if args.seeds_run is not None:
             page += "\n" + seeds_section(args.seeds_run, args.seeds_command)
+        elif args.keep_seeds:
+            page += "\n" + kept_seeds_section((DOCS / "safety-benchmark.md").read_text())
         write_text_atomic(DOCS / "safety-benchmark.md", page)
 
 
 SEEDS_HEADING = "## Across training seeds"
+
+
+def kept_seeds_section(page: str) -> str:
+    """The section across training seeds of a generated page (from its heading to the end), to keep while the
+    shipped policy's table is regenerated; a page without one is an error, not an empty section."""
+    start = page.find("\n" + SEEDS_HEADING)
+    if start < 0:
+        raise SystemExit(f"--keep-seeds: docs/safety-benchmark.md has no '{SEEDS_HEADING}' section to keep")
+    return page[start + 1:]
 
 
 def seeds_section(run: Path, command: str) -> str:
