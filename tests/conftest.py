@@ -93,6 +93,9 @@ SLOW_TESTS: dict[str, tuple[str, ...]] = {
     "tests/runtime/test_equivalence.py": (
         "test_mc_dropout_samples_and_uncertainty_match_torch",  # 3.0 s
     ),
+    "tests/runtime/test_pretrained_maps.py": (
+        "test_the_exported_map_navigator_decides_as_its_safety_layer",  # 1.3 s
+    ),
     "tests/runtime/test_navigator.py": (
         "test_example_control_loop_runs_without_torch",  # 1.2 s
         "test_import_socnav_imports_no_torch",  # 1.1 s
@@ -152,6 +155,7 @@ SLOW_TESTS: dict[str, tuple[str, ...]] = {
     ),
     "tests/test_usability.py": (
         "test_animate_mentions_the_fallback_only_with_a_safety_layer",  # 3.4 s
+        "test_animate_plays_a_trigger_file_as_its_safety_layer",  # 2.5 s
         "test_calibrate_shows_progress_and_warns_about_few_collisions",  # 46.2 s
         "test_piped_tables_keep_words_whole",  # 3.9 s
         "test_python_m_socnav_version_and_help_without_type_noise",  # 1.1 s
