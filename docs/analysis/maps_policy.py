@@ -211,6 +211,8 @@ def evaluate(args: argparse.Namespace) -> None:
           "| jerk x ORCA | path irregularity x ORCA |")
     print("|:--|:--|--:|--:|--:|--:|--:|--:|")
     for config in [*worlds(None), *open_plane]:
+        if args.scenarios and config["scenario"] not in args.scenarios:
+            continue
         world = load_config(config)
         actors = {"ORCA robot": make_controller("orca", world), **policies}
         if not world.obstacles and world.scenario in ("position_swap", "circle_crossing"):
@@ -294,6 +296,9 @@ def main() -> None:
     parser.add_argument("--evaluate", nargs="+", metavar="[LABEL=]POLICY",
                         help="evaluate these policies in each scenario (and the open plane) instead")
     parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--scenarios", nargs="+", default=None,
+                        choices=(*SCENARIOS, "position_swap", "circle_crossing"),
+                        help="with --evaluate: only these scenarios (default: the four map scenarios and the open plane's two)")
     parser.add_argument("--safety", type=Path, default=None, metavar="TRIGGER",
                         help="with --evaluate: also each policy inside the safety layer with this trigger file")
     args = parser.parse_args()

@@ -107,3 +107,8 @@ def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch
     safe_row = next(line for line in summary.splitlines() if line.startswith("| safe + safety |"))
     cells = [cell.strip() for cell in safe_row.split("|")[2:-1]]
     assert len(cells) == 6 and cells[0].startswith(f"{goal:g} / ") and cells[0].endswith(" %)")
+    _run(monkeypatch, "--evaluate", f"safe={tmp_path / 'safe_clone.zip'}", "--episodes", "1", "--scenarios", "room")
+    lines = capsys.readouterr().out.splitlines()
+    scenarios = {line.split("|")[1].strip() for line in lines if line.startswith("| ") and "controller" not in line}
+    assert scenarios == {"room", "ORCA robot", "safe"}  # the long table's rows, then the docs' table's
+    assert "| controller | room |" in lines
