@@ -225,6 +225,40 @@ def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
         assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
 
 
+def test_a_signal_while_the_node_is_destroyed_only_is_recorded(capsys):
+    """A Ctrl-C that reaches the Python handler while the node is being destroyed neither shuts ROS 2 down in the
+    middle of it nor raises there: it is recorded, the node is destroyed whole, and ROS 2 is shut down after."""
+    from socnav.ros2.cli import _spin
+
+    events: list[str] = []
+
+    class FakeRclpy:
+        alive = False
+
+        def init(self, args):
+            self.alive = True
+
+        def ok(self):
+            return self.alive
+
+        def shutdown(self):
+            events.append("shutdown")
+            self.alive = False
+
+        def try_shutdown(self):
+            events.append("try_shutdown")
+            self.alive = False
+
+    class FakeNode:
+        def destroy_node(self):
+            events.append("destroy begins")
+            signal.raise_signal(signal.SIGINT)  # delivered to the Python handler here
+            events.append("destroy ends")
+
+    _spin(FakeRclpy(), [], FakeNode, lambda _node: None)
+    assert events == ["destroy begins", "destroy ends", "shutdown"]
+
+
 # ------------------------------------------------------------------------------------------------- the record path
 
 
