@@ -186,25 +186,32 @@ def test_nothing_is_published_once_the_context_is_shut_down(ros_context, navigat
     assert node.decisions == 1
 
 
+class FakeRclpy:
+    """rclpy's init / ok / shutdown / try_shutdown on a flag, each shutdown noted in ``events``."""
+
+    def __init__(self, events: list[str] | None = None):
+        self.alive = False
+        self.events = [] if events is None else events
+
+    def init(self, args):
+        self.alive = True
+
+    def ok(self):
+        return self.alive
+
+    def shutdown(self):
+        self.events.append("shutdown")
+        self.alive = False
+
+    def try_shutdown(self):
+        self.events.append("try_shutdown")
+        self.alive = False
+
+
 def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
     """`socnav.ros2.cli._spin`: a signal while ROS 2 is up raises nothing (rclpy's handler shuts the context down,
     which ends the spin by itself); the exit is the clean "interrupted" one, and the handlers are restored."""
     from socnav.ros2.cli import _spin
-
-    class FakeRclpy:  # init / ok / shutdown / try_shutdown on a flag
-        alive = False
-
-        def init(self, args):
-            self.alive = True
-
-        def ok(self):
-            return self.alive
-
-        def shutdown(self):
-            self.alive = False
-
-        def try_shutdown(self):
-            self.alive = False
 
     class FakeNode:
         def destroy_node(self):
@@ -232,30 +239,13 @@ def test_a_signal_while_the_node_is_destroyed_only_is_recorded(capsys):
 
     events: list[str] = []
 
-    class FakeRclpy:
-        alive = False
-
-        def init(self, args):
-            self.alive = True
-
-        def ok(self):
-            return self.alive
-
-        def shutdown(self):
-            events.append("shutdown")
-            self.alive = False
-
-        def try_shutdown(self):
-            events.append("try_shutdown")
-            self.alive = False
-
     class FakeNode:
         def destroy_node(self):
             events.append("destroy begins")
             signal.raise_signal(signal.SIGINT)  # delivered to the Python handler here
             events.append("destroy ends")
 
-    _spin(FakeRclpy(), [], FakeNode, lambda _node: None)
+    _spin(FakeRclpy(events), [], FakeNode, lambda _node: None)
     assert events == ["destroy begins", "destroy ends", "shutdown"]
 
 
