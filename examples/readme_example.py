@@ -11,7 +11,7 @@ from socnav.safety import SafePolicy
 from socnav.uncertainty import MCDropoutEstimator
 
 config = socnav.load_config({"scenario": "position_swap", "n_humans": 1, "perturbation": {"heading_noise": 0.8}})
-policy = socnav.load_policy("pretrained")                                  # the shipped ODV-PPO-Drop policy
+policy = socnav.load_policy("pretrained")                                  # the shipped open-plane policy
 safe = SafePolicy(policy, MCDropoutEstimator(policy, k=20), "mc", config)  # + the uncertainty-aware safety layer
 for name, actor in [("policy", policy), ("policy + safety layer", safe)]:
     records = rollout_episodes(actor, config, n_episodes=20, seed=0)       # the same 20 episodes, one row each

@@ -1,16 +1,17 @@
 """The reference baseline table of docs/metrics.md: every metric of the registry (socnav.sim.metrics) for the ORCA
-robot, `straight`, the shipped policy and the shipped policy with the safety layer, in every self-contained scenario,
+robot, `straight`, a shipped policy and the same policy with the safety layer, in every self-contained scenario,
 with 95 % intervals from a bootstrap over episodes.
 
     python docs/analysis/baseline_table.py                              # 200 episodes each (1-3 min, 1 core)
     python docs/analysis/baseline_table.py --episodes 20 --out /tmp/b   # a quick look
     python docs/analysis/baseline_table.py --scenarios corridor doorway intersection room --out runs/baselines-maps
+    python docs/analysis/baseline_table.py --model pretrained-ppo    # the PPO policy (the paper's method) instead
 
 What is played: per scenario the default world (``socnav.load_config(scenario=...)``, the shipped policy's training
 world with that scenario, as ``socnav evaluate --model pretrained --scenario ...`` plays it), episodes ``seed``..
 ``seed + episodes - 1`` (the same episodes for every controller): ``orca`` and ``straight`` (socnav.controllers),
-the shipped ODV-PPO-Drop policy (deterministic mean action) and the same policy wrapped in the safety layer with the
-paper's MC-dropout thresholds (``--safety mc``: 20 MC-dropout samples, the seeded mask stream of ``socnav
+the shipped policy ``--model`` (deterministic mean action; its column is named by it) and the same policy wrapped
+in the safety layer with the paper's MC-dropout thresholds (``--safety mc``: 20 MC-dropout samples, the seeded mask stream of ``socnav
 evaluate``). Intervals: the percentile bootstrap over episodes (`socnav.experiments.statistics.
 cluster_bootstrap_interval` with every episode its own cluster, 2,000 resamples, seed 0) of each metric's statistic
 (`socnav.sim.metrics.episode_values`: a mean, or for ``return_std`` the population std), per (scenario,
@@ -41,7 +42,6 @@ from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
 SCENARIOS = ("circle_crossing", "circle_interaction", "position_swap", "random")
 MAP_SCENARIOS = ("corridor", "doorway", "intersection", "room")  # walls (docs/maps.md): --scenarios to play them
-CONTROLLERS = ("orca", "straight", "shipped policy", "shipped policy + safety (mc)")
 MC_SAMPLES = 20  # socnav evaluate's --k default
 RESAMPLES = 2000
 CONFIDENCE = 0.95
@@ -60,13 +60,13 @@ def interval(values: np.ndarray, kind: str) -> tuple[float, float, float]:
     return result.estimate, result.low, result.high
 
 
-def play(scenario: str, episodes: int, seed: int, n_envs: int) -> dict[str, pd.DataFrame]:
+def play(scenario: str, episodes: int, seed: int, n_envs: int, model: str) -> dict[str, pd.DataFrame]:
     """Per controller, its episode records in `scenario` (every metric's columns)."""
     config = socnav.load_config({}, scenario=scenario)
-    policy = socnav.load_policy("pretrained")
+    policy = socnav.load_policy(model)
     safe = SafePolicy(policy, MCDropoutEstimator(policy, k=MC_SAMPLES, seed=MC_SEED), "mc", config)
     actors = {"orca": (make_controller("orca", config), None), "straight": (make_controller("straight", config), None),
-              "shipped policy": (policy, None), "shipped policy + safety (mc)": (safe, FallbackCounter(safe))}
+              model: (policy, None), f"{model} + safety (mc)": (safe, FallbackCounter(safe))}
     played = {}
     for name, (actor, observer) in actors.items():
         began = time.perf_counter()
@@ -116,6 +116,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--n-envs", type=int, default=50)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS + MAP_SCENARIOS))
+    parser.add_argument("--model", default="pretrained", help="the learned policy: 'pretrained', 'pretrained-ppo' or "
+                                                               "a policy file")
     parser.add_argument("--out", type=Path, default=Path("runs/baselines"))
     args = parser.parse_args()
     import torch
@@ -124,7 +126,7 @@ def main() -> None:
     began = time.perf_counter()
     records = {}
     for scenario in args.scenarios:
-        for controller, frame in play(scenario, args.episodes, args.seed, args.n_envs).items():
+        for controller, frame in play(scenario, args.episodes, args.seed, args.n_envs, args.model).items():
             records[(scenario, controller)] = frame
     frame = table(records)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -30,11 +30,11 @@ that a later session continues with ``--start``; evaluated per scenario.
         --rounds-dir runs/maps_safe/rounds_plain --out runs/maps_safe/plain.zip
     python docs/analysis/maps_policy.py --start runs/maps_dagger20_near_turn/cloned_clone.zip --clone 50000 \
         --clone-epochs 1 --dagger 12 --dagger-epochs 1 --steps 0 --teacher-turn goal \
-        --driver-safety src/socnav/data/pretrained_time-to-collision.yaml \
+        --driver-safety src/socnav/data/pretrained-ppo_time-to-collision.yaml \
         --rounds-dir runs/maps_safe/rounds_ttc --out runs/maps_safe/ttc.zip  # (run before the layer's wall stop)
     python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
         "DAgger 20 + 12=runs/maps_safe/plain_clone.zip" "DAgger 20 + 12, layer driving=runs/maps_safe/ttc_clone.zip" \
-        --safety src/socnav/data/pretrained_time-to-collision.yaml --episodes 200 --seed 0
+        --safety src/socnav/data/pretrained-ppo_time-to-collision.yaml --episodes 200 --seed 0
     # the same inside a layer that acts only in the last two seconds before contact
     python docs/analysis/maps_policy.py --evaluate "DAgger 20=runs/maps_dagger20_near_turn/cloned_clone.zip" \
         --safety src/socnav/data/pretrained-maps_time-to-collision.yaml --episodes 200 --seed 0
@@ -196,7 +196,7 @@ def _rate(hits: int, n: int) -> str:
 
 def evaluate(args: argparse.Namespace) -> None:
     """Per map scenario (the default crowd) and in the open plane's position swap and circle crossing: the ORCA
-    robot (with the planner) and each policy on the same episodes; in the open plane also the shipped policy. With
+    robot (with the planner) and each policy on the same episodes; in the open plane also `pretrained-ppo`. With
     ``--safety TRIGGER`` each policy also drives inside the safety layer with that trigger (its row adds the share
     of steps the cautious fallback drove), and so do the ORCA robot and `straight` (drive at the goal, or along the
     route): the ablation that says what the layer does without a learned policy."""
@@ -216,7 +216,7 @@ def evaluate(args: argparse.Namespace) -> None:
         world = load_config(config)
         actors = {"ORCA robot": make_controller("orca", world), **policies}
         if not world.obstacles and world.scenario in ("position_swap", "circle_crossing"):
-            actors["shipped policy (open plane)"] = load_policy("pretrained")
+            actors["pretrained-ppo (open plane)"] = load_policy("pretrained-ppo")  # the PPO policy of docs/maps.md
         # each policy in the world it observes (with the scan it was trained with: the episodes are the same)
         rows = {label: rollout_episodes(actor, world if label not in policies else
                                         load_config({**config, "scan": _scan_of(actor)}),
@@ -271,7 +271,7 @@ def main() -> None:
                         help="save the policy after each DAgger round here; continue after the last round saved")
     parser.add_argument("--driver-safety", type=Path, default=None, metavar="TRIGGER",
                         help="in the DAgger rounds the policy drives inside the safety layer with this trigger file "
-                             "(e.g. src/socnav/data/pretrained_time-to-collision.yaml)")
+                             "(e.g. src/socnav/data/pretrained-ppo_time-to-collision.yaml)")
     parser.add_argument("--train-seeds", type=int, default=10_000_000, metavar="BASE",
                         help="the collections' seeds start here, far from the evaluation's (0-199) and the "
                              "validation's (100,000-100,199); runs before this option used 0")

@@ -1,4 +1,4 @@
-"""Is the world hard enough to rank controllers? straight / ORCA / the shipped policy in every scenario, in the
+"""Is the world hard enough to rank controllers? straight / ORCA / a shipped policy in every scenario, in the
 default world (attention) and in the world of always-attentive humans (configs/env/reactive_humans.yaml); with
 ``--humans``, in the default world with other human models (docs/humans.md), with Clopper-Pearson intervals.
 
@@ -48,7 +48,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--model", default="pretrained", help="learned policy to include ('' to skip)")
+    parser.add_argument("--model", default="pretrained", help="learned policy to include, named by this in the table ('' to skip)")
     parser.add_argument("--humans", nargs="+", choices=list(HUMAN_WORLDS),
                         help="human models of the default world to compare (with intervals) instead of the worlds")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS) + list(MAP_SCENARIOS))
@@ -86,7 +86,7 @@ def played(config: object, learned: object, args: argparse.Namespace, stand_stil
     stands still, in `config`."""
     controllers = {name: make_controller(name, config) for name in ("straight", "orca")}
     if learned is not None:
-        controllers["shipped policy"] = learned
+        controllers[args.model] = learned  # by its name: `pretrained`, `pretrained-ppo` or a file
     if stand_still:
         controllers["standing still"] = StandStill()
     for name, controller in controllers.items():

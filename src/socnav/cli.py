@@ -598,7 +598,8 @@ def _load_learned_policy(model: str) -> Any:
 
 def _model_label(model: str) -> str:
     """How a model file is named in tables and default output names: its path as given (`runs/swap/model.zip`),
-    so that two runs' `model.zip` files stay apart; the name of a shipped policy ('pretrained', 'pretrained-maps')."""
+    so that two runs' `model.zip` files stay apart; the name of a shipped policy ('pretrained', 'pretrained-maps',
+    'pretrained-ppo')."""
     from socnav.rl.persistence import PRETRAINED_FILES
 
     return model if model in PRETRAINED_FILES else str(Path(model))
@@ -624,7 +625,8 @@ def evaluate(
     policy: str | None = typer.Option(None, "--policy", hidden=True,
                                          callback=_deprecated_alias("--policy", "--controller"),
                                          help="deprecated name of --controller"),
-    model: str | None = model_option("trained policy file, or 'pretrained' / 'pretrained-maps' for a shipped one"),
+    model: str | None = model_option("trained policy file, or 'pretrained' / 'pretrained-maps' / "
+                                                  "'pretrained-ppo' for a shipped one"),
     stochastic: bool = typer.Option(False, help="sample actions instead of the mean action"),
     scenario: str | None = scenario_option(None, help=f"one of: {SCENARIOS} (default: the model's training world "
                                                        "with --model, else circle_crossing)"),
@@ -1208,7 +1210,7 @@ def _calibrate_score_trigger(trigger: str, policy: Any, uncertainty: Any, env_co
 @app.command()
 def convert(
     model: str = typer.Argument(..., help="socnav policy file (from socnav train), or 'pretrained' / "
-                                          "'pretrained-maps'"),
+                                          "'pretrained-maps' / 'pretrained-ppo'"),
     to_sb3: Path = typer.Option(..., "--to-sb3", help="write a Stable-Baselines3 model zip here "
                                                        "(ODVPPO.load reads it)"),
     force: bool = force_option("the --to-sb3 file"),
@@ -1308,7 +1310,8 @@ def demo(
 
 @app.command()
 def export(
-    model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained' / 'pretrained-maps'"),
+    model: str = typer.Argument(..., help="policy file (socnav train's model.zip) or 'pretrained' / "
+                                          "'pretrained-maps' / 'pretrained-ppo'"),
     out: Path = typer.Option(Path("navigator.onnx"), help="the ONNX navigator file to write"),
     thresholds: str = typer.Option("mc", help="safety thresholds: mc | ensemble | a `socnav calibrate` FILE (a "
                                               "trigger file too: the navigator then decides with that trigger)"),

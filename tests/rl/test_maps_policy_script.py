@@ -77,7 +77,7 @@ def test_dagger_from_a_start_with_the_safety_layer_driving(tmp_path, monkeypatch
     rounds' driver the policy inside the safety layer, so other states are labelled than with the policy alone;
     ``--evaluate ... --safety`` adds each policy, the ORCA robot and `straight` inside the layer with the share of
     steps its fallback drove."""
-    trigger = Path(socnav.__file__).parent / "data" / "pretrained_time-to-collision.yaml"
+    trigger = Path(socnav.__file__).parent / "data" / "pretrained-ppo_time-to-collision.yaml"
     _run(monkeypatch, "--clone", "2000", "--clone-epochs", "1", "--steps", "0", "--out", str(tmp_path / "a.zip"))
     capsys.readouterr()
     common = ["--start", str(tmp_path / "a_clone.zip"), "--clone", "1500", "--clone-epochs", "1", "--dagger", "1",

@@ -62,7 +62,8 @@ SCENARIOS = ", ".join(scenario_names())
 SINGLE_AGENT_SCENARIO_HELP = f"one of: {SCENARIOS} (default: position_swap, or the --config file's)"
 SINGLE_AGENT_N_HUMANS_HELP = "humans per episode (default: 1, or the --config file's)"
 SINGLE_AGENT_MAX_HUMANS_HELP = "observation rows (default 10; the model's value)"
-ACTING_MODEL_HELP = "policy file, 'pretrained' or 'pretrained-maps' (acts; MC-dropout estimates on it)"
+ACTING_MODEL_HELP = ("policy file, 'pretrained', 'pretrained-maps' or 'pretrained-ppo' (acts; MC-dropout estimates "
+                     "on it)")
 #: --sensing of the commands that wrap a policy in the safety layer (`calibrate` chooses it for its thresholds).
 LAYER_SENSING_HELP = ("what the safety layer's proximity terms and fallback read: perceived (the noisy observation) | "
                       "true (the simulator's state); default: the thresholds' own (perceived for mc, ensemble)")

@@ -52,9 +52,11 @@ METADATA_FILE = "socnav.json"
 WEIGHTS_FILE = "policy.pt"
 PRETRAINED = "pretrained"
 PRETRAINED_MAPS = "pretrained-maps"
+PRETRAINED_PPO = "pretrained-ppo"
 #: name -> file in socnav/data of each shipped policy (socnav/data/README.md says how each was made and measured)
 PRETRAINED_FILES = {PRETRAINED: "pretrained_odv_ppo_drop_position_swap.zip",
-                    PRETRAINED_MAPS: "pretrained_odv_ppo_drop_maps.zip"}
+                    PRETRAINED_MAPS: "pretrained_odv_ppo_drop_maps.zip",
+                    PRETRAINED_PPO: "pretrained_odv_ppo_drop_position_swap_ppo.zip"}
 CHECKPOINT_FORMAT = "socnav-checkpoint"
 CHECKPOINT_VERSION = 1
 CHECKPOINT_HEADER = "checkpoint.json"
@@ -89,8 +91,11 @@ class CheckpointError(RuntimeError):
 
 
 def pretrained_path(name: str = PRETRAINED) -> Path:
-    """Path of a policy shipped inside the package (socnav/data/README.md): ``"pretrained"``, ODV-PPO-Drop trained on
-    position swap (the paper's), or ``"pretrained-maps"``, the map policy (DAgger on the four map scenarios)."""
+    """Path of a policy shipped inside the package (socnav/data/README.md): ``"pretrained"``, ODV-PPO-Drop's network
+    taught the open plane's position swap by imitation of the ORCA robot (DAgger; it drives smoothly),
+    ``"pretrained-maps"``, the map policy (DAgger on the four map scenarios), or ``"pretrained-ppo"``, ODV-PPO-Drop
+    trained by PPO on position swap as in the paper (it turns bang-bang; `pretrained` until DAgger
+    replaced it)."""
     if name not in PRETRAINED_FILES:
         raise PolicyLoadError(f"no shipped policy named {name!r}; the shipped ones are {', '.join(PRETRAINED_FILES)}")
     return Path(str(resources.files("socnav") / "data" / PRETRAINED_FILES[name]))
@@ -451,7 +456,8 @@ def _read_archive(path: Path) -> tuple[dict[str, Any], PolicyHeader, bytes]:
 
 def load_policy(path: str | Path) -> ODVActorCriticPolicy:
     """Load a policy written by `save_policy` / `socnav train`, or a shipped one by name: ``"pretrained"`` (the open
-    plane, the paper's) or ``"pretrained-maps"`` (walls and the open plane; socnav/data/README.md).
+    plane), ``"pretrained-maps"`` (walls and the open plane) or ``"pretrained-ppo"`` (the open plane, trained by PPO
+    as in the paper; socnav/data/README.md says how each was made).
 
     The returned SB3 policy is in eval mode (dropout off); ``policy.predict(obs, deterministic=True)`` gives the
     mean action. Its metadata is on ``policy.socnav_metadata`` (algo, algo_config, env_config, timesteps, ...).
