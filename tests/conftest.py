@@ -30,7 +30,8 @@ settings.load_profile("socnav")
 #: a module fixture that takes long to build are listed together (test_runner.py's `local_run`: 23 s).
 SLOW_THRESHOLD_S = 1.0
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
-    "tests/rl/test_open_plane_dagger_script.py": ("test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range",),
+    "tests/rl/test_open_plane_dagger_script.py": ("test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range",
+                                                  "test_worlds_share_the_labels_and_the_first_names_the_policy"),
     "tests/experiments/test_safety_benchmark_page.py": (
         "test_the_section_across_training_seeds_is_kept_to_the_end_of_the_page",),  # 1.7 s: the script's imports
     "tests/rl/test_maps_policy_script.py": ("test_clone_dagger_then_continue",  # 18.8 s

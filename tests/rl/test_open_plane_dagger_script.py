@@ -35,3 +35,16 @@ def test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range(tmp_path, monke
     for name, tensor in unranged.state_dict().items():  # the same run otherwise: the same weights
         if not name.endswith(("h_min", "h_max")):
             np.testing.assert_array_equal(tensor.numpy(), ranged.state_dict()[name].numpy(), err_msg=name)
+
+
+def test_worlds_share_the_labels_and_the_first_names_the_policy(tmp_path, monkeypatch, capsys):
+    printed = _run(monkeypatch, capsys, "--steps", "3200", "--rounds", "0", "--feature-range", "0",
+                   "--worlds", "circle_crossing:3", "position_swap:1", "--out", str(tmp_path / "mixed.zip"))
+    labels = int(printed.split("round 0: ")[1].split(" labels")[0].replace(",", ""))
+    # 1,600 steps per world from 16 environments: each world's collection ends with its last finished episode
+    assert 0 < labels <= 3200
+    world = socnav.load_policy(tmp_path / "mixed.zip").socnav_metadata["env_config"]
+    assert (world["scenario"], world["n_humans"]) == ("circle_crossing", 3)
+    script = runpy.run_path(str(SCRIPT))
+    assert script["parse_world"]("random") == {"scenario": "random"}
+    assert script["parse_world"]("position_swap:1") == {"scenario": "position_swap", "n_humans": 1}
