@@ -99,7 +99,7 @@ FLAGS: dict[tuple[str, str], tuple[str, str]] = {
     ("run", "retries"): ("—", "`run_experiment(retries=)`"),
     ("run", "out"): ("— (default `runs/<name>-<budget>`)", "`run_experiment(root=)`"),
     ("run", "dry_run"): ("—", "`plan_units(experiment)`, `unit_states(root, units)`"),
-    # socnav tune -> socnav.experiments.tune.tune(config, algo, trials, ...) and write_preset(path, ...)
+    # socnav tune -> socnav.cli.workflows.tune.tune(config, algo, trials, ...) and write_preset(path, ...)
     ("tune", "algo"): ("experiment `grid.algorithms`", "`tune(algo=)`"),
     ("tune", "scenario"): ("env file `scenario`", "`EnvConfig.scenario`"),
     ("tune", "trials"): ("—", "`tune(trials=)`"),
@@ -153,7 +153,7 @@ def choices() -> dict[str, tuple[str, ...]]:
     values in every command)."""
     from socnav.controllers import CONTROLLERS
     from socnav.experiments.runner import run_experiment
-    from socnav.experiments.tune import METRICS
+    from socnav.cli.workflows.tune import METRICS
     from socnav.rl.presets import ALGOS
     from socnav.safety import PROXIMITY_VARIANTS, SENSING_CHOICES, THRESHOLD_PRESETS
     from socnav.sim.humans import human_model_names

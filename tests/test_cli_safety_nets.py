@@ -41,11 +41,11 @@ def _no_work(*args, **kwargs):
 def no_work(monkeypatch):
     """Every command's expensive step (loading a model included) raises WorkStarted."""
     # Imported first: a module importing rollout_episodes by name while it is patched would keep the patch.
-    import socnav.experiments.demo
+    import socnav.cli.workflows.demo
     import socnav.rl.training  # noqa: F401
 
     for target in ("socnav.envs.rollout.rollout_episodes", "socnav.safety.calibrate_thresholds",
-                   "socnav.experiments.animate.animate_episode", "socnav.rl.convert.to_sb3",
+                   "socnav.cli.workflows.animation.animate_episode", "socnav.rl.convert.to_sb3",
                    "socnav.rl.persistence.load_policy", "socnav.rl.training.train"):
         monkeypatch.setattr(target, _no_work)
 
@@ -172,7 +172,7 @@ def test_options_are_checked_before_a_model_loads(no_work, monkeypatch, options,
 
 def test_k_is_bounded_as_the_export_bounds_it():
     require("onnxruntime")
-    from socnav.experiments.cli_options import MAX_MC_SAMPLES
+    from socnav.cli.options import MAX_MC_SAMPLES
     from socnav.runtime.format import MAX_K
 
     assert MAX_MC_SAMPLES == MAX_K == 1000
@@ -250,7 +250,7 @@ def test_ctrl_c_in_evaluate_writes_the_finished_episodes(monkeypatch, tmp_path):
 
         yield advance
 
-    monkeypatch.setattr("socnav.cli._progress_bar", ctrl_c_after_five)
+    monkeypatch.setattr("socnav.cli.common.progress_bar", ctrl_c_after_five)
     out = tmp_path / "part.csv"
     code, output = run("evaluate", "--controller", "orca", "--scenario", "circle_crossing", "--episodes", "200",
                        "--n-envs", "4", "--out", out)

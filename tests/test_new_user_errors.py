@@ -61,7 +61,7 @@ def test_episodes_have_the_experiment_files_cap(monkeypatch, command):
     from socnav.experiments.spec import MAX_EPISODES
 
     monkeypatch.setattr("socnav.envs.rollout.rollout_episodes", _no_work)
-    monkeypatch.setattr("socnav.experiments.demo.baseline_rows", _no_work)
+    monkeypatch.setattr("socnav.cli.workflows.demo.baseline_rows", _no_work)
     monkeypatch.setattr("socnav.safety.calibrate_thresholds", _no_work)
     code, output = run(*command, "--episodes", MAX_EPISODES * 10)
     assert code == 2 and "--episodes" in output and f"{MAX_EPISODES}" in output
@@ -115,8 +115,8 @@ def test_a_file_given_to_resume_says_so(afile):
     ["evaluate", "--episodes", "1", "--out", "/proc/socnav-records.csv"],
 ])
 def test_an_output_that_cannot_be_written_is_refused_before_the_work(monkeypatch, afile, command):
-    for target in ("socnav.envs.rollout.rollout_episodes", "socnav.experiments.demo.baseline_rows",
-                   "socnav.safety.calibrate_thresholds", "socnav.experiments.animate.animate_episode",
+    for target in ("socnav.envs.rollout.rollout_episodes", "socnav.cli.workflows.demo.baseline_rows",
+                   "socnav.safety.calibrate_thresholds", "socnav.cli.workflows.animation.animate_episode",
                    "socnav.rl.training.train", "socnav.rl.convert.to_sb3"):
         monkeypatch.setattr(target, _no_work)
     code, output = run(*(part.format(afile=afile) for part in command))
@@ -128,7 +128,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(monkeypatch
 
 def test_animate_mp4_without_the_video_extra_is_refused_before_playing(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as if the [video] extra were not installed
-    monkeypatch.setattr("socnav.experiments.animate.animate_episode", _no_work)
+    monkeypatch.setattr("socnav.cli.workflows.animation.animate_episode", _no_work)
     code, output = run("animate", "--model", "pretrained", "--out", tmp_path / "x.mp4")
     assert code == 2 and "imageio-ffmpeg" in output and "[video]" in output
 
@@ -322,7 +322,7 @@ def test_animate_and_calibrate_play_the_model_in_its_own_world(monkeypatch, tmp_
         worlds.append(socnav.load_config(config))
         raise WorkStarted("recorded")
 
-    monkeypatch.setattr("socnav.experiments.animate.animate_episode", record)
+    monkeypatch.setattr("socnav.cli.workflows.animation.animate_episode", record)
     monkeypatch.setattr("socnav.safety.calibrate_thresholds", record)
     for command in (["animate", "--out", tmp_path / "a.gif"], ["calibrate", "--out", tmp_path / "t.yaml"]):
         result = runner.invoke(app, [str(part) for part in (*command, "--model", model, "--k", "2")])
@@ -339,7 +339,7 @@ def test_animate_draws_no_mc_dropout_bars_for_a_model_without_dropout(monkeypatc
         estimators.append(estimator)
         return tmp_path / "a.gif", {"outcome": "goal", "length": 1, "fallback_steps": None}
 
-    monkeypatch.setattr("socnav.experiments.animate.animate_episode", record)
+    monkeypatch.setattr("socnav.cli.workflows.animation.animate_episode", record)
     code, output = run("animate", "--model", model, "--out", tmp_path / "a.gif")
     assert code == 0 and estimators == [None] and "no uncertainty bars" in output
     code, output = run("animate", "--model", model, "--safety", "mc", "--out", tmp_path / "b.gif")

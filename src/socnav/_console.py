@@ -1,5 +1,5 @@
 """The output of the `socnav` command line: one console every command prints to, and `fail`, its one way to reject bad
-input (a red one-line error, exit code 2), shared by `socnav.cli` and `socnav.experiments.cli`.
+input (a red one-line error, exit code 2), shared by every `socnav.cli` module.
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ def test_the_extra_pins_one_jazzy_release_of_everything_the_nodes_import():
 
 
 def test_nothing_but_the_ros2_commands_imports_rclpy():
-    code = ("import sys, socnav, socnav.cli, socnav.runtime, socnav.ros2, socnav.ros2.cli, socnav.ros2.environment\n"
+    code = ("import sys, socnav, socnav.cli, socnav.runtime, socnav.ros2, socnav.cli.ros2, socnav.ros2.environment\n"
             "from typer.testing import CliRunner\n"
             "for args in (['--help'], ['ros2', '--help'], ['ros2', 'navigator', '--help'],\n"
             "             ['ros2', 'sim', '--help']):\n"

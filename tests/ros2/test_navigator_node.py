@@ -340,7 +340,7 @@ def test_no_message_crashes_the_node_and_every_command_is_safe(ros_context, navi
 
 
 class _FakeRclpy:
-    """rclpy's init / ok / shutdown / try_shutdown, as `socnav.ros2.cli._spin` uses them, on a flag."""
+    """rclpy's init / ok / shutdown / try_shutdown, as `socnav.cli.ros2._spin` uses them, on a flag."""
 
     def __init__(self) -> None:
         self.alive = False
@@ -369,7 +369,7 @@ def test_a_context_shut_down_by_ctrl_c_while_spinning_is_a_clean_interruption(ca
     """rclpy's SIGINT handler shuts the context down; an executor building its wait set just then raises RCLError
     ("the given context is not valid"): the node exits as for any Ctrl-C. The same error while ROS 2 is still up
     is a real failure and propagates."""
-    from socnav.ros2.cli import _spin
+    from socnav.cli.ros2 import _spin
 
     rclpy = _FakeRclpy()
     node = _Node()

@@ -209,9 +209,9 @@ class FakeRclpy:
 
 
 def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
-    """`socnav.ros2.cli._spin`: a signal while ROS 2 is up raises nothing (rclpy's handler shuts the context down,
+    """`socnav.cli.ros2._spin`: a signal while ROS 2 is up raises nothing (rclpy's handler shuts the context down,
     which ends the spin by itself); the exit is the clean "interrupted" one, and the handlers are restored."""
-    from socnav.ros2.cli import _spin
+    from socnav.cli.ros2 import _spin
 
     class FakeNode:
         def destroy_node(self):
@@ -235,7 +235,7 @@ def test_the_first_signal_ends_the_spin_without_an_exception(capsys):
 def test_a_signal_while_the_node_is_destroyed_only_is_recorded(capsys):
     """A Ctrl-C that reaches the Python handler while the node is being destroyed neither shuts ROS 2 down in the
     middle of it nor raises there: it is recorded, the node is destroyed whole, and ROS 2 is shut down after."""
-    from socnav.ros2.cli import _spin
+    from socnav.cli.ros2 import _spin
 
     events: list[str] = []
 

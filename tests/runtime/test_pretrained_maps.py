@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 import socnav
 from socnav.cli import app
-from socnav.experiments.demo import MAP_POLICY, MAP_POLICY_LAYER, comparison_file
+from socnav.cli.workflows.demo import MAP_POLICY, MAP_POLICY_LAYER, comparison_file
 from socnav.rl.persistence import PolicyLoadError, pretrained_path
 from socnav.runtime import SafeNavigator
 from socnav.safety import SafePolicy

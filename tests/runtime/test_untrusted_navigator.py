@@ -456,10 +456,10 @@ class WorkStarted(Exception):
 def test_export_command_refuses_out_of_range_settings_in_one_line(monkeypatch, tmp_path, option, value, words):
     from typer.testing import CliRunner
 
-    import socnav.cli
+    import socnav.cli.deploy
     from socnav.cli import app
 
-    monkeypatch.setattr(socnav.cli, "_load_learned_policy", lambda model: (_ for _ in ()).throw(WorkStarted()))
+    monkeypatch.setattr(socnav.cli.deploy, "load_learned_policy", lambda model: (_ for _ in ()).throw(WorkStarted()))
     result = CliRunner().invoke(app, ["export", "pretrained", "--out", str(tmp_path / "n.onnx"), option, value])
     assert result.exit_code == 2, (result.output, result.exception)
     assert result.output.strip().count("\n") == 0, result.output  # one line (these messages fit in 160 columns)
@@ -481,12 +481,12 @@ def test_export_command_documents_the_format_bounds():
 def test_export_command_passes_the_settings_on(monkeypatch, tmp_path):
     from typer.testing import CliRunner
 
-    import socnav.cli
+    import socnav.cli.deploy
     import socnav.export
     from socnav.cli import app
 
     calls = []
-    monkeypatch.setattr(socnav.cli, "_load_learned_policy", lambda model: "policy")
+    monkeypatch.setattr(socnav.cli.deploy, "load_learned_policy", lambda model: "policy")
     monkeypatch.setattr(socnav.export, "export_onnx", lambda *args, **kwargs: calls.append((args, kwargs)) or
                         tmp_path / "n.onnx")
     result = CliRunner().invoke(app, ["export", "pretrained", "--out", str(tmp_path / "n.onnx"), "--k", "7",

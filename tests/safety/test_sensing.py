@@ -205,7 +205,7 @@ def test_command_line_sensing_option(tmp_path):
 
 
 def test_animation_hands_the_true_state_to_the_safety_layer(tmp_path):
-    from socnav.experiments.animate import animate_episode
+    from socnav.cli.workflows.animation import animate_episode
 
     config = load_config(NOISY)
     thresholds = Thresholds.create(FIRING, sensing="true")

@@ -289,7 +289,7 @@ def test_the_map_policys_trigger_file_loads_and_fires_when_it_says():
     time-to-collision trigger that fires where contact
     is less than 2 s away. A robot standing still, a human walking at it at 1 m/s, 0.5 m of radii: from 3 m contact
     is 2.5 s away (no), from 2 m 1.5 s (yes)."""
-    from socnav.experiments.demo import MAP_POLICY_LAYER, comparison_file
+    from socnav.cli.workflows.demo import MAP_POLICY_LAYER, comparison_file
 
     spec = load_safety(comparison_file(MAP_POLICY_LAYER))
     assert isinstance(spec, TriggerSpec) and spec.trigger == "time-to-collision" and spec.threshold == -2.0

@@ -10,8 +10,8 @@ import pytest
 from matplotlib.transforms import Bbox
 
 import socnav
+from socnav.cli.workflows.animation import BARS, episode_title
 from socnav.envs.env import scene_extent
-from socnav.experiments.animate import BARS, episode_title
 from socnav.sim.map_scenarios import Corridor, Doorway, Intersection, Room
 from socnav.viz.render import SceneRenderer
 

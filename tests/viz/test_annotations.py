@@ -119,7 +119,7 @@ def test_uncertainty_bars_show_ticks_and_threshold(annotated):
 
 def test_episode_title_names_everything_shown():
     from socnav import load_config
-    from socnav.experiments.animate import episode_title
+    from socnav.cli.workflows.animation import episode_title
 
     config = load_config({"scenario": "position_swap", "n_humans": 1, "perturbation": {"heading_noise": 0.8}})
     title = episode_title(config, "pretrained", 7, "mc")

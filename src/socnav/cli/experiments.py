@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from socnav._console import console, fail
-from socnav.experiments.cli_options import (
+from socnav.cli.options import (
     algo_option,
     config_option,
     eval_episodes_option,
@@ -232,9 +232,9 @@ def tune(
 
     if algo not in ALGOS:
         fail(f"--algo {algo!r} is not known; allowed: {', '.join(ALGOS)}")
-    from socnav.experiments.tune import METRICS
-    from socnav.experiments.tune import tune as run_tune
-    from socnav.experiments.tune import write_preset as save_preset
+    from socnav.cli.workflows.tune import METRICS
+    from socnav.cli.workflows.tune import tune as run_tune
+    from socnav.cli.workflows.tune import write_preset as save_preset
 
     if metric not in METRICS:
         fail(f"--metric {metric!r} is not known; allowed: {', '.join(METRICS)}")

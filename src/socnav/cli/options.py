@@ -3,9 +3,7 @@
 
 Typer's default-value style, as the commands use: a command passes its own default, and its own ``help`` where the
 option means something more there (e.g. what its default is in that command). The bounds of episode and timestep
-counts are the experiment files' (`socnav.experiments.spec`), so a flag and its YAML field refuse the same values;
-this module sits in `socnav.experiments` for that reason, below the command-line modules that import it
-(`socnav.cli`, `socnav.experiments.cli`).
+counts are the experiment files' (`socnav.experiments.spec`), so a flag and its YAML field refuse the same values.
 """
 
 from __future__ import annotations

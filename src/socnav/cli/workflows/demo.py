@@ -124,8 +124,8 @@ def baseline_rows(out: Path, episodes: int, seed: int, n_envs: int = N_ENVS,
 def animate_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
     """One ORCA episode (seed `seed`) of circle crossing as OUT/orca_circle_crossing.gif; returns
     `animate_episode`'s (path, summary)."""
+    from socnav.cli.workflows.animation import animate_episode
     from socnav.controllers import make_controller
-    from socnav.experiments.animate import animate_episode
 
     config = load_config({"scenario": "circle_crossing"})
     return animate_episode(make_controller("orca", config), None, config, Path(out) / "orca_circle_crossing.gif",
@@ -135,8 +135,8 @@ def animate_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
 def animate_map_baseline(out: Path, seed: int) -> tuple[Path, dict[str, Any]]:
     """One ORCA episode (seed `seed`) of `MAP_SCENARIO` as OUT/orca_<scenario>.gif, the robot's planned path and its
     subgoal drawn (the global planner, docs/maps.md); returns `animate_episode`'s (path, summary)."""
+    from socnav.cli.workflows.animation import animate_episode
     from socnav.controllers import make_controller
-    from socnav.experiments.animate import animate_episode
 
     config = load_config({"scenario": MAP_SCENARIO})
     return animate_episode(make_controller("orca", config), None, config, Path(out) / f"orca_{MAP_SCENARIO}.gif",
@@ -173,7 +173,7 @@ def animate_learned_policy(policy: Any, world: EnvConfig, out: Path, seed: int, 
                            ) -> tuple[Path, dict[str, Any]]:
     """One episode (seed `seed`) of `policy` in `world` as OUT/odv_ppo_drop_<scenario>.gif; returns
     `animate_episode`'s (path, summary)."""
-    from socnav.experiments.animate import animate_episode
+    from socnav.cli.workflows.animation import animate_episode
 
     return animate_episode(policy, None, world, Path(out) / f"odv_ppo_drop_{world.scenario}.gif", seed=seed,
                            policy_label=label)
@@ -211,7 +211,7 @@ def animate_map_policy(world: EnvConfig, out: Path, seed: int) -> tuple[Path, di
     """One episode (seed `seed`) of the shipped map policy inside its safety layer in `world` (`map_policy_rows`'s)
     as OUT/pretrained-maps_<scenario>.gif, its planned path and subgoal drawn; returns `animate_episode`'s (path,
     summary)."""
-    from socnav.experiments.animate import animate_episode
+    from socnav.cli.workflows.animation import animate_episode
     from socnav.rl.persistence import load_policy
     from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
@@ -321,7 +321,7 @@ def find_saved_episode(policy: Any, config: EnvConfig, saved: list[int], tries: 
 def animate_saved_episode(policy: Any, config: EnvConfig, episode_seed: int, out_dir: Path,
                           policy_label: str) -> tuple[Path, Path]:
     """The episode `episode_seed` without the safety layer (a collision) and with it (saved), as two GIFs."""
-    from socnav.experiments.animate import animate_episode
+    from socnav.cli.workflows.animation import animate_episode
     from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
     without, _ = animate_episode(policy, None, config, out_dir / f"safety_off_seed{episode_seed}.gif",
