@@ -22,7 +22,6 @@ if TYPE_CHECKING:  # pandas, torch and SB3 load inside the commands: `socnav --h
     import pandas as pd
 
 
-
 def deprecated_alias(old: str, new: str) -> Callable[[Any], Any]:
     """Callback of a hidden option kept under its old name: warns when it is used and passes its value on (the
     command takes it as the value of `new`)."""
