@@ -23,10 +23,9 @@ PACKAGE = "socnav"
 #: environments built on them, controllers acting in them, learned policies (rl), their uncertainty, the safety layer
 #: using both, the deployable navigator (export/runtime), experiments composing all of it, and the command line.
 LAYERS: list[tuple[str, ...]] = [
-    ("socnav.io", "socnav.extras"),  # utilities: atomic files, optional-dependency hints
-    ("socnav.sim",),  # the simulator's kernels and scenarios: ORCA, noise streams, start/goal sampling (plain values)
-    ("socnav.config",),  # the validated configuration (scenario names checked against socnav.sim.scenarios)
-    ("socnav.sim.world", "socnav.sim.observation"),  # the batched world, assembled from a validated EnvConfig
+    ("socnav.io", "socnav.extras", "socnav.validation"),  # utilities: files, install hints, what settings share
+    ("socnav.sim",),  # the simulator: kernels, scenarios, its configuration (socnav.sim.config), the batched world
+    ("socnav.config",),  # the configuration as users import it: re-exports socnav.sim.config and socnav.validation
     ("socnav.viz",),  # draws the scenes an environment renders
     ("socnav.envs", "socnav"),  # `socnav` itself: the package root re-exports make_env and load_config
     ("socnav.controllers",),

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from socnav.config import ConfigError, EnvConfig, RewardConfig
+from socnav.sim.config import EnvConfig, RewardConfig
 from socnav.sim.geometry import range_scan
 from socnav.sim.humans import Crowd, MixedHumans, ScriptedHumans, make_human_model
 from socnav.sim.metrics import EpisodeMetrics
@@ -42,6 +42,7 @@ from socnav.sim.planning import PathFollower, planner_for
 from socnav.sim.route import observed_goals
 from socnav.sim.scenarios import GoalRedrawingScenario, InitialState, RoutedScenario, get_scenario, n_slots
 from socnav.sim.walls import POSE_KEY, SCAN_KEY, Walls, world_polygons
+from socnav.validation import ConfigError
 
 ROBOT_FEATURES = 5  # distance to goal, heading relative to goal direction, speed, v_pref, radius
 HUMAN_FEATURES = 7  # rel. position (2), rel. velocity (2), radius, combined radius, gap
