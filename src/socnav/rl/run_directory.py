@@ -37,14 +37,8 @@ from socnav.io import (
     read_table,
     write_text_atomic,
 )
-from socnav.rl.persistence import (
-    MAX_HEADER_BYTES,
-    CheckpointError,
-    CheckpointHeader,
-    read_checkpoint_header,
-    validation_message,
-    verify_checkpoint,
-)
+from socnav.rl.archive import MAX_HEADER_BYTES, validation_message
+from socnav.rl.checkpoints import CheckpointError, CheckpointHeader, read_checkpoint_header, verify_checkpoint
 from socnav.rl.presets import AlgoConfig, AlgoName, resolve_config
 
 MAX_SEED = 2**28  # run seeds below this keep training environments (2**40 + seed * 4096 + i) under 2**41

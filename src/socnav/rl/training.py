@@ -31,13 +31,9 @@ from socnav.io import (
     write_table_atomic,
     write_text_atomic,
 )
+from socnav.rl.checkpoints import CheckpointError, load_checkpoint, save_checkpoint
 from socnav.rl.odv_ppo import ODVPPO
-from socnav.rl.persistence import (
-    CheckpointError,
-    load_checkpoint,
-    save_checkpoint,
-    save_policy,
-)
+from socnav.rl.persistence import save_policy
 from socnav.rl.policy import NonFiniteError
 from socnav.rl.presets import AlgoConfig, make_model, resolve_config
 from socnav.rl.run_directory import (
