@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from socnav.sim.planning import follow_path
+from socnav.sim.planning_kernels import follow_path
 
 __all__ = ["observed_goals", "subgoal_on_path", "validate_path"]
 
