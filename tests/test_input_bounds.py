@@ -23,7 +23,7 @@ import pytest
 
 from socnav.config import YAML_MAX_BYTES, YAML_MAX_DEPTH, YAML_MAX_NODES, ConfigError, load_config
 from socnav.sim import maps
-from socnav.sim.humans import replay
+from socnav.sim.humans import replay, trajectories
 from socnav.sim.maps import MAX_COORDINATE, MapError, validate_polygons
 
 REPO = Path(__file__).resolve().parents[1]
@@ -205,7 +205,8 @@ def test_the_sample_bound_is_counted_before_anything_is_interpolated(tmp_path, m
     path.write_text("0 1 0 0\n1000000000 1 1 1\n0 2 0 0\n1 2 1 1\n")
     recording = replay.read_trajectories(path)
     assert replay.count_positions([recording], 0.25, 2.5) == 1_600_000_003
-    monkeypatch.setattr(replay, "_interpolate", lambda *args: pytest.fail("interpolated before the bound"))
+    for module in (replay, trajectories):  # each reads the name it imported
+        monkeypatch.setattr(module, "interpolate_track", lambda *args: pytest.fail("interpolated before the bound"))
     for build in (lambda: replay.interpolate_tracks(recording, 0.25, 2.5),
                   lambda: replay.build_scenes([recording], 0.25, 2.5)):
         with pytest.raises(replay.TrajectoryFileError, match=r"give 1,600,000,003 positions at time_step 0.25 s; "
@@ -228,7 +229,7 @@ def test_replay_files_are_refused_from_their_size_before_reading(tmp_path, monke
                                                          rf"{replay.MAX_FILE_BYTES + 1:,}\)"):
         replay.read_trajectories(huge)
     # all the files of a config together
-    monkeypatch.setattr(replay, "MAX_TOTAL_BYTES", 100)
+    monkeypatch.setattr(trajectories, "MAX_TOTAL_BYTES", 100)
     small = [tmp_path / f"{name}.txt" for name in "abc"]
     for path in small:
         path.write_text("0 1 0 0\n10 1 1 1\n" * 3)
@@ -260,7 +261,7 @@ def test_a_config_of_a_short_replay_file_of_too_many_positions_is_refused_as_it_
 
 
 def test_the_replay_files_of_a_config_are_bounded_together(tmp_path, monkeypatch):
-    monkeypatch.setattr(replay, "MAX_TOTAL_BYTES", 100)
+    monkeypatch.setattr(trajectories, "MAX_TOTAL_BYTES", 100)
     files = [tmp_path / f"{name}.txt" for name in "abc"]
     for path in files:
         path.write_text("".join(f"{10 * frame} 1 {frame} 0\n" for frame in range(6)))  # 53 bytes each
@@ -315,7 +316,7 @@ def test_read_bounded_refuses_a_file_from_its_size_before_reading(tmp_path, monk
 def test_pedestrians_per_file_are_bounded(tmp_path, monkeypatch):
     path = tmp_path / "many.txt"
     path.write_text("".join(f"0 {ped} 0 0\n" for ped in range(50)))
-    monkeypatch.setattr(replay, "MAX_PEDESTRIANS", 49)
+    monkeypatch.setattr(trajectories, "MAX_PEDESTRIANS", 49)
     with pytest.raises(replay.TrajectoryFileError, match=rf"{path} holds 50 pedestrians, more than the 49"):
         replay.read_trajectories(path)
 
@@ -328,7 +329,7 @@ def test_a_file_of_many_blocks_reads_as_one(tmp_path, monkeypatch):
     path = tmp_path / "rows.txt"
     path.write_text(rows.replace("\t1.0\t1.00\t", "\t1.0\t1_0.0\t"))  # one value numpy does not read, Python does
     whole = replay.read_trajectories(path)
-    monkeypatch.setattr(replay, "_BLOCK_BYTES", 1000)
+    monkeypatch.setattr(trajectories, "_BLOCK_BYTES", 1000)
     blocks = replay.read_trajectories(path)
     assert np.array_equal(np.concatenate(whole.positions), np.concatenate(blocks.positions))
     assert np.array_equal(np.concatenate(whole.samples), np.concatenate(blocks.samples))

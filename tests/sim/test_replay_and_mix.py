@@ -19,7 +19,7 @@ from gymnasium.utils.env_checker import check_env
 
 import socnav
 from socnav.config import ConfigError, load_config
-from socnav.sim.humans import OrcaHumans, SocialForceHumans, TrajectoryFileError, make_human_model, replay
+from socnav.sim.humans import OrcaHumans, SocialForceHumans, TrajectoryFileError, make_human_model, replay, trajectories
 from socnav.sim.humans.replay import interpolate_tracks, load_replay, read_trajectories
 from socnav.sim.scenarios import get_scenario
 from socnav.sim.world import CrowdWorld
@@ -165,7 +165,7 @@ def test_file_size_bound(tmp_path, monkeypatch):
     assert f"has {replay.MAX_FILE_BYTES + 1:,} bytes; socnav reads trajectory files of at most" in str(error.value)
     # the reader enforces the bound while reading (a smaller bound, patched)
     small = write_rows(tmp_path / "small.txt", crossing_rows(n_pedestrians=2))
-    monkeypatch.setattr(replay, "MAX_FILE_BYTES", 64)
+    monkeypatch.setattr(trajectories, "MAX_FILE_BYTES", 64)
     with pytest.raises(TrajectoryFileError, match=f"trajectory file {small} is larger than 64 bytes"):
         read_trajectories(small)
 

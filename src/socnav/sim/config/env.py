@@ -199,13 +199,13 @@ class EnvConfig(Section):
         # The positions the recorded tracks give at this time_step are counted (not interpolated) here, so that a
         # short file spanning frames 0 ... 10^9 is refused as the config is read rather than when a world is built.
         if self.humans.model == "replay" and self.humans.replay.files:
-            from socnav.sim.humans import replay  # lazily: socnav.sim imports this module
+            from socnav.sim.humans import trajectories  # lazily: socnav.sim imports this module
 
             try:
-                replay.check_positions(self.humans.replay, self.time_step)
+                trajectories.check_positions(self.humans.replay, self.time_step)
             except OSError as exc:
                 raise ValueError(f"humans.replay.files: a trajectory file cannot be read: {exc}") from None
-            except replay.TrajectoryFileError as exc:
+            except trajectories.TrajectoryFileError as exc:
                 raise ValueError(f"humans.replay.files: {exc}") from None
         return self
 

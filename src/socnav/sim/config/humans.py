@@ -129,7 +129,7 @@ class ReplayConfig(Section):
     def _files_exist(cls, value: list[str]) -> list[str]:
         import os
 
-        from socnav.sim.humans import replay
+        from socnav.sim.humans import trajectories
 
         if len(value) > REPLAY_MAX_FILES:
             raise ValueError(f"{len(value):,} files; at most {REPLAY_MAX_FILES:,}")
@@ -142,15 +142,15 @@ class ReplayConfig(Section):
             if not path.is_file():
                 raise ValueError(f"trajectory file {shown} is not a regular file")
             size = path.stat().st_size
-            if size > replay.MAX_FILE_BYTES:
+            if size > trajectories.MAX_FILE_BYTES:
                 raise ValueError(f"trajectory file {shown} has {size:,} bytes; socnav reads trajectory files of at "
-                                 f"most {replay.MAX_FILE_BYTES:,}")
+                                 f"most {trajectories.MAX_FILE_BYTES:,}")
             try:
-                replay.check_trajectory_file(path)  # its content: the first bad line is named
+                trajectories.check_trajectory_file(path)  # its content: the first bad line is named
             except OSError as exc:
                 raise ValueError(f"trajectory file {shown} cannot be read: {exc.strerror or exc}") from None
             checked.append(str(path.resolve()))
-        replay.check_total_size(checked)  # all of them together (`MAX_TOTAL_BYTES`), from their sizes
+        trajectories.check_total_size(checked)  # all of them together (`MAX_TOTAL_BYTES`), from their sizes
         return checked
 
 
