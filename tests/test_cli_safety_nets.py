@@ -210,7 +210,16 @@ TINY = ["--scenario", "position_swap", "--n-humans", "1", "--algo", "ppo", "--n-
         "--set", "n_steps=128"]
 
 
-def test_ctrl_c_in_train_before_the_first_checkpoint_keeps_the_steps(monkeypatch, tmp_path):
+@pytest.fixture
+def sigint_as_in_a_terminal():
+    """Python's own SIGINT handler during the test, as in a terminal, put back after: a test run started as a
+    background job of a non-interactive shell has SIGINT ignored, and then no Ctrl-C reaches a command at all."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_in_train_before_the_first_checkpoint_keeps_the_steps(monkeypatch, tmp_path, sigint_as_in_a_terminal):
     """Ctrl-C at step ~300 of a run whose first scheduled checkpoint is its end (1,024 steps): a checkpoint at the
     next rollout boundary (512 steps: rollouts of 2 x 128), and --resume continues from it."""
     from socnav.rl import training
@@ -432,18 +441,21 @@ def test_a_config_error_found_when_the_world_is_built_is_one_line(tmp_path, monk
 
 
 @pytest.mark.heavy
-def test_sigterm_keeps_the_finished_episodes_as_ctrl_c_does(tmp_path):
+@pytest.mark.parametrize("sigint", ["default", "ignored"])
+def test_sigterm_keeps_the_finished_episodes_as_ctrl_c_does(tmp_path, sigint):
     """`kill` (SIGTERM) on a long `socnav evaluate` is handled as the first Ctrl-C: the finished episodes are written
-    and the command stops with exit code 130."""
+    and the command stops with exit code 130 -- also when it started with SIGINT ignored, as a background job of a
+    non-interactive shell does (SIGTERM used to raise the ignored SIGINT, and the command ran on)."""
     import signal
     import subprocess
     import sys
     import time
 
     out = tmp_path / "part.csv"
+    start = signal.SIG_IGN if sigint == "ignored" else signal.SIG_DFL  # SIG_DFL: Python installs its own handler
     process = subprocess.Popen([sys.executable, "-m", "socnav", "evaluate", "--controller", "orca", "--episodes",
                                 "500000", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               text=True)
+                               text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, start))
     try:
         time.sleep(20)  # imports and the world built (a few seconds); the 500,000 episodes take minutes
         assert process.poll() is None, "the evaluation ended before it was signalled"

@@ -8,6 +8,8 @@ once (`options`), their shared checks and loaders (`common`), and the heavier st
 
 from __future__ import annotations
 
+import signal
+
 import typer
 from rich.markup import escape
 
@@ -45,16 +47,24 @@ experiments.register(app)  # socnav run / report / tune
 app.add_typer(ros2.app, name="ros2")  # socnav ros2 navigator / sim (imports no rclpy: each command loads it)
 
 
+def _sigterm_as_interrupt(signum: int, frame: object) -> None:
+    """SIGTERM's handler: the first Ctrl-C. A process whose SIGINT is ignored (a background job of a non-interactive
+    shell starts so) would ignore the raised SIGINT too, and SIGTERM would no longer stop it: the interrupt is then
+    raised here, and the command's KeyboardInterrupt handling runs."""
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None):
+        raise KeyboardInterrupt
+    signal.raise_signal(signal.SIGINT)
+
+
 def _terminate_as_interrupt() -> None:
     """SIGTERM does what the first Ctrl-C does (a service manager, `kill`, a job scheduler send it): the command's own
     SIGINT handling runs -- `train` saves a checkpoint, `evaluate` writes its finished episodes, `run` stops its units
     -- instead of the process dying with its work unsaved. The ROS 2 nodes install their own handlers for both."""
-    import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return
-    signal.signal(signal.SIGTERM, lambda signum, frame: signal.raise_signal(signal.SIGINT))
+    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
 
 
 def main() -> None:
