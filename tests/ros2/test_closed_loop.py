@@ -101,7 +101,8 @@ def closed_loop(tmp_path: Path, environment: dict[str, str], navigator_file: Pat
     navigator = subprocess.Popen(
         [*socnav, "navigator", "--model", str(navigator_file), "--lockstep", "--use-sim-time", "--seed",
          str(NAVIGATOR_SEED), *navigator_arguments],
-        env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # stopped by SIGINT below, as in a terminal
     try:
         simulator_command = [*socnav, "sim", "--model", str(navigator_file), "--scenario", "circle_crossing",
                              "--episodes", str(episodes), "--seed", str(SEED), "--lockstep", "--out", str(out),

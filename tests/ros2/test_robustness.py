@@ -61,7 +61,8 @@ def test_the_largest_accepted_crowd_keeps_the_decision_rate(ros_graph_context, r
     from socnav.ros2 import messages
 
     navigator = subprocess.Popen([*SOCNAV, "navigator", "--model", str(navigator_file), "--seed", "0"],
-                                 env=ros_environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                                 env=ros_environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                 preexec_fn=_sigint_as_in_a_terminal)
     driver = Node("crowd_driver", context=ros_graph_context)
     odometry = driver.create_publisher(Odometry, "odom", 10)
     humans = driver.create_publisher(PointCloud2, "humans", 10)
@@ -309,13 +310,21 @@ def test_the_recorder_refuses_them_too_without_blocking(bad_paths, case):
 # ------------------------------------------------------------------------------------------------- clean stops
 
 
+def _sigint_as_in_a_terminal() -> None:
+    """In the child before it runs: SIGINT's default disposition (Python then installs its handler), as for a command
+    typed in a terminal. A test run started where SIGINT is ignored (a background job of a non-interactive shell)
+    passes that on to its children, and a node would then never see the Ctrl-C these tests send."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(command: list[str], environment: dict[str, str], ready: str,
            timeout: float = 90.0) -> tuple[subprocess.Popen, list[str]]:
     """Start ``command``; return once a line of its output contains ``ready`` (its output so far, and the rest as
     it comes, in the list)."""
     import threading
 
-    process = subprocess.Popen(command, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = subprocess.Popen(command, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               preexec_fn=_sigint_as_in_a_terminal)
     lines: list[str] = []
 
     def read() -> None:
