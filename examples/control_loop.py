@@ -7,8 +7,9 @@ What a ROS 2 node would wrap: read the robot's and the tracked humans' state, `a
     python examples/control_loop.py navigator.onnx --thresholds examples/thresholds_closing_speed.yaml
 
 The person walking head-on at 1 m/s does not yield. With the paper's rule as printed (the default thresholds) a
-2 m/s approach never meets c_prox before contact and the (position-swap) policy alone collides; with the
-closing-speed reading of c_prox the cautious fallback takes over at ~1.6 m and the robot reaches its goal.
+2 m/s approach never meets c_prox before contact, so the policy drives alone: both shipped open-plane policies
+(`pretrained`, `pretrained-ppo`) step aside by themselves and reach the goal after 8.5 s. With the closing-speed
+reading of c_prox the cautious fallback drives 6 steps as the person passes, and the robot reaches its goal too.
 
 In a ROS 2 node, `on_timer` would read odometry and the people tracker instead of `Scene`, and publish the command
 as a Twist (linear.x = v, angular.z = dtheta / period); `navigator.reset()` goes where a new goal is accepted.
