@@ -28,13 +28,18 @@ WORLD_SEEDS = 1_000_000  # the collections of the k-th world of --worlds start k
 
 
 def parse_world(text: str) -> dict:
-    """``scenario`` or ``scenario:n_humans`` -> the world's config overrides (the scenario's default crowd)."""
+    """``scenario`` or ``scenario:n_humans`` -> the world's config overrides (the scenario's default crowd), checked
+    as a world; a bad one is a ValueError naming what is wrong."""
     scenario, _, humans = text.partition(":")
-    return {"scenario": scenario, **({"n_humans": int(humans)} if humans else {})}
+    if humans and not humans.isdigit():
+        raise ValueError(f"{text!r}: the number of humans after ':' must be a whole number, got {humans!r}")
+    world = {"scenario": scenario, **({"n_humans": int(humans)} if humans else {})}
+    load_config(world)  # ConfigError (a ValueError): the field and the allowed values
+    return world
 
 
 def teach(args: argparse.Namespace) -> None:
-    worlds = [parse_world(text) for text in args.worlds]
+    worlds = args.worlds
     envs = [SocialNavVecEnv(world, n_envs=16) for world in worlds]
     model = make_model("odv-ppo-drop", envs[0], seed=args.seed)
     teachers = [make_controller("orca", env.config) for env in envs]
@@ -72,7 +77,12 @@ def main() -> None:
                         help="the open-plane worlds the ORCA robot teaches in, --steps shared equally; the first is "
                              "the policy's world (default: position swap with one human)")
     parser.add_argument("--out", type=Path, required=True)
-    teach(parser.parse_args())
+    args = parser.parse_args()
+    try:
+        args.worlds = [parse_world(text) for text in args.worlds]
+    except ValueError as exc:
+        parser.error(f"--worlds: {exc}")
+    teach(args)
 
 
 if __name__ == "__main__":

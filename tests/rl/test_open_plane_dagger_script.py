@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import socnav
 
@@ -48,3 +49,7 @@ def test_worlds_share_the_labels_and_the_first_names_the_policy(tmp_path, monkey
     script = runpy.run_path(str(SCRIPT))
     assert script["parse_world"]("random") == {"scenario": "random"}
     assert script["parse_world"]("position_swap:1") == {"scenario": "position_swap", "n_humans": 1}
+    with pytest.raises(ValueError, match=r"whole number, got 'x'"):
+        script["parse_world"]("position_swap:x")
+    with pytest.raises(ValueError, match=r"unknown scenario 'bogus'; allowed: circle_crossing"):
+        script["parse_world"]("bogus")
