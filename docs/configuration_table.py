@@ -151,9 +151,9 @@ def flag_name(param: Any) -> str:
 def choices() -> dict[str, tuple[str, ...]]:
     """CLI parameter name -> its allowed values, from the code that checks them (the same name means the same
     values in every command)."""
+    from socnav.cli.workflows.tune import METRICS
     from socnav.controllers import CONTROLLERS
     from socnav.experiments.runner import run_experiment
-    from socnav.cli.workflows.tune import METRICS
     from socnav.rl.presets import ALGOS
     from socnav.safety import PROXIMITY_VARIANTS, SENSING_CHOICES, THRESHOLD_PRESETS
     from socnav.sim.humans import human_model_names

@@ -32,7 +32,7 @@ SLOW_THRESHOLD_S = 1.0
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
     "tests/rl/test_open_plane_dagger_script.py": ("test_a_tiny_dagger_run_saves_a_policy_with_its_feature_range",
                                                   "test_worlds_share_the_labels_and_the_first_names_the_policy"),
-    "tests/experiments/test_safety_benchmark_page.py": (
+    "tests/paper/test_safety_benchmark_page.py": (
         "test_the_section_across_training_seeds_is_kept_to_the_end_of_the_page",),  # 1.7 s: the script's imports
     "tests/rl/test_maps_policy_script.py": ("test_clone_dagger_then_continue",  # 18.8 s
                                             "test_dagger_rounds_are_saved_and_a_later_run_continues_after_the_last",
@@ -66,12 +66,12 @@ SLOW_TESTS: dict[str, tuple[str, ...]] = {
         "test_running_units_report_their_progress_from_the_worker",  # 23.2 s
         "test_tune_runs_trials_and_writes_a_preset",  # 4.0 s
     ),
-    "tests/experiments/test_uncertainty_report.py": (
+    "tests/paper/test_uncertainty_report.py": (
         "test_behaviour_shift_is_a_column_of_ours_in_tables_2_and_3_and_not_in_the_papers_claims",  # 1.8 s
         "test_sections_skip_missing_records_and_unfinished_units",  # 2.3 s
         "test_table2_numbers_bold_and_dashes",  # 1.4 s
     ),
-    "tests/experiments/test_uncertainty_units.py": (
+    "tests/paper/test_uncertainty_units.py": (
         "test_a_tiny_behaviour_shift_experiment_runs_with_social_force_humans",  # 2.8 s
         "test_ablation_safety_units_play_every_rule_on_the_same_episodes",  # 2.8 s
         "test_both_sensings_are_calibrated_and_evaluated",  # 1.6 s

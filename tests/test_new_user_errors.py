@@ -161,7 +161,8 @@ def test_bench_env_without_pyrvo_is_one_line():
 # ------------------------------------------------------------------------------------------ Ray with nothing there
 
 def test_ray_address_with_nothing_listening_fails_fast_with_one_line(tmp_path):
-    from socnav.experiments.runner import RunnerError, _probe_ray_address
+    from socnav.experiments.backends import _probe_ray_address
+    from socnav.experiments.runner import RunnerError
 
     started = time.perf_counter()
     with pytest.raises(RunnerError, match="nothing accepts connections"):
@@ -198,7 +199,8 @@ def silent_grpc_port():
 
 
 def test_an_address_where_no_ray_answers_gives_up_within_the_timeout(silent_grpc_port):
-    from socnav.experiments.runner import RunnerError, _check_ray_connects
+    from socnav.experiments.backends import _check_ray_connects
+    from socnav.experiments.runner import RunnerError
 
     require("ray")
     started = time.perf_counter()

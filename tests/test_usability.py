@@ -299,8 +299,8 @@ def test_socnav_policy_file_becomes_a_full_sb3_model(tmp_path):
 
 
 def test_report_says_when_the_budget_differs_from_the_papers():
-    from socnav.experiments.report import budget_note
     from socnav.experiments.spec import load_experiment
+    from socnav.paper.table1.comparison import budget_note
 
     smoke = load_experiment(REPO / "configs/experiments/smoke.yaml", "quick").model_dump(mode="json")
     note = budget_note(smoke)

@@ -21,7 +21,12 @@ from dataclasses import replace
 from pathlib import Path
 
 from socnav.experiments.power import (
-    Design, cellwise_bootstrap_verdicts, estimate_design, false_verdict_rate, min_detectable_difference, min_detectable_standardised_difference,
+    Design,
+    cellwise_bootstrap_verdicts,
+    estimate_design,
+    false_verdict_rate,
+    min_detectable_difference,
+    min_detectable_standardised_difference,
     min_detectable_variance_ratio,
 )
 
@@ -36,8 +41,8 @@ def seed_variation(run_dir: Path | None) -> Design:
     if run_dir is None:
         return Design()
     from socnav.experiments.registry import ReportContext
-    from socnav.experiments.report import table1_seed_frame
     from socnav.experiments.runner import read_plan, unit_states
+    from socnav.paper.table1.tables import table1_seed_frame
 
     experiment, units = read_plan(run_dir)
     context = ReportContext(run_dir, run_dir, experiment, units, unit_states(run_dir, units))

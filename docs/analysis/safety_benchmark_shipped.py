@@ -7,7 +7,7 @@ configs/experiments/safety_benchmark.yaml replicates it across training seeds): 
 training seeds is the experiment's; any other policy has docs/safety-benchmark-<name>.md.
 
 Every row is calibrated on calibration episodes (seeds 500,000...; the risk model on 700,000...) and played on the
-held-out episodes 3,000,000... of `socnav.experiments.safety_benchmark.PAPER_TYPES` and `HELD_OUT_SHIFTS` (and, with
+held-out episodes 3,000,000... of `socnav.paper.safety_benchmark.benchmark.PAPER_TYPES` and `HELD_OUT_SHIFTS` (and, with
 `--replay-files`, recorded pedestrians: the shift `replay`).
 The page and its figure are generated; nothing in them is typed.
 """
@@ -20,7 +20,8 @@ import time
 from pathlib import Path
 
 import socnav
-from socnav.experiments.safety_benchmark import (
+from socnav.io import read_table, write_text_atomic
+from socnav.paper.safety_benchmark.benchmark import (
     HELD_OUT_SHIFTS,
     LAYERS_FILE,
     BenchmarkSetup,
@@ -28,8 +29,7 @@ from socnav.experiments.safety_benchmark import (
     replay_shift,
     run_safety_benchmark,
 )
-from socnav.experiments.safety_benchmark_units import benchmark_markdown
-from socnav.io import read_table, write_text_atomic
+from socnav.paper.safety_benchmark.units import benchmark_markdown
 from socnav.uncertainty import MC_SEED, MCDropoutEstimator
 
 TABLE3_WORLD = {"scenario": "position_swap", "n_humans": 1, "personal_space": [0.3, 0.4]}  # Table 3 world

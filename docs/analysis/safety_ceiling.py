@@ -12,8 +12,8 @@ from __future__ import annotations
 import argparse
 
 import socnav
-from socnav.envs.rollout import rollout_episodes
 from socnav.envs.perturbations import perturbation_override
+from socnav.envs.rollout import rollout_episodes
 from socnav.safety import SafePolicy, Thresholds
 from socnav.uncertainty import MCDropoutEstimator
 

@@ -5,7 +5,7 @@ study records, and (optionally) the same measured again with MC-dropout at other
     python docs/analysis/uncertainty_information.py runs/table2-quick --try-p-test 0.05 0.1 0.2 0.5 --try-window 1 4 8
 
 Prints, per estimator and perturbation type (all strengths pooled; definitions in
-`socnav.experiments.uncertainty_information`):
+`socnav.paper.uncertainty.information`):
 
 1. the gate: where the proximity terms fire (c_prox and c_ap, the paper's lambda_prox = 0.9, beta1 = 0.5), the share
    of steps where the windowed uncertainty already passes the paper's thresholds (c_ep or c_feat; 100 %: removing
@@ -32,9 +32,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.labels import MEASURE_LABELS
-from socnav.experiments.uncertainty_information import (
-    MEASURES, PROXIMITY_MODEL, PROXIMITY_SCORE, RULE_MEASURES, gate_diagnostics, information_table, read_study_steps,
+from socnav.paper.labels import MEASURE_LABELS
+from socnav.paper.uncertainty.information import (
+    MEASURES,
+    PROXIMITY_MODEL,
+    PROXIMITY_SCORE,
+    RULE_MEASURES,
+    gate_diagnostics,
+    information_table,
+    read_study_steps,
 )
 from socnav.safety.rule import THRESHOLD_PRESETS
 

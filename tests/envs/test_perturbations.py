@@ -35,7 +35,7 @@ def test_every_perturbation_config_field_is_one_registered_perturbation():
 
 @pytest.mark.parametrize("name", list(PERTURBATIONS))
 def test_a_registered_perturbation_is_complete(name):
-    from socnav.experiments import labels as report
+    from socnav.paper import labels as report
 
     p = PERTURBATIONS[name]
     assert p.name == name and p.field in PerturbationConfig.model_fields

@@ -14,10 +14,12 @@ from typer.testing import CliRunner
 
 from socnav.cli import app
 from socnav.experiments.registry import SECTIONS, file_digest, register_section, unit_dir
-from socnav.experiments.report import build_report, table1_frame, table1_markdown, training_curve_frame
+from socnav.experiments.report import build_report
 from socnav.experiments.runner import mark_done, prepare_run_dir
 from socnav.experiments.spec import parse_experiment
 from socnav.io import write_table_atomic
+from socnav.paper.table1.curves import training_curve_frame
+from socnav.paper.table1.tables import table1_frame, table1_markdown
 
 runner = CliRunner()
 ALGOS = ["ppo", "odv-ppo-drop"]
@@ -215,7 +217,7 @@ def test_sections_are_registered_per_experiment_kind(handmade_run, monkeypatch):
 
 
 def test_paper_table_holds_the_spec_excerpt(handmade_run):
-    from socnav.experiments.paper_tables import paper_table1
+    from socnav.paper.published import paper_table1
 
     paper = paper_table1().set_index(["train_scenario", "algo", "eval_scenario"])
     assert len(paper) == 5 * 3 * 3
@@ -324,7 +326,7 @@ def test_table1_intervals_aggregate_and_verdicts(tmp_path):
 
 
 def test_training_run_statistics_by_hand():
-    from socnav.experiments.report import training_run_frame
+    from socnav.paper.table1.claims import training_run_frame
 
     steps = np.arange(1, 11) * 1000
     curves = pd.concat([
@@ -371,7 +373,7 @@ def _claims_records(rng: np.random.Generator) -> tuple[pd.DataFrame, pd.DataFram
 
 
 def test_claims_table_on_synthetic_policies():
-    from socnav.experiments.report import claims_frame
+    from socnav.paper.table1.claims import claims_frame
 
     per_seed, runs = _claims_records(np.random.default_rng(3))
     claims = claims_frame(per_seed, runs)

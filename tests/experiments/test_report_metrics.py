@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from socnav.experiments.report import EXTRA_METRICS, TABLE1_COLUMNS, table1_frame, table1_seed_frame
-from socnav.experiments.uncertainty_table3 import episode_rates, safety_metrics_frame
+from socnav.paper.table1.tables import EXTRA_METRICS, TABLE1_COLUMNS, table1_frame, table1_seed_frame
+from socnav.paper.uncertainty.table3 import episode_rates, safety_metrics_frame
 from socnav.sim.metrics import METRIC_RECORD_COLUMNS
 
 ID = ["train_scenario", "algo", "eval_scenario"]
@@ -141,8 +141,8 @@ def test_table3_metrics_per_approach_and_perturbed_episodes():
 def test_table2_metrics_per_estimator_perturbation_and_strength(tmp_path):
     from types import SimpleNamespace
 
-    from socnav.experiments.uncertainty_table2 import study_metrics_frame
     from socnav.io import write_table_atomic
+    from socnav.paper.uncertainty.table2 import study_metrics_frame
 
     episodes = pd.DataFrame({"strength": [0.0, 0.0, 0.5, 0.5], "episode": [0, 1, 0, 1],
                              "outcome": ["goal", "collision", "goal", "goal"], "spl": [0.9, 0.0, 0.7, 0.5],

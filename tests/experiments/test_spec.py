@@ -371,7 +371,7 @@ def test_a_grid_above_the_unit_bound_is_refused_with_its_count(monkeypatch):
     assert built == []  # refused before the planner ran
 
 
-@pytest.mark.parametrize("name", ["table1", "table2", "table3"])
+@pytest.mark.parametrize("name", ["table1", "table2", "table3", "safety_benchmark"])
 def test_the_unit_count_bounds_every_shipped_plan(name):
     from socnav.experiments.spec import planned_unit_count
 

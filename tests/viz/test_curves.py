@@ -12,8 +12,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from PIL import Image
 
-from socnav.experiments.labels import algo_label
-from socnav.experiments.report import training_curve_frame, training_curves_figure
+from socnav.paper.labels import algo_label
+from socnav.paper.table1.curves import training_curve_frame, training_curves_figure
 from socnav.rl.training import CURVE_COLUMNS, EVAL_COLUMNS
 from socnav.viz.curves import TrainingCurveError, plot_training_curve, training_curve_figure
 

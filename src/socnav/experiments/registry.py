@@ -1,17 +1,20 @@
-"""What an experiment kind plugs in -- unit executors (`socnav run`) and report sections (`socnav report`) -- and what
-they are given: the unit directories of a run, the report context, strict JSON.
+"""What an experiment kind plugs into the engine -- its unit planner (`socnav run`), unit executors and report sections
+(`socnav report`) -- and what they are given: the unit directories of a run, the report context, strict JSON.
 
-An executor registers with ``@register_executor("kind")``, a section with ``@register_section("kind", "name")``.
-socnav's own: `socnav.experiments.runner` holds the table1 kind's executors and imports
-`socnav.experiments.uncertainty_units` (the uncertainty kind's), so every process running units knows them all;
-`socnav.experiments.report` holds the table1 kind's sections and imports `socnav.experiments.uncertainty_report`,
-which registers the uncertainty kind's sections in page order.
-This module imports none of them: the providers import it, never the other way round.
+A kind is a module that registers, when imported, its planner with ``@register_planner("kind", count=...)``, the
+executors of its units with ``@register_executor("unit kind")`` and its page with ``register_section("kind",
+"name")``. The engine finds a kind by its name in `KIND_MODULES` (socnav's own: the paper's experiments in
+`socnav.paper`) or in the entry points of the group ``socnav.experiment_kinds`` (another package's), and imports its
+module on first use -- as Gymnasium's registry finds an environment by its entry point's name -- so the engine never
+imports the kinds built on it.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib
+import importlib.metadata
 import json
 import math
 import time
@@ -22,14 +25,88 @@ from typing import Any
 
 import pandas as pd
 
-from socnav.experiments.spec import Unit
+from socnav.experiments.units import Unit
 from socnav.io import json_safe, read_json, read_table, write_text_atomic
 
 __all__ = [
-    "EXECUTORS", "PROGRESS_FILE", "RESUMABLE", "SECTIONS", "Executor", "ExecutorResult", "ReportContext", "Section",
-    "UnitProgress", "file_digest", "json_safe", "read_progress", "register_executor", "register_section",
-    "single_threaded_torch", "unit_dir",
+    "ENTRY_POINT_GROUP", "EXECUTORS", "KIND_MODULES", "PLANNERS", "PROGRESS_FILE", "RESUMABLE", "SECTIONS",
+    "UNIT_COUNTS", "Executor", "ExecutorResult", "Planner", "ReportContext", "Section", "UnitCounter", "UnitProgress",
+    "experiment_kinds", "file_digest", "json_safe", "load_kind", "load_kinds", "read_progress", "register_executor",
+    "register_planner", "register_section", "single_threaded_torch", "unit_dir",
 ]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Experiment kinds: found by name, imported on first use
+# --------------------------------------------------------------------------------------------------------------
+
+#: socnav's own experiment kinds -> the module registering each (the paper's Table 1, Tables 2-3, the safety
+#: benchmark); listed in the order `socnav run` names them.
+KIND_MODULES: dict[str, str] = {
+    "table1": "socnav.paper.table1",
+    "uncertainty": "socnav.paper.uncertainty",
+    "safety_benchmark": "socnav.paper.safety_benchmark",
+}
+#: The entry-point group through which another installed package adds experiment kinds (name = kind, value = module).
+ENTRY_POINT_GROUP = "socnav.experiment_kinds"
+
+
+@functools.cache
+def _kind_modules() -> dict[str, str]:
+    """Every known experiment kind -> its module: socnav's own, then those of installed plugins (read once)."""
+    plugins = {entry.name: entry.module for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
+    return {**KIND_MODULES, **{name: module for name, module in plugins.items() if name not in KIND_MODULES}}
+
+
+def experiment_kinds() -> list[str]:
+    """The names of every known experiment kind (nothing imported): those found by name, then those registered in
+    this process by other means (a script or notebook calling `register_planner` itself)."""
+    return list(dict.fromkeys([*_kind_modules(), *PLANNERS]))
+
+
+def load_kind(kind: str) -> None:
+    """Import the module of experiment kind `kind`, which registers its planner, executors and sections.
+
+    :raises ValueError: `kind` is unknown (the message names the known kinds), or its module registers no planner.
+    """
+    if kind in PLANNERS:
+        return
+    modules = _kind_modules()
+    if kind not in modules:
+        raise ValueError(f"unknown experiment kind {kind!r}; known kinds: {', '.join(modules)}")
+    importlib.import_module(modules[kind])
+    if kind not in PLANNERS:
+        raise ValueError(f"experiment kind {kind!r}: its module {modules[kind]} registers no planner")
+
+
+def load_kinds() -> None:
+    """Import every experiment kind known by name: what a process running units of any kind needs."""
+    for kind in _kind_modules():
+        load_kind(kind)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Planners: the units of an experiment
+# --------------------------------------------------------------------------------------------------------------
+
+#: (resolved experiment) -> its units, every unit after those it depends on.
+Planner = Callable[[Any], list[Unit]]
+#: (resolved experiment) -> an upper bound of its units from the grid's sizes alone, counted before any is built.
+UnitCounter = Callable[[Any], int]
+#: experiment kind -> its planner, and the counter of its units.
+PLANNERS: dict[str, Planner] = {}
+UNIT_COUNTS: dict[str, UnitCounter] = {}
+
+
+def register_planner(kind: str, count: UnitCounter) -> Callable[[Planner], Planner]:
+    """Decorator registering the unit planner of an experiment kind and the counter of its units."""
+
+    def decorate(function: Planner) -> Planner:
+        PLANNERS[kind] = function
+        UNIT_COUNTS[kind] = count
+        return function
+
+    return decorate
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -32,11 +32,7 @@ Every field is validated before any work starts; errors name the field and the a
 
 from __future__ import annotations
 
-import hashlib
-import json
 import re
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, cast
 
@@ -52,6 +48,9 @@ from socnav.config import (
     read_mapping_file,
     short_repr,
 )
+from socnav.experiments.moved import moved_attribute
+from socnav.experiments.registry import PLANNERS, UNIT_COUNTS, experiment_kinds, load_kind, register_planner
+from socnav.experiments.units import Unit
 
 __all__ = [
     "PLANNERS",
@@ -66,9 +65,6 @@ __all__ = [
     "register_planner",
     "resolve_budget",
 ]
-
-SPEC_VERSION = 1
-
 
 class ExperimentError(ConfigError):
     """An experiment file is wrong; the message names the file, the field and what is allowed."""
@@ -453,7 +449,7 @@ class Experiment(StrictModel):
     """A validated experiment file. After `resolve_budget`, `budget` names the budget that was applied."""
 
     name: str = Field(description="letters, digits, '.', '_' or '-'")
-    kind: str = Field("table1", description="planner and report sections (see PLANNERS)")
+    kind: str = Field("table1", description="planner and report sections (socnav.experiments.registry)")
     description: str = ""
     env: dict[str, Any] = Field(default_factory=dict, description="env overrides for every environment")
     scenario_env: dict[str, dict[str, Any]] = Field(default_factory=dict, description="env overrides per scenario")
@@ -483,8 +479,8 @@ class Experiment(StrictModel):
     @field_validator("kind")
     @classmethod
     def _known_kind(cls, value: str) -> str:
-        if value not in PLANNERS:
-            raise ValueError(f"unknown experiment kind {short_repr(value)}; allowed: {', '.join(PLANNERS)}")
+        if value not in experiment_kinds():
+            raise ValueError(f"unknown experiment kind {short_repr(value)}; allowed: {', '.join(experiment_kinds())}")
         return value
 
     @field_validator("scenario_env")
@@ -653,289 +649,10 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
 # Units of work
 # --------------------------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class Unit:
-    """One unit of work: `kind` names its executor (registry.EXECUTORS), `params` is everything it needs (JSON).
-
-    `id` is also the unit's directory relative to the run directory; `deps` are ids of units whose outputs it reads.
-    """
-
-    id: str
-    kind: str
-    params: dict[str, Any] = field(hash=False)
-    deps: tuple[str, ...] = ()
-
-    @property
-    def spec_hash(self) -> str:
-        """Digest of what the unit is asked to do: a finished unit with another digest is stale."""
-        payload = json.dumps({"kind": self.kind, "params": self.params, "deps": list(self.deps),
-                              "version": SPEC_VERSION}, sort_keys=True, default=str)
-        return hashlib.sha256(payload.encode()).hexdigest()
-
-    def to_json(self) -> dict[str, Any]:
-        return {"id": self.id, "kind": self.kind, "params": self.params, "deps": list(self.deps),
-                "spec_hash": self.spec_hash}
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> Unit:
-        return cls(data["id"], data["kind"], data["params"], tuple(data.get("deps", ())))
-
-
-Planner = Callable[[Experiment], list[Unit]]
-#: experiment kind -> function expanding a resolved experiment into units (dependencies before dependants).
-PLANNERS: dict[str, Planner] = {}
-
-
-def register_planner(kind: str) -> Callable[[Planner], Planner]:
-    """Decorator registering the unit planner of an experiment kind (later experiments add their own)."""
-
-    def decorate(function: Planner) -> Planner:
-        PLANNERS[kind] = function
-        return function
-
-    return decorate
-
-
-#: The estimator name of the rule that reads no uncertainty (records, unit ids): ``proximity-only``.
-NO_ESTIMATOR = "none"
-
-
-def calibration_unit_id(estimator: str, sensing: str, conditions: str = "paper") -> str:
-    """The calibration unit of an estimator, sensing and rule variant (``perceived`` and the paper's rule add
-    nothing to the id, so a run planned without those choices finds its units): ``calibrate[-<sensing>]/<estimator>``,
-    ``.../<estimator>-uncertainty-only`` and, for the one rule that reads no uncertainty, ``.../proximity-only``
-    (whatever `estimator`)."""
-    name = {"paper": estimator, "uncertainty-only": f"{estimator}-uncertainty-only",
-            "proximity-only": "proximity-only"}[conditions]
-    return f"calibrate/{name}" if sensing == "perceived" else f"calibrate-{sensing}/{name}"
-
-
-def tradeoff_thresholds_file(budget: float) -> str:
-    """The file a calibration unit writes the thresholds of a trade-off budget to (``thresholds.yaml``: its main
-    budget)."""
-    return f"thresholds-budget{budget:g}.yaml"
-
-
-def train_unit_id(scenario: str, algo: str, seed: int) -> str:
-    return f"train/{scenario}/{algo}/seed{seed}"
-
-
-def eval_unit_id(train_scenario: str, algo: str, seed: int, eval_scenario: str) -> str:
-    return f"eval/{train_scenario}/{algo}/seed{seed}/{eval_scenario}"
-
-
-def _train_unit(experiment: Experiment, scenario: str, algo: str, seed: int) -> Unit:
-    grid = experiment.grid
-    return Unit(train_unit_id(scenario, algo, seed), "train", {
-        "train_scenario": scenario, "algo": algo, "seed": seed, "timesteps": grid.timesteps,
-        "env": experiment.env_config(scenario), "overrides": experiment.algo_overrides(algo),
-        "n_envs": grid.n_envs, "eval_every": grid.eval_every, "validation_episodes": grid.validation_episodes,
-    })
-
-
-@register_planner("table1")
-def plan_train_eval(experiment: Experiment) -> list[Unit]:
-    """One training unit per (training scenario, algorithm, seed); one evaluation unit per trained policy and
-    evaluation scenario, depending on its training unit."""
-    grid, evaluation = experiment.grid, experiment.evaluation
-    trains: list[Unit] = []
-    evals: list[Unit] = []
-    for scenario in grid.train_scenarios:
-        for algo in grid.algorithms:
-            for seed in grid.seeds:  # type: ignore[union-attr]
-                train = _train_unit(experiment, scenario, algo, seed)
-                trains.append(train)
-                for eval_scenario in evaluation.scenarios:
-                    evals.append(Unit(eval_unit_id(scenario, algo, seed, eval_scenario), "eval", {
-                        "train_scenario": scenario, "algo": algo, "train_seed": seed,
-                        "eval_scenario": eval_scenario, "env": experiment.env_config(eval_scenario),
-                        "episodes": evaluation.episodes, "seed": evaluation.seed, "n_envs": evaluation.n_envs,
-                        "deterministic": evaluation.deterministic,
-                    }, deps=(train.id,)))
-    return trains + evals
-
-
-@register_planner("uncertainty")
-def plan_uncertainty(experiment: Experiment) -> list[Unit]:
-    """Train the policies of `grid` (one scenario, one algorithm: the ensemble members), then one study unit per
-    (estimator, perturbation) and, with `safety`, one calibration unit per estimator and sensing and one safety unit
-    per (estimator, perturbation). With `safety.ablation`: an uncertainty-only calibration per estimator (its rows
-    played in that estimator's safety units) and one proximity-only calibration, played by its own safety units
-    ``safety/none/<perturbation>`` (the rule reads no uncertainty); with `safety.tradeoff_budgets` the calibrations
-    of `safety.ablation_sensing` (paper's rule and proximity-only) also choose thresholds at those budgets, played
-    by the same safety units."""
-    grid, evaluation = experiment.grid, experiment.evaluation
-    if len(grid.train_scenarios) != 1 or len(grid.algorithms) != 1:
-        raise ExperimentError(f"experiment {experiment.name!r}: kind uncertainty trains one algorithm on one "
-                              "scenario (grid.algorithms and grid.train_scenarios must each name one)")
-    scenario, algo = grid.train_scenarios[0], grid.algorithms[0]
-    trains = [_train_unit(experiment, scenario, algo, seed) for seed in grid.seeds]  # type: ignore[union-attr]
-    members = tuple(unit.id for unit in trains)
-    units = list(trains)
-    common = {"env": experiment.env_config(scenario), "episodes": evaluation.episodes, "seed": evaluation.seed,
-              "n_envs": evaluation.n_envs}
-
-    def policies(estimator: str, mc_seed: int) -> tuple[str, ...]:
-        acting = train_unit_id(scenario, algo, mc_seed)
-        if acting not in members:
-            raise ExperimentError(f"experiment {experiment.name!r}: mc_seed {mc_seed} is not among grid.seeds")
-        return (acting,) if estimator == "mc" else (acting, *[m for m in members if m != acting])
-
-    if experiment.study is not None:
-        study = experiment.study
-        for estimator in study.estimators:
-            for perturbation, strengths in study.perturbations.items():
-                units.append(Unit(f"study/{estimator}/{perturbation}", "uncertainty_study", {
-                    **common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
-                    "k": study.k, "p_test": study.p_test, "window": study.window,
-                }, deps=policies(estimator, study.mc_seed)))
-    if experiment.safety is not None:
-        units += _plan_safety(experiment, experiment.safety, common, policies)
-    return units
-
-
-def _plan_safety(experiment: Experiment, safety: Safety, common: dict[str, Any],
-                 policies: Callable[[str, int], tuple[str, ...]]) -> list[Unit]:
-    """The calibration and safety units of `plan_uncertainty` (its docstring). Without `ablation` and
-    `tradeoff_budgets` the units and their parameters are those of the paper's rule alone (same ids and spec
-    hashes, so such runs keep their finished units)."""
-    units: list[Unit] = []
-    ablation_sensing = safety.ablation_sensing_resolved
-    extra_budgets = [b for b in safety.tradeoff_budgets if b != safety.false_activation_budget]
-    ablated = bool(safety.ablation or safety.tradeoff_budgets)
-
-    def calibration_params(sensing: str, conditions: str = "paper") -> dict[str, Any]:
-        params = {"env": common["env"], "episodes": safety.calibration_episodes,
-                  "budget": safety.false_activation_budget, "proximity": safety.calibration_proximity,
-                  "window": safety.window, "sensing": sensing}
-        if sensing == ablation_sensing and extra_budgets and conditions != "uncertainty-only":
-            params["tradeoff_budgets"] = extra_budgets
-            if safety.tradeoff_search != "full":
-                params["tradeoff_search"] = safety.tradeoff_search
-        if conditions != "paper":
-            params["conditions"] = conditions
-        return params
-
-    acting = policies("mc", safety.mc_seed)
-    evaluations: list[Unit] = []  # planned after every calibration (see `_relative_cost`)
-    proximity_calibration: Unit | None = None
-    # Every perturbation type's unperturbed strength is the same world, so its episodes are the same in every
-    # safety unit: with the ablation they are played once, by the unit of the first perturbation type.
-    first = next(iter(safety.perturbations), None)
-    if "proximity-only" in safety.ablation:
-        # reads no uncertainty: one calibration (and one evaluation) for all estimators, on the acting policy only
-        proximity_calibration = Unit(calibration_unit_id(NO_ESTIMATOR, ablation_sensing, "proximity-only"),
-                                     "calibrate", {**calibration_params(ablation_sensing, "proximity-only"),
-                                                   "estimator": None}, deps=acting)
-        units.append(proximity_calibration)
-    for estimator in safety.estimators:
-        deps = policies(estimator, safety.mc_seed)
-        calibrations: tuple[str, ...] = ()
-        if safety.calibrate:
-            for sensing in safety.sensing:
-                calibration = Unit(calibration_unit_id(estimator, sensing), "calibrate",
-                                   {**calibration_params(sensing), "estimator": estimator, "k": safety.k}, deps=deps)
-                units.append(calibration)
-                calibrations += (calibration.id,)
-            if "uncertainty-only" in safety.ablation:
-                calibration = Unit(calibration_unit_id(estimator, ablation_sensing, "uncertainty-only"), "calibrate",
-                                   {**calibration_params(ablation_sensing, "uncertainty-only"),
-                                    "estimator": estimator, "k": safety.k}, deps=deps)
-                units.append(calibration)
-                calibrations += (calibration.id,)
-        for perturbation, strengths in safety.perturbations.items():
-            params = {**common, "estimator": estimator, "perturbation": perturbation, "strengths": strengths,
-                      "repeats": safety.repeats, "thresholds": safety.thresholds.get(estimator, estimator),
-                      "proximity": safety.proximity, "k": safety.k, "window": safety.window,
-                      "sensing": list(safety.sensing)}
-            if ablated:
-                params["ablation"] = {"sensing": ablation_sensing, "budget": safety.false_activation_budget,
-                                      "rules": [rule for rule in safety.ablation if rule == "uncertainty-only"],
-                                      "tradeoff_budgets": extra_budgets, "tradeoff_repeats": safety.tradeoff_repeats,
-                                      "unperturbed": perturbation == first}
-            evaluations.append(Unit(f"safety/{estimator}/{perturbation}", "safety_eval", params,
-                                    deps=deps + calibrations))
-    if proximity_calibration is not None:
-        for perturbation, strengths in safety.perturbations.items():
-            evaluations.append(Unit(f"safety/{NO_ESTIMATOR}/{perturbation}", "safety_eval_proximity", {
-                **common, "perturbation": perturbation, "strengths": strengths, "repeats": safety.repeats,
-                "window": safety.window, "sensing": ablation_sensing,
-                "budgets": [safety.false_activation_budget, *extra_budgets], "unperturbed": perturbation == first,
-                "tradeoff_repeats": safety.tradeoff_repeats,
-            }, deps=(*acting, proximity_calibration.id)))
-    if not ablated:
-        return units + evaluations  # the configured order
-    return sorted(units, key=_relative_cost, reverse=True) + sorted(evaluations, key=_relative_cost, reverse=True)
-
-
-@register_planner("safety_benchmark")
-def plan_safety_benchmark(experiment: Experiment) -> list[Unit]:
-    """The safety-layer benchmark (`socnav.experiments.safety_benchmark`): train the policies of `grid` (one
-    scenario, one algorithm), then one benchmark unit per training seed, in which that seed's policy acts and its
-    MC dropout estimates the uncertainty: every trigger of `safety.triggers` calibrated at every budget of
-    `safety.tradeoff_budgets` (or `safety.false_activation_budget`) on the calibration episodes, then played on the
-    held-out worlds (`safety.perturbations` and the benchmark's shifts)."""
-    grid, evaluation, safety = experiment.grid, experiment.evaluation, experiment.safety
-    if safety is None or len(grid.train_scenarios) != 1 or len(grid.algorithms) != 1:
-        raise ExperimentError(f"experiment {experiment.name!r}: kind safety_benchmark needs a `safety` block and "
-                              "trains one algorithm on one scenario")
-    scenario, algo = grid.train_scenarios[0], grid.algorithms[0]
-    trains = [_train_unit(experiment, scenario, algo, seed) for seed in grid.seeds]  # type: ignore[union-attr]
-    budgets = list(safety.tradeoff_budgets) or [safety.false_activation_budget]
-    benchmarks = [Unit(f"benchmark/seed{train.params['seed']}", "safety_benchmark", {
-        "env": experiment.env_config(scenario), "train_seed": train.params["seed"], "budgets": budgets,
-        "calibration_episodes": safety.calibration_episodes, "episodes": evaluation.episodes,
-        "seed": evaluation.seed, "n_envs": evaluation.n_envs, "perturbations": safety.perturbations,
-        "sensing": safety.sensing[0], "k": safety.k, "window": safety.window, "triggers": list(safety.triggers),
-        **_replay_files(experiment, scenario),
-    }, deps=(train.id,)) for train in trains]
-    return [*trains, *benchmarks]
-
-
-def _replay_files(experiment: Experiment, scenario: str) -> dict[str, list[str]]:
-    """``{"replay_files": [absolute paths]}`` of the benchmark's replay shift, each file checked as the world
-    reading it checks it; ``{}`` without files (the units' parameters as before the shift existed)."""
-    from socnav.experiments.safety_benchmark import replay_shift
-
-    files = experiment.safety.replay_files if experiment.safety is not None else []
-    if not files:
-        return {}
-    world = {**experiment.env_config(scenario), **replay_shift(files)["replay"]}
-    try:
-        checked = load_config(world).humans.replay.files
-    except ConfigError as error:
-        raise ExperimentError(f"experiment {experiment.name!r}: safety.replay_files: {error}") from None
-    return {"replay_files": [str(path) for path in checked]}
-
-
-def _relative_cost(unit: Unit) -> float:
-    """A unit's rough cost relative to a one-budget MC-dropout calibration, for the plan order: the runner starts
-    ready units in plan order, so the longest first keep both workers busy to the end. Measured on the 2-core
-    machine (Table 3 quick): an ensemble replay costs ~1.2 MC-dropout ones, a replay without estimate ~0.2; each
-    further trade-off budget adds ~35 % replays (~5 % with the light search), the uncertainty-only search has ~15 %
-    fewer candidates."""
-    p = unit.params
-    per_replay = {"ensemble": 1.2, "mc": 1.0}.get(p.get("estimator") or NO_ESTIMATOR, 0.2)
-    per_budget = 0.05 if p.get("tradeoff_search") == "light" else 0.35
-    replays = ((1.0 + per_budget * len(p.get("tradeoff_budgets", [])))
-               * (0.85 if p.get("conditions") == "uncertainty-only" else 1.0))
-    return per_replay * replays
-
-
 def planned_unit_count(experiment: Experiment) -> int:
     """An upper bound of the units `plan_units` builds, from the grid's sizes alone (nothing expanded)."""
-    grid = experiment.grid
-    trainings = len(grid.train_scenarios) * len(grid.algorithms) * len(grid.seeds)  # type: ignore[arg-type]
-    if experiment.kind == "table1":
-        return trainings * (1 + len(experiment.evaluation.scenarios))
-    count = trainings
-    if experiment.study is not None:
-        count += len(experiment.study.estimators) * len(experiment.study.perturbations)
-    if experiment.safety is not None:
-        safety = experiment.safety
-        rules = (len(safety.estimators) + 1) * (1 + len(safety.ablation))
-        count += rules * (len(safety.sensing) + len(safety.perturbations))
-    return count
+    load_kind(experiment.kind)
+    return UNIT_COUNTS[experiment.kind](experiment)
 
 
 def plan_units(experiment: Experiment) -> list[Unit]:
@@ -955,3 +672,8 @@ def plan_units(experiment: Experiment) -> list[Unit]:
             raise ExperimentError(f"experiment {experiment.name!r}: unit {unit.id} is planned before {missing}")
         seen.add(unit.id)
     return units
+
+
+def __getattr__(name: str) -> Any:
+    # names that moved to socnav.paper: still importable from here, with a DeprecationWarning
+    return moved_attribute('socnav.experiments.spec', name)

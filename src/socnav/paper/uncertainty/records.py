@@ -31,9 +31,9 @@ import numpy as np
 import pandas as pd
 
 from socnav.envs.perturbations import PERTURBATIONS, strength_zero
-from socnav.experiments.labels import TABLE2_ROWS
 from socnav.experiments.registry import ReportContext, unit_dir
 from socnav.io import UntrustedInputError, read_json, read_table
+from socnav.paper.labels import TABLE2_ROWS
 from socnav.sim.metrics import METRIC_RECORD_COLUMNS
 
 __all__ = [
@@ -48,7 +48,7 @@ STEP_COLUMNS = ["estimator", "perturbation", "strength", "episode", "step", *RAW
                 "outcome"]
 SAFETY_COLUMNS = ["estimator", "perturbation", "strength", "repeat", "variant", "sensing", "seed", "outcome",
                   "length", "time_to_goal", "duration", "fallback_steps",
-                  # with the ablation (socnav.experiments.uncertainty_units.ABLATION_COLUMNS)
+                  # with the ablation (socnav.paper.uncertainty.units.ABLATION_COLUMNS)
                   "rule", "budget", "proximity_steps", "vetoed_steps", "fallback_digest",
                   # every metric's record columns (socnav.sim.metrics; a record file may hold only some of them)
                   "return", "path_length", "min_gap", "intrusion_events", "disturbance", *METRIC_RECORD_COLUMNS]

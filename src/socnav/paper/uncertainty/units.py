@@ -24,8 +24,9 @@ from socnav.experiments.registry import (
     single_threaded_torch,
     unit_dir,
 )
-from socnav.experiments.spec import NO_ESTIMATOR, Unit, calibration_unit_id, tradeoff_thresholds_file
+from socnav.experiments.spec import Unit
 from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.uncertainty.plan import NO_ESTIMATOR, calibration_unit_id, tradeoff_thresholds_file
 from socnav.uncertainty import MC_SEED
 
 

@@ -11,7 +11,7 @@ import math
 
 import pandas as pd
 
-from socnav.experiments.labels import PAPER_COLUMN
+from socnav.paper.labels import PAPER_COLUMN
 
 __all__ = [
     "PAPER_BUDGET", "PAPER_TABLE1_ROWS", "PAPER_TABLE2", "PAPER_TABLE3", "paper_table1", "paper_table2", "paper_table3",
@@ -56,7 +56,7 @@ PAPER_TABLE3 = {"obs": {"mc": (100.0, 0.0), "ensemble": (79.0, 11.0)},
 
 
 def paper_table1() -> pd.DataFrame:
-    """The paper's Table I (15 seeds x 200 episodes), in the long form of `socnav.experiments.report.table1_frame`
+    """The paper's Table I (15 seeds x 200 episodes), in the long form of `socnav.paper.table1.tables.table1_frame`
     (returns are the paper's reward instantiation: compare orderings, not absolute values)."""
     rows = []
     evals = ["circle_interaction", "circle_crossing", "random"]

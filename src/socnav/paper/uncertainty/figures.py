@@ -17,7 +17,9 @@ from typing import Any, Literal
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.io import save_figure, write_table_atomic
+from socnav.paper.labels import (
     CURVE_UNCERTAINTIES,
     ESTIMATOR_ORDER,
     ESTIMATOR_SHORT,
@@ -29,9 +31,7 @@ from socnav.experiments.labels import (
     perturbation_label,
     present_in_order,
 )
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.uncertainty_records import study_summaries
-from socnav.io import save_figure, write_table_atomic
+from socnav.paper.uncertainty.records import study_summaries
 
 __all__ = [
     "CRITICAL_SUMMARY_COLUMNS", "CURVE_COLUMNS", "LINESTYLES", "MARKERS", "critical_summary",

@@ -213,7 +213,7 @@ def test_ablation_safety_units_play_every_rule_on_the_same_episodes(tmp_path):
 def test_proximity_only_calibration_unit_writes_every_budget_without_an_estimator(tmp_path, monkeypatch):
     import json
 
-    import socnav.experiments.uncertainty_units as units_module
+    import socnav.paper.uncertainty.units as units_module
     from socnav.experiments.registry import EXECUTORS, unit_dir
     from socnav.safety import load_thresholds
 
@@ -239,7 +239,7 @@ def test_proximity_only_calibration_unit_writes_every_budget_without_an_estimato
 
 
 def test_with_the_ablation_only_one_unit_plays_the_unperturbed_world():
-    from socnav.experiments.uncertainty_units import play_safety_episodes
+    from socnav.paper.uncertainty.units import play_safety_episodes
     from socnav.rl.persistence import load_policy
 
     policy = load_policy("pretrained")
@@ -253,7 +253,7 @@ def test_with_the_ablation_only_one_unit_plays_the_unperturbed_world():
 
 
 def test_a_trade_off_budget_plays_only_its_first_repeats():
-    from socnav.experiments.uncertainty_units import SafetyVariant, play_safety_episodes
+    from socnav.paper.uncertainty.units import SafetyVariant, play_safety_episodes
     from socnav.rl.persistence import load_policy
     from socnav.safety import Thresholds
 

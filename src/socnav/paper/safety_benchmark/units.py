@@ -21,7 +21,9 @@ from socnav.experiments.registry import (
     single_threaded_torch,
     unit_dir,
 )
-from socnav.experiments.safety_benchmark import (
+from socnav.experiments.spec import Unit
+from socnav.io import read_table, write_table_atomic, write_text_atomic
+from socnav.paper.safety_benchmark.benchmark import (
     BENCHMARK_ROWS,
     CALIBRATION_SCORES,
     HELD_OUT_SHIFTS,
@@ -34,8 +36,6 @@ from socnav.experiments.safety_benchmark import (
     run_safety_benchmark,
     summarize_layers,
 )
-from socnav.experiments.spec import Unit
-from socnav.io import read_table, write_table_atomic, write_text_atomic
 
 __all__ = ["benchmark_markdown", "calibration_table", "deployment_choice", "seed_differences", "verdicts"]
 

@@ -155,7 +155,7 @@ def report(tmp_path_factory) -> tuple[Path, str]:
 
 def test_sections_are_registered_for_the_uncertainty_kind():
     names = [name for name, _ in SECTIONS["uncertainty"]]
-    # the page order of socnav.experiments.uncertainty_report.PAGE: what the uncertainty knows comes last
+    # the page order of socnav.paper.uncertainty.report.PAGE: what the uncertainty knows comes last
     assert names[:6] == ["table2", "table2_claims", "uncertainty_vs_strength", "feature_uncertainty_collisions",
                          "table3", "table3_cost"]
     assert names[-1] == "uncertainty_information"
@@ -355,7 +355,7 @@ def test_calibrated_thresholds_switched_off_in_json_show_as_infinity(tmp_path):
 
 
 def test_table3_reports_each_sensing_against_the_same_plain_runs():
-    from socnav.experiments.uncertainty_table3 import cost_frame, cost_markdown, prevented_frame, prevented_markdown
+    from socnav.paper.uncertainty.table3 import cost_frame, cost_markdown, prevented_frame, prevented_markdown
 
     frame = _safety("mc", "observation_noise")
     frame["sensing"] = np.where(frame["variant"] == "none", "", "perceived")
@@ -388,7 +388,7 @@ def test_unpaired_groups_compares_each_sensing_with_the_plain_policy():
     """Two sensings of one variant on the plain policy's seeds are paired; a run on other seeds is not."""
     import pandas as pd
 
-    from socnav.experiments.uncertainty_table3 import unpaired_groups
+    from socnav.paper.uncertainty.table3 import unpaired_groups
 
     def rows(variant, sensing, seeds):
         return [{"estimator": "mc", "perturbation": "heading_noise", "strength": 1.0, "repeat": 0,
@@ -422,7 +422,7 @@ def test_table3_shows_each_of_the_papers_columns_once(report):
 def test_mcnemar_exact_by_hand():
     from scipy.stats import binomtest
 
-    from socnav.experiments.uncertainty_ablation import mcnemar_exact
+    from socnav.paper.uncertainty.ablation import mcnemar_exact
 
     # 10 discordant episodes, all won: pi's Clopper-Pearson lower end is (alpha / 2) ** (1 / 10), the upper 1
     low, high, p = mcnemar_exact(10, 0, 0.95)
@@ -465,7 +465,7 @@ def _ablation_records() -> pd.DataFrame:
 
 
 def test_ablation_compares_every_rule_with_proximity_only_episode_by_episode():
-    from socnav.experiments.uncertainty_ablation import ablation_records, decisions_frame, paired_frame
+    from socnav.paper.uncertainty.ablation import ablation_records, decisions_frame, paired_frame
 
     view = ablation_records(_ablation_records(), "true", 0.05)
     paired = paired_frame(view).set_index(["estimator", "row", "column"])
@@ -542,7 +542,7 @@ def test_ablation_and_tradeoff_sections(tmp_path):
     # one budget: no curve
     assert ("mc", "uncertainty-only") not in set(zip(curve["estimator"], curve["rule"], strict=True))
     # a trade-off budget played on the first repeat only: every point of the curve on that repeat alone
-    from socnav.experiments.uncertainty_tradeoff import tradeoff_frame
+    from socnav.paper.uncertainty.tradeoff import tradeoff_frame
 
     second = records[records["budget"] != 0.02].assign(repeat=1)
     second.loc[second["outcome"] == "collision", "outcome"] = "goal"  # a repeat the curve must not see
@@ -610,7 +610,7 @@ def test_behaviour_shift_is_a_column_of_ours_in_tables_2_and_3_and_not_in_the_pa
 
 
 def test_vetoes_are_counted_per_setting_with_the_unperturbed_episodes_together():
-    from socnav.experiments.uncertainty_ablation import vetoes_frame, vetoes_markdown
+    from socnav.paper.uncertainty.ablation import vetoes_frame, vetoes_markdown
 
     rows = []
     for perturbation, strength, proximity, vetoed in [("observation_noise", 0.0, 10, 3),
@@ -628,7 +628,7 @@ def test_vetoes_are_counted_per_setting_with_the_unperturbed_episodes_together()
 
 
 def test_a_column_of_ours_does_not_change_the_pooled_comparison():
-    from socnav.experiments.uncertainty_ablation import paper_column_kinds
+    from socnav.paper.uncertainty.ablation import paper_column_kinds
 
     groups = paper_column_kinds(["behaviour_shift", "observation_noise", "heading_noise", "speed_noise"])
     assert groups["all"] == ["observation_noise", "heading_noise", "speed_noise"]  # the paper's types only

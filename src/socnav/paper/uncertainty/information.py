@@ -30,7 +30,7 @@ within the next second:
   models' refitting). Intervals are per test (95 %), not adjusted for the many measures shown.
 
 The same bootstrap of episodes (:func:`cluster_counts`, :func:`percentile_interval`) gives the Table 2 claims'
-intervals (`socnav.experiments.uncertainty_table2_claims`).
+intervals (`socnav.paper.uncertainty.table2_claims`).
 """
 
 from __future__ import annotations
@@ -46,17 +46,17 @@ import pandas as pd
 import scipy.special
 import scipy.stats
 
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.experiments.statistics import Interval
+from socnav.io import save_figure, write_table_atomic, write_text_atomic
+from socnav.paper.labels import (
     ESTIMATOR_LABELS,
     ESTIMATOR_ORDER,
     MEASURE_LABELS,
     PERTURBATION_ORDER,
     UNCERTAINTY_LABELS,
 )
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.statistics import Interval
-from socnav.experiments.uncertainty_records import read_record_columns, record_files
-from socnav.io import save_figure, write_table_atomic, write_text_atomic
+from socnav.paper.uncertainty.records import read_record_columns, record_files
 from socnav.safety.rule import THRESHOLD_PRESETS
 
 __all__ = [

@@ -3,7 +3,7 @@ episodes; the claims' table and report section.
 
 The claims: MC-dropout responds to perturbations more strongly than the ensemble, heading uncertainty rises while
 speed uncertainty stays flat, more humans cause the highest uncertainty. The intervals come from the episode-cluster
-bootstrap of `socnav.experiments.uncertainty_information` (``cluster_counts``, ``percentile_interval``),
+bootstrap of `socnav.paper.uncertainty.information` (``cluster_counts``, ``percentile_interval``),
 Bonferroni-adjusted over each claim's tests.
 """
 
@@ -16,7 +16,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.experiments.statistics import CANNOT_TELL, DOES_NOT_HOLD, HOLDS, verdict
+from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.labels import (
     BEYOND_PAPER,
     ESTIMATOR_ORDER,
     PERTURBATION_ORDER,
@@ -25,11 +28,8 @@ from socnav.experiments.labels import (
     perturbation_label,
     present_in_order,
 )
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.statistics import CANNOT_TELL, DOES_NOT_HOLD, HOLDS, verdict
-from socnav.experiments.uncertainty_information import bonferroni_confidence, cluster_counts, percentile_interval
-from socnav.experiments.uncertainty_records import RAW_COLUMNS, study_summaries
-from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.uncertainty.information import bonferroni_confidence, cluster_counts, percentile_interval
+from socnav.paper.uncertainty.records import RAW_COLUMNS, study_summaries
 
 __all__ = [
     "CLAIM_COLUMNS", "CLAIM_HEADING_RISES", "CLAIM_MC_STRONGER", "CLAIM_MORE_HUMANS", "CLAIM_SHORT", "CLAIM_TESTS",

@@ -9,11 +9,11 @@ from typing import Any
 
 import pandas as pd
 
-from socnav.experiments.labels import ESTIMATOR_ORDER, SENSING_LABELS, SENSING_ORDER, estimator_label, present_in_order
 from socnav.experiments.registry import ReportContext
-from socnav.experiments.spec import NO_ESTIMATOR
-from socnav.experiments.uncertainty_records import calibrations
 from socnav.io import write_table_atomic
+from socnav.paper.labels import ESTIMATOR_ORDER, SENSING_LABELS, SENSING_ORDER, estimator_label, present_in_order
+from socnav.paper.uncertainty.plan import NO_ESTIMATOR
+from socnav.paper.uncertainty.records import calibrations
 from socnav.safety.rule import THRESHOLD_PRESETS
 
 __all__ = ["RULE_LABELS", "calibration_section"]

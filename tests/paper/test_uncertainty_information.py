@@ -1,4 +1,4 @@
-"""What the uncertainty knows (socnav.experiments.uncertainty_information) and the Table 2 claims with intervals:
+"""What the uncertainty knows (socnav.paper.uncertainty.information) and the Table 2 claims with intervals:
 ranking metrics against hand values and brute force, the 1-s label, the proximity state, the episode bootstrap."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import scipy.stats
 
 from socnav.experiments.statistics import CANNOT_TELL, DOES_NOT_HOLD, HOLDS
-from socnav.experiments.uncertainty_information import (
+from socnav.paper.uncertainty.information import (
     auroc,
     average_precision,
     bonferroni_confidence,
@@ -25,7 +25,7 @@ from socnav.experiments.uncertainty_information import (
     prepare_steps,
     ranking_draws,
 )
-from socnav.experiments.uncertainty_table2_claims import (
+from socnav.paper.uncertainty.table2_claims import (
     CLAIM_HEADING_RISES,
     CLAIM_MC_STRONGER,
     CLAIM_MORE_HUMANS,

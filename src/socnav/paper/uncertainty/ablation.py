@@ -16,7 +16,10 @@ import numpy as np
 import pandas as pd
 
 from socnav.envs.perturbations import PERTURBATIONS
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.experiments.statistics import Interval, verdict
+from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.labels import (
     ESTIMATOR_ORDER,
     MISSING,
     PAPER_TABLE3_COLUMNS,
@@ -26,11 +29,9 @@ from socnav.experiments.labels import (
     estimator_label,
     present_in_order,
 )
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.spec import NO_ESTIMATOR
-from socnav.experiments.statistics import Interval, verdict
-from socnav.experiments.uncertainty_records import perturbed_rows, safety_records, with_rule
-from socnav.experiments.uncertainty_table3 import (
+from socnav.paper.uncertainty.plan import NO_ESTIMATOR
+from socnav.paper.uncertainty.records import perturbed_rows, safety_records, with_rule
+from socnav.paper.uncertainty.table3 import (
     DEFAULT_BUDGET,
     decimal_text,
     episode_rates,
@@ -39,7 +40,6 @@ from socnav.experiments.uncertainty_table3 import (
     run_budget,
     table3_groups,
 )
-from socnav.io import write_table_atomic, write_text_atomic
 
 __all__ = [
     "ABLATION_CONFIDENCE", "ABLATION_ROWS", "DECISION_COLUMNS", "EPISODE_KEYS", "PAIRED_COLUMNS", "REFERENCE",

@@ -4,14 +4,14 @@ page order -- Table 2 and its claims, Figs. 5-6, Table 3, its cost, ablation and
 Each section writes nothing and returns an empty string when its records are absent (a Table 2 run has no safety
 records, a Table 3 run may have no study records). Where each part lives:
 
-- `socnav.experiments.uncertainty_records`: reading the study, safety and calibration records;
-- `socnav.experiments.uncertainty_table2`, `socnav.experiments.uncertainty_table2_claims`: Table 2 and its claims;
-- `socnav.experiments.uncertainty_figures`: Figs. 5 and 6;
-- `socnav.experiments.uncertainty_table3`, `socnav.experiments.uncertainty_ablation`,
-  `socnav.experiments.uncertainty_tradeoff`: Table 3, its cost, its ablation and its trade-off curve;
-- `socnav.experiments.uncertainty_thresholds`: the calibrated thresholds next to the paper's;
-- `socnav.experiments.uncertainty_information`: what the uncertainty knows about a collision in the next second;
-- `socnav.experiments.labels`, `socnav.experiments.paper_tables`: names and orders, the paper's published numbers.
+- `socnav.paper.uncertainty.records`: reading the study, safety and calibration records;
+- `socnav.paper.uncertainty.table2`, `socnav.paper.uncertainty.table2_claims`: Table 2 and its claims;
+- `socnav.paper.uncertainty.figures`: Figs. 5 and 6;
+- `socnav.paper.uncertainty.table3`, `socnav.paper.uncertainty.ablation`,
+  `socnav.paper.uncertainty.tradeoff`: Table 3, its cost, its ablation and its trade-off curve;
+- `socnav.paper.uncertainty.thresholds`: the calibrated thresholds next to the paper's;
+- `socnav.paper.uncertainty.information`: what the uncertainty knows about a collision in the next second;
+- `socnav.paper.labels`, `socnav.paper.published`: names and orders, the paper's published numbers.
 
 The functions callers use most are importable from here as well.
 """
@@ -19,7 +19,7 @@ The functions callers use most are importable from here as well.
 from __future__ import annotations
 
 from socnav.experiments.registry import Section, register_section
-from socnav.experiments.uncertainty_ablation import (
+from socnav.paper.uncertainty.ablation import (
     ablation_markdown,
     ablation_records,
     decisions_frame,
@@ -27,18 +27,18 @@ from socnav.experiments.uncertainty_ablation import (
     paired_frame,
     table3_ablation_section,
 )
-from socnav.experiments.uncertainty_figures import (
+from socnav.paper.uncertainty.figures import (
     feature_uncertainty_collisions_section,
     plot_feature_collisions,
     plot_uncertainty_vs_strength,
     strength_curves,
     uncertainty_vs_strength_section,
 )
-from socnav.experiments.uncertainty_information import uncertainty_information_section
-from socnav.experiments.uncertainty_records import safety_records, study_summaries, summarise_steps
-from socnav.experiments.uncertainty_table2 import study_metrics_frame, table2_frame, table2_markdown, table2_section
-from socnav.experiments.uncertainty_table2_claims import table2_claims_section
-from socnav.experiments.uncertainty_table3 import (
+from socnav.paper.uncertainty.information import uncertainty_information_section
+from socnav.paper.uncertainty.records import safety_records, study_summaries, summarise_steps
+from socnav.paper.uncertainty.table2 import study_metrics_frame, table2_frame, table2_markdown, table2_section
+from socnav.paper.uncertainty.table2_claims import table2_claims_section
+from socnav.paper.uncertainty.table3 import (
     cost_frame,
     cost_markdown,
     main_records,
@@ -48,8 +48,8 @@ from socnav.experiments.uncertainty_table3 import (
     table3_cost_section,
     table3_section,
 )
-from socnav.experiments.uncertainty_thresholds import calibration_section
-from socnav.experiments.uncertainty_tradeoff import plot_tradeoff, table3_tradeoff_section, tradeoff_frame
+from socnav.paper.uncertainty.thresholds import calibration_section
+from socnav.paper.uncertainty.tradeoff import plot_tradeoff, table3_tradeoff_section, tradeoff_frame
 
 __all__ = [
     "KIND", "PAGE", "ablation_markdown", "ablation_records", "cost_frame", "cost_markdown", "decisions_frame",

@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from socnav.experiments.labels import ESTIMATOR_ORDER, PAPER_TABLE3_COLUMNS, SENSING_LABELS, estimator_label
 from socnav.experiments.registry import ReportContext
-from socnav.experiments.spec import NO_ESTIMATOR
-from socnav.experiments.uncertainty_ablation import ablation_sensing
-from socnav.experiments.uncertainty_figures import LINESTYLES, MARKERS, pyplot
-from socnav.experiments.uncertainty_records import perturbed_rows, safety_records, with_rule
-from socnav.experiments.uncertainty_table3 import decimal_text, episode_rates, table3_groups
 from socnav.io import save_figure, write_table_atomic
+from socnav.paper.labels import ESTIMATOR_ORDER, PAPER_TABLE3_COLUMNS, SENSING_LABELS, estimator_label
+from socnav.paper.uncertainty.ablation import ablation_sensing
+from socnav.paper.uncertainty.figures import LINESTYLES, MARKERS, pyplot
+from socnav.paper.uncertainty.plan import NO_ESTIMATOR
+from socnav.paper.uncertainty.records import perturbed_rows, safety_records, with_rule
+from socnav.paper.uncertainty.table3 import decimal_text, episode_rates, table3_groups
 
 __all__ = ["TRADEOFF_COLUMNS", "TRADEOFF_LABELS", "plot_tradeoff", "table3_tradeoff_section", "tradeoff_frame"]
 

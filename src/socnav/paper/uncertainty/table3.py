@@ -21,7 +21,9 @@ import numpy as np
 import pandas as pd
 
 from socnav.envs.perturbations import CALIBRATION_SEED, CALIBRATION_SET, PERTURBATIONS
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.labels import (
     ESTIMATOR_ORDER,
     MISSING,
     OWN_TABLE3_COLUMNS,
@@ -36,11 +38,9 @@ from socnav.experiments.labels import (
     present_in_order,
     variant_label,
 )
-from socnav.experiments.paper_tables import paper_table3
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.spec import NO_ESTIMATOR
-from socnav.experiments.uncertainty_records import perturbed_rows, safety_records, with_rule, with_sensing
-from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.published import paper_table3
+from socnav.paper.uncertainty.plan import NO_ESTIMATOR
+from socnav.paper.uncertainty.records import perturbed_rows, safety_records, with_rule, with_sensing
 from socnav.sim.metrics import ALL_METRICS, summarize_episodes, summarize_groups
 
 __all__ = [

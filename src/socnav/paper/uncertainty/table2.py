@@ -5,7 +5,7 @@ perturbation type, per estimator, next to the paper's Table II; its report secti
 sigma_0))`` per uncertainty, perturbation and estimator, ``u(sigma)`` the mean over the episodes at strength
 ``sigma`` of each episode's mean per-step RAW uncertainty; ``sigma_0`` / ``sigma_max`` the smallest / largest
 strength in the records. ``u(sigma_0) = 0`` leaves the ratio undefined (shown as ``—``). The claims the paper draws
-from it are tested in `socnav.experiments.uncertainty_table2_claims`.
+from it are tested in `socnav.paper.uncertainty.table2_claims`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ import numpy as np
 import pandas as pd
 
 from socnav.envs.perturbations import PERTURBATIONS, strength_zero
-from socnav.experiments.labels import (
+from socnav.experiments.registry import ReportContext
+from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.labels import (
     ESTIMATOR_ORDER,
     ESTIMATOR_SHORT,
     MISSING,
@@ -28,17 +30,15 @@ from socnav.experiments.labels import (
     perturbation_label,
     present_in_order,
 )
-from socnav.experiments.paper_tables import PAPER_TABLE2, paper_table2
-from socnav.experiments.registry import ReportContext
-from socnav.experiments.uncertainty_records import (
+from socnav.paper.published import PAPER_TABLE2, paper_table2
+from socnav.paper.uncertainty.records import (
     RAW_COLUMNS,
     calibrations,
     safety_records,
     study_episode_records,
     study_summaries,
 )
-from socnav.experiments.uncertainty_table2_claims import mc_vs_ensemble_sentence, table2_claims
-from socnav.io import write_table_atomic, write_text_atomic
+from socnav.paper.uncertainty.table2_claims import mc_vs_ensemble_sentence, table2_claims
 from socnav.sim.metrics import ALL_METRICS, summarize_groups
 
 __all__ = ["STUDY_METRIC_KEYS", "TABLE2_COLUMNS", "study_metrics_frame", "table2_frame", "table2_markdown",

@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from socnav.experiments.safety_benchmark import BenchmarkSetup, paired_against, summarize_layers
-from socnav.experiments.safety_benchmark_units import benchmark_markdown, seed_differences, verdicts
 from socnav.experiments.spec import ExperimentError, load_experiment, parse_experiment, plan_units
+from socnav.paper.safety_benchmark.benchmark import BenchmarkSetup, paired_against, summarize_layers
+from socnav.paper.safety_benchmark.units import benchmark_markdown, seed_differences, verdicts
 
 CONFIG = "configs/experiments/safety_benchmark.yaml"
 
@@ -58,7 +58,7 @@ def test_unknown_trigger_in_a_config_names_the_closest():
 def test_replayed_pedestrians_are_a_held_out_shift_when_files_are_given(tmp_path):
     import yaml
 
-    from socnav.experiments.safety_benchmark import replay_shift
+    from socnav.paper.safety_benchmark.benchmark import replay_shift
 
     rows = [(10 * j, ped, 0.5 * j - 3.0, float(ped)) for j in range(12) for ped in (1, 2)]
     recording = tmp_path / "scene.txt"
@@ -234,7 +234,7 @@ def test_a_small_benchmark_runs_end_to_end_and_resumes_from_its_calibration(tmp_
     the stand-still robot on the same episodes; a second run reads the calibrated layers back instead of
     calibrating again."""
     import socnav
-    from socnav.experiments.safety_benchmark import LAYERS_FILE, load_layers, run_safety_benchmark
+    from socnav.paper.safety_benchmark.benchmark import LAYERS_FILE, load_layers, run_safety_benchmark
 
     pretrained_policy = socnav.load_policy("pretrained")
 
@@ -261,8 +261,8 @@ def test_a_small_benchmark_runs_end_to_end_and_resumes_from_its_calibration(tmp_
 
 
 def test_the_row_to_deploy_is_chosen_on_the_calibration_scores():
-    from socnav.experiments.safety_benchmark import Layer
-    from socnav.experiments.safety_benchmark_units import calibration_table, deployment_choice
+    from socnav.paper.safety_benchmark.benchmark import Layer
+    from socnav.paper.safety_benchmark.units import calibration_table, deployment_choice
     from socnav.safety import Thresholds
 
     never = Thresholds.never()
