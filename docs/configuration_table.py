@@ -188,14 +188,14 @@ def flag_values(param: Any, allowed: dict[str, tuple[str, ...]]) -> str:
 def named_values() -> dict[str, tuple[str, ...]]:
     """Fields (dotted, as in the doc) whose strings name something registered in the code, and those names."""
     from socnav.envs.perturbations import PERTURBATION_FIELDS
-    from socnav.experiments.spec import PLANNERS
+    from socnav.experiments.registry import experiment_kinds
     from socnav.rl.presets import ALGOS
     from socnav.sim.humans import human_model_names
     from socnav.sim.scenarios import scenario_names
 
     scenarios = tuple(scenario_names())
     return {
-        "scenario": scenarios, "humans.model": tuple(human_model_names()), "kind": tuple(PLANNERS), "scenario_env": scenarios, "grid.algorithms": ALGOS,
+        "scenario": scenarios, "humans.model": tuple(human_model_names()), "kind": tuple(experiment_kinds()), "scenario_env": scenarios, "grid.algorithms": ALGOS,
         "grid.train_scenarios": scenarios, "grid.algo_overrides": ALGOS, "evaluation.scenarios": scenarios,
         "study.perturbations": tuple(PERTURBATION_FIELDS), "safety.perturbations": tuple(PERTURBATION_FIELDS),
         "safety.thresholds": ("mc", "ensemble"), "budgets.<name>.algorithms": ALGOS,
