@@ -85,8 +85,9 @@ def main() -> None:
         decision = navigator.act(scene.robot_state(), scene.tracked_humans())
         latencies.append(time.perf_counter() - start)
         speed, turn = decision.command
-        print(f"{step:4d}  {step * PERIOD:5.2f}  {speed:4.2f}  {turn:+6.3f}  {str(decision.fallback):8s}  "
-              f"{decision.windowed['u_ep_heading']:13.4f}  {decision.windowed['u_feat']:6.3f}  {scene.nearest_gap():6.2f}")
+        print(f"{step:4d}  {step * PERIOD:5.2f}  {speed:4.2f}  {turn:+6.3f}  {decision.fallback!s:8s}  "
+              f"{decision.windowed['u_ep_heading']:13.4f}  {decision.windowed['u_feat']:6.3f}  "
+              f"{scene.nearest_gap():6.2f}")
         scene.apply(speed, turn, PERIOD)
         if scene.nearest_gap() < 0:
             print("collision")
