@@ -154,6 +154,7 @@ def choices() -> dict[str, tuple[str, ...]]:
     from socnav.cli.workflows.tune import METRICS
     from socnav.controllers import CONTROLLERS
     from socnav.experiments.runner import run_experiment
+    from socnav.rl.persistence import PRETRAINED_FILES
     from socnav.rl.presets import ALGOS
     from socnav.safety import PROXIMITY_VARIANTS, SENSING_CHOICES, THRESHOLD_PRESETS
     from socnav.sim.humans import human_model_names
@@ -165,7 +166,7 @@ def choices() -> dict[str, tuple[str, ...]]:
         "estimator": tuple(ESTIMATOR_KINDS), "sensing": SENSING_CHOICES, "proximity": ("both", *PROXIMITY_VARIANTS),
         "safety": (*THRESHOLD_PRESETS, "FILE"), "thresholds": (*THRESHOLD_PRESETS, "FILE"),
         "backend": typing.get_args(typing.get_type_hints(run_experiment)["backend"]), "metric": tuple(METRICS),
-        "model": ("FILE", "pretrained"), "humans": tuple(human_model_names()),
+        "model": ("FILE", *PRETRAINED_FILES), "humans": tuple(human_model_names()),
     }
 
 
