@@ -105,3 +105,21 @@ def test_the_moved_modules_and_names_import_from_their_old_places_with_a_warning
         from socnav.experiments.report import no_such_name  # noqa: F401
     with pytest.raises(ModuleNotFoundError):
         importlib.import_module("socnav.experiments.uncertainty_nothing")
+
+
+def test_a_plugin_kind_that_cannot_be_imported_is_one_line_naming_it(tmp_path, monkeypatch):
+    entry = importlib.metadata.EntryPoint("broken", "no_such_plugin_module", registry.ENTRY_POINT_GROUP)
+    real = importlib.metadata.entry_points
+    monkeypatch.setattr(importlib.metadata, "entry_points",
+                        lambda **kw: [entry] if kw.get("group") == registry.ENTRY_POINT_GROUP else real(**kw))
+    registry._kind_modules.cache_clear()
+    try:
+        experiment = parse_experiment({
+            "name": "b", "kind": "broken",
+            "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": [0], "timesteps": 100},
+            "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
+        with pytest.raises(ExperimentError, match="experiment 'b': experiment kind 'broken': its module "
+                                                  "no_such_plugin_module cannot be imported"):
+            plan_units(experiment)
+    finally:
+        registry._kind_modules.cache_clear()

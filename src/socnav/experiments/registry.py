@@ -67,14 +67,18 @@ def experiment_kinds() -> list[str]:
 def load_kind(kind: str) -> None:
     """Import the module of experiment kind `kind`, which registers its planner, executors and sections.
 
-    :raises ValueError: `kind` is unknown (the message names the known kinds), or its module registers no planner.
+    :raises ValueError: `kind` is unknown (the message names the known kinds), or its module cannot be imported or
+        registers no planner.
     """
     if kind in PLANNERS:
         return
     modules = _kind_modules()
     if kind not in modules:
         raise ValueError(f"unknown experiment kind {kind!r}; known kinds: {', '.join(modules)}")
-    importlib.import_module(modules[kind])
+    try:
+        importlib.import_module(modules[kind])
+    except ImportError as error:  # a plugin not installed, or broken: one line naming the kind and its module
+        raise ValueError(f"experiment kind {kind!r}: its module {modules[kind]} cannot be imported ({error})") from None
     if kind not in PLANNERS:
         raise ValueError(f"experiment kind {kind!r}: its module {modules[kind]} registers no planner")
 

@@ -651,7 +651,10 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
 
 def planned_unit_count(experiment: Experiment) -> int:
     """An upper bound of the units `plan_units` builds, from the grid's sizes alone (nothing expanded)."""
-    load_kind(experiment.kind)
+    try:
+        load_kind(experiment.kind)
+    except ValueError as error:
+        raise ExperimentError(f"experiment {experiment.name!r}: {error}") from None
     return UNIT_COUNTS[experiment.kind](experiment)
 
 
