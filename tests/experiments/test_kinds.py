@@ -123,3 +123,18 @@ def test_a_plugin_kind_that_cannot_be_imported_is_one_line_naming_it(tmp_path, m
             plan_units(experiment)
     finally:
         registry._kind_modules.cache_clear()
+
+
+def test_a_kind_without_a_unit_counter_is_bounded_once_planned(monkeypatch):
+    import socnav.experiments.spec as spec
+
+    monkeypatch.setitem(registry.PLANNERS, "uncounted", lambda experiment: [
+        registry.Unit(f"u/{index}", "greet", {}) for index in range(3)])
+    experiment = parse_experiment({
+        "name": "u", "kind": "uncounted",
+        "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": [0], "timesteps": 100},
+        "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
+    assert spec.planned_unit_count(experiment) is None and len(plan_units(experiment)) == 3
+    monkeypatch.setattr(spec, "MAX_UNITS", 2)
+    with pytest.raises(ExperimentError, match="the plan has 3 units, above the bound of 2"):
+        plan_units(experiment)

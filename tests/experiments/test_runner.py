@@ -20,7 +20,7 @@ from _extras import require
 from typer.testing import CliRunner
 
 from socnav.cli import app
-from socnav.experiments.registry import EXECUTORS, PLANNERS, UNIT_COUNTS, ExecutorResult, unit_dir
+from socnav.experiments.registry import EXECUTORS, PLANNERS, ExecutorResult, unit_dir
 from socnav.experiments.report import build_report
 from socnav.experiments.runner import Reporter, RunnerError, read_plan, run_experiment, unit_lock_path, unit_states
 from socnav.experiments.spec import Unit, load_experiment, plan_units
@@ -242,7 +242,6 @@ def test_failing_unit_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
         return ExecutorResult(["out.txt"])
 
     monkeypatch.setitem(PLANNERS, "failing-demo", plan)
-    monkeypatch.setitem(UNIT_COUNTS, "failing-demo", lambda experiment: 3)
     monkeypatch.setitem(EXECUTORS, "boom", boom)
     monkeypatch.setitem(EXECUTORS, "fine", fine)
     spec = yaml.safe_load(SMOKE.read_text())

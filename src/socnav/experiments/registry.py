@@ -102,12 +102,14 @@ PLANNERS: dict[str, Planner] = {}
 UNIT_COUNTS: dict[str, UnitCounter] = {}
 
 
-def register_planner(kind: str, count: UnitCounter) -> Callable[[Planner], Planner]:
-    """Decorator registering the unit planner of an experiment kind and the counter of its units."""
+def register_planner(kind: str, count: UnitCounter | None = None) -> Callable[[Planner], Planner]:
+    """Decorator registering the unit planner of an experiment kind and the counter of its units (without one, a plan
+    is bounded only once it is built)."""
 
     def decorate(function: Planner) -> Planner:
         PLANNERS[kind] = function
-        UNIT_COUNTS[kind] = count
+        if count is not None:
+            UNIT_COUNTS[kind] = count
         return function
 
     return decorate

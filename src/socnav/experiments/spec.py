@@ -649,23 +649,28 @@ def resolve_budget(experiment: Experiment, budget: str | None) -> Experiment:
 # Units of work
 # --------------------------------------------------------------------------------------------------------------
 
-def planned_unit_count(experiment: Experiment) -> int:
-    """An upper bound of the units `plan_units` builds, from the grid's sizes alone (nothing expanded)."""
+def planned_unit_count(experiment: Experiment) -> int | None:
+    """An upper bound of the units `plan_units` builds, from the grid's sizes alone (nothing expanded); None when the
+    kind registered no counter."""
     try:
         load_kind(experiment.kind)
     except ValueError as error:
         raise ExperimentError(f"experiment {experiment.name!r}: {error}") from None
-    return UNIT_COUNTS[experiment.kind](experiment)
+    counter = UNIT_COUNTS.get(experiment.kind)
+    return None if counter is None else counter(experiment)
 
 
 def plan_units(experiment: Experiment) -> list[Unit]:
     """The units of a resolved experiment, every unit after the units it depends on; refused (with the count)
-    above `MAX_UNITS`, counted before any unit is built."""
+    above `MAX_UNITS`, counted before any unit is built when the kind counts its units."""
     count = planned_unit_count(experiment)
-    if count > MAX_UNITS:
+    if count is not None and count > MAX_UNITS:
         raise ExperimentError(f"experiment {experiment.name!r}: the grid makes {count:,} units, above the bound of "
                               f"{MAX_UNITS:,}; reduce grid.seeds, grid.algorithms or the scenarios")
     units = PLANNERS[experiment.kind](experiment)
+    if len(units) > MAX_UNITS:
+        raise ExperimentError(f"experiment {experiment.name!r}: the plan has {len(units):,} units, above the bound of "
+                              f"{MAX_UNITS:,}; reduce grid.seeds, grid.algorithms or the scenarios")
     seen: set[str] = set()
     for unit in units:
         if unit.id in seen:
