@@ -11,7 +11,8 @@ difference.
 
 Every result file of every unit is compared without tolerance: Parquet and CSV frames (wall-clock columns dropped),
 JSON (wall-clock, host, version and output-hash keys dropped: the hashed files are compared themselves), threshold
-YAML and report Markdown as text, trained models tensor by tensor. Run both on the same machine: training is
+YAML and report Markdown as text (each run's own directory, which a file may name, read as the same), trained models
+tensor by tensor. Run both on the same machine: training is
 reproducible there, not across CPUs.
 """
 
@@ -57,9 +58,17 @@ def _shared(a: pd.DataFrame, b: pd.DataFrame, added: list[str] | None) -> pd.Dat
     return b[list(a.columns)]
 
 
-def compare_file(before: Path, after: Path, added: list[str] | None = None) -> str | None:
+def _text(path: Path, run_root: Path | None) -> str:
+    """The file's text with its run directory's path (a safety layer's file names its risk model by it) replaced."""
+    text = path.read_text()
+    return text if run_root is None else text.replace(str(run_root), "<run directory>")
+
+
+def compare_file(before: Path, after: Path, added: list[str] | None = None,
+                 roots: tuple[Path, Path] | None = None) -> str | None:
     """None if the two files hold the same results, else what differs. `added`: a list to collect the columns
-    `after`'s tables add (then they are allowed), or None (then they are a difference)."""
+    `after`'s tables add (then they are allowed), or None (then they are a difference); `roots`: the two run
+    directories, whose paths inside text files are read as the same."""
     try:
         if before.suffix == ".parquet":
             a, b = pd.read_parquet(before), pd.read_parquet(after)
@@ -76,7 +85,8 @@ def compare_file(before: Path, after: Path, added: list[str] | None = None) -> s
             a, b = _model_tensors(before), _model_tensors(after)
             assert a.keys() == b.keys() and all(a[k] == b[k] for k in a), "model tensors differ"
         else:
-            assert before.read_text() == after.read_text(), "text differs"
+            root_before, root_after = roots if roots is not None else (None, None)
+            assert _text(before, root_before) == _text(after, root_after), "text differs"
     except AssertionError as error:
         return str(error)[:300]
     return None
@@ -86,6 +96,7 @@ def compare_runs(before: Path, after: Path, added: dict[str, list[str]] | None =
     """(files compared, differences) over every result file of `before`; `added`: a dict to collect, per file, the
     columns its table gains in `after` (allowed), or None (a difference)."""
     compared, differences = 0, []
+    roots = (before.resolve(), after.resolve())
     for path in sorted(before.rglob("*")):
         relative = path.relative_to(before)
         if (not path.is_file() or path.name.startswith(".") or path.name in BOOKKEEPING_FILES
@@ -97,7 +108,7 @@ def compare_runs(before: Path, after: Path, added: dict[str, list[str]] | None =
             differences.append(f"{relative}: missing in {after}")
         else:
             columns: list[str] | None = None if added is None else []
-            if (problem := compare_file(path, after / relative, columns)) is not None:
+            if (problem := compare_file(path, after / relative, columns, roots)) is not None:
                 differences.append(f"{relative}: {problem}")
             elif columns:
                 added[str(relative)] = columns
