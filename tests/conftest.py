@@ -59,6 +59,9 @@ SLOW_TESTS: dict[str, tuple[str, ...]] = {
         "test_table1_numbers_equal_a_direct_computation",  # 3.2 s
         "test_training_curves_mean_and_band_over_seeds",  # 2.5 s
     ),
+    "tests/experiments/test_kinds.py": (
+        "test_every_shipped_kind_registers_its_planner_executors_and_page[table1-table1]",  # 1.3 s: the first import
+    ),
     "tests/experiments/test_runner.py": (
         "test_corrupt_and_half_written_units_are_redone",  # 0.0 s
         "test_local_backend_end_to_end",  # 0.0 s
