@@ -42,6 +42,29 @@ def test_an_unknown_kind_names_the_known_ones():
         registry.load_kind("table7")
 
 
+@pytest.fixture
+def plugin_entry_point(monkeypatch):
+    """``install(kind, module)``: an installed package's entry point of the group, for this test only."""
+    real = importlib.metadata.entry_points
+    entries: list[importlib.metadata.EntryPoint] = []
+    monkeypatch.setattr(importlib.metadata, "entry_points",
+                        lambda **kw: entries if kw.get("group") == registry.ENTRY_POINT_GROUP else real(**kw))
+
+    def install(kind: str, module: str) -> None:
+        entries.append(importlib.metadata.EntryPoint(kind, module, registry.ENTRY_POINT_GROUP))
+        registry._kind_modules.cache_clear()
+
+    yield install
+    registry._kind_modules.cache_clear()
+
+
+def _experiment(name: str, kind: str, seeds: list[int]):
+    return parse_experiment({
+        "name": name, "kind": kind,
+        "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": seeds, "timesteps": 100},
+        "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
+
+
 PLUGIN = '''
 from socnav.experiments.registry import ExecutorResult, register_executor, register_planner, register_section
 from socnav.experiments.units import Unit
@@ -62,26 +85,18 @@ register_section("greetings", "greetings")(lambda context: f"{len(context.done('
 '''
 
 
-def test_a_plugin_kind_found_through_its_entry_point_runs_and_reports(tmp_path, monkeypatch):
+def test_a_plugin_kind_found_through_its_entry_point_runs_and_reports(tmp_path, monkeypatch, plugin_entry_point):
     (tmp_path / "greetings_kind.py").write_text(PLUGIN)
     monkeypatch.syspath_prepend(str(tmp_path))
-    entry = importlib.metadata.EntryPoint("greetings", "greetings_kind", registry.ENTRY_POINT_GROUP)
-    real = importlib.metadata.entry_points
-    monkeypatch.setattr(importlib.metadata, "entry_points",
-                        lambda **kw: [entry] if kw.get("group") == registry.ENTRY_POINT_GROUP else real(**kw))
-    registry._kind_modules.cache_clear()
+    plugin_entry_point("greetings", "greetings_kind")
     try:
         assert registry.experiment_kinds() == [*registry.KIND_MODULES, "greetings"]
-        experiment = parse_experiment({
-            "name": "hello", "kind": "greetings",
-            "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": [0, 1], "timesteps": 100},
-            "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
+        experiment = _experiment("hello", "greetings", [0, 1])
         summary = run_experiment(experiment, tmp_path / "run", workers=0)
         assert summary.ok and summary.count("done") == 2
         assert (tmp_path / "run" / "greet" / "seed1" / "greeting.txt").read_text() == "hello from seed 1"
         assert "2 greetings" in build_report(tmp_path / "run").read_text()
     finally:
-        registry._kind_modules.cache_clear()
         sys.modules.pop("greetings_kind", None)
         for table in (registry.PLANNERS, registry.UNIT_COUNTS, registry.SECTIONS):
             table.pop("greetings", None)
@@ -107,22 +122,11 @@ def test_the_moved_modules_and_names_import_from_their_old_places_with_a_warning
         importlib.import_module("socnav.experiments.uncertainty_nothing")
 
 
-def test_a_plugin_kind_that_cannot_be_imported_is_one_line_naming_it(tmp_path, monkeypatch):
-    entry = importlib.metadata.EntryPoint("broken", "no_such_plugin_module", registry.ENTRY_POINT_GROUP)
-    real = importlib.metadata.entry_points
-    monkeypatch.setattr(importlib.metadata, "entry_points",
-                        lambda **kw: [entry] if kw.get("group") == registry.ENTRY_POINT_GROUP else real(**kw))
-    registry._kind_modules.cache_clear()
-    try:
-        experiment = parse_experiment({
-            "name": "b", "kind": "broken",
-            "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": [0], "timesteps": 100},
-            "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
-        with pytest.raises(ExperimentError, match="experiment 'b': experiment kind 'broken': its module "
-                                                  "no_such_plugin_module cannot be imported"):
-            plan_units(experiment)
-    finally:
-        registry._kind_modules.cache_clear()
+def test_a_plugin_kind_that_cannot_be_imported_is_one_line_naming_it(plugin_entry_point):
+    plugin_entry_point("broken", "no_such_plugin_module")
+    with pytest.raises(ExperimentError, match="experiment 'b': experiment kind 'broken': its module "
+                                              "no_such_plugin_module cannot be imported"):
+        plan_units(_experiment("b", "broken", [0]))
 
 
 def test_a_kind_without_a_unit_counter_is_bounded_once_planned(monkeypatch):
@@ -130,10 +134,7 @@ def test_a_kind_without_a_unit_counter_is_bounded_once_planned(monkeypatch):
 
     monkeypatch.setitem(registry.PLANNERS, "uncounted", lambda experiment: [
         registry.Unit(f"u/{index}", "greet", {}) for index in range(3)])
-    experiment = parse_experiment({
-        "name": "u", "kind": "uncounted",
-        "grid": {"algorithms": ["ppo"], "train_scenarios": ["random"], "seeds": [0], "timesteps": 100},
-        "evaluation": {"scenarios": ["random"], "episodes": 1}}, "test")
+    experiment = _experiment("u", "uncounted", [0])
     assert spec.planned_unit_count(experiment) is None and len(plan_units(experiment)) == 3
     monkeypatch.setattr(spec, "MAX_UNITS", 2)
     with pytest.raises(ExperimentError, match="the plan has 3 units, above the bound of 2"):
