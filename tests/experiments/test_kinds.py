@@ -139,3 +139,16 @@ def test_a_kind_without_a_unit_counter_is_bounded_once_planned(monkeypatch):
     monkeypatch.setattr(spec, "MAX_UNITS", 2)
     with pytest.raises(ExperimentError, match="the plan has 3 units, above the bound of 2"):
         plan_units(experiment)
+
+
+def test_a_broken_plugin_does_not_stop_the_other_kinds_in_a_worker(tmp_path, plugin_entry_point):
+    from socnav.experiments.execution import execute_unit
+
+    plugin_entry_point("broken", "no_such_plugin_module")
+    problems = registry.load_kinds()  # what a fresh worker does: every kind that loads is there
+    assert problems == ["experiment kind 'broken': its module no_such_plugin_module cannot be imported "
+                        "(No module named 'no_such_plugin_module')"]
+    assert {"train", "eval", "calibrate", "safety_benchmark"} <= set(registry.EXECUTORS)
+    result = execute_unit(registry.Unit("orphan/a", "orphan", {}).to_json(), str(tmp_path))
+    assert result["status"] == "failed" and "no executor for unit kind 'orphan'" in result["error"]
+    assert "no_such_plugin_module cannot be imported" in result["error"]

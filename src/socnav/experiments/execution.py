@@ -54,10 +54,10 @@ def _execute_locked(unit: Unit, run_root: Path, started: float) -> dict[str, Any
         state = unit_state(run_root, unit)
         if state == "done":
             return {"id": unit.id, "status": "skipped", "wall_time_s": 0.0}
+        problems = load_kinds() if unit.kind not in EXECUTORS else []  # a fresh worker has imported no kind yet
         if unit.kind not in EXECUTORS:
-            load_kinds()  # a fresh worker process (spawned pool, Ray node) has imported no kind yet
-        if unit.kind not in EXECUTORS:
-            raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}")
+            raise RunnerError(f"no executor for unit kind {unit.kind!r}; known: {', '.join(sorted(EXECUTORS))}"
+                              + "".join(f"; {problem}" for problem in problems))
         prepare_unit_dir(run_root, unit, state)
         result = EXECUTORS[unit.kind](run_root, unit, directory)
         elapsed = time.perf_counter() - started

@@ -83,10 +83,16 @@ def load_kind(kind: str) -> None:
         raise ValueError(f"experiment kind {kind!r}: its module {modules[kind]} registers no planner")
 
 
-def load_kinds() -> None:
-    """Import every experiment kind known by name: what a process running units of any kind needs."""
+def load_kinds() -> list[str]:
+    """Import every experiment kind known by name: what a process running units of any kind needs. A kind that
+    cannot be loaded does not stop the others; returns why each such kind could not (empty: all loaded)."""
+    problems = []
     for kind in _kind_modules():
-        load_kind(kind)
+        try:
+            load_kind(kind)
+        except ValueError as error:
+            problems.append(str(error))
+    return problems
 
 
 # --------------------------------------------------------------------------------------------------------------
